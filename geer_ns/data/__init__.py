@@ -1,0 +1,1 @@
+"""Data path: BEAP resampling, datamanager, dataparsers and the embedded demo scene."""

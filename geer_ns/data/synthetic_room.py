@@ -1,0 +1,631 @@
+"""Procedural synthetic room rendered by analytic ray casting (numpy only).
+
+The scene is the ground truth for tests and the demo training run. It is independent of any
+Gaussian renderer: every pixel colour is the shaded albedo at the nearest analytic ray hit, so
+any renderer/camera model can be checked against :func:`render_room_rays` for arbitrary rays.
+
+World frame: metres, +z up. The room is an axis-aligned box seen from the inside; inside it sit
+spheres and boxes (axis-aligned and rotated) with procedural textures mixing high-frequency
+(fine checkers/stripes) and low-frequency (gradients) content so reconstruction quality is
+measurable. Shading is Lambertian, one directional light + ambient, no shadows, deterministic.
+
+Dataset layout written by :func:`generate_room` (nerfstudio "nerfstudio-data" format)::
+
+    OUT_DIR/
+      transforms.json            # OPENCV_FISHEYE (k1..k4 = 0): ideal equidistant 180 deg fisheye
+      transforms_pinhole.json    # OPENCV (zero distortion), 90 deg FoV, same poses and splits
+      images_fisheye/frame_XXXXX.png
+      images_pinhole/frame_XXXXX.png
+      masks/fisheye_mask.png     # 255 where the pixel centre is inside the 180 deg circle
+      points3d.ply               # seed point cloud (binary PLY, xyz float + rgb uchar)
+      .geer_ns_synthetic_room.json  # marker: proves this directory was made by this generator
+
+CLI: ``python -m geer_ns.data.synthetic_room OUT_DIR [--n-views N --size S --seed K --overwrite]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable, Dict, List, Tuple
+
+import cv2
+import numpy as np
+
+__all__ = [
+    "SCENE_VERSION",
+    "ROOM_MIN",
+    "ROOM_MAX",
+    "generate_room",
+    "default_scene_dir",
+    "render_room_rays",
+    "is_inside_free_space",
+    "camera_poses",
+    "fisheye_intrinsics",
+    "pinhole_intrinsics",
+    "fisheye_pixel_dirs",
+    "pinhole_pixel_dirs",
+    "opencv_to_nerfstudio_c2w",
+]
+
+SCENE_VERSION = 1
+MARKER_NAME = ".geer_ns_synthetic_room.json"
+
+# Room interior (an axis-aligned box, 5 x 4 x 2.4 m).
+ROOM_MIN = np.array([-2.5, -2.0, 0.0])
+ROOM_MAX = np.array([2.5, 2.0, 2.4])
+
+# Light: direction the light travels (downwards, slanted so every room face gets a distinct level).
+_LIGHT_DIR = np.array([0.35, -0.25, -0.9])
+_LIGHT_DIR = _LIGHT_DIR / np.linalg.norm(_LIGHT_DIR)
+_AMBIENT = 0.4
+_DIFFUSE = 0.6
+
+
+# --------------------------------------------------------------------------------------------
+# Procedural textures. Each maps hit data to an albedo [M, 3] in [0, 1].
+# --------------------------------------------------------------------------------------------
+
+
+def _mix(c0, c1, w: np.ndarray) -> np.ndarray:
+    """Blend two RGB colours with weights w in [0, 1] (w=1 -> c1)."""
+    c0 = np.asarray(c0, dtype=np.float64)
+    c1 = np.asarray(c1, dtype=np.float64)
+    return c0[None] * (1.0 - w[:, None]) + c1[None] * w[:, None]
+
+
+def _checker(u: np.ndarray, v: np.ndarray, period: float) -> np.ndarray:
+    """1.0 / 0.0 checkerboard with squares of side ``period``."""
+    return ((np.floor(u / period) + np.floor(v / period)) % 2.0).astype(np.float64)
+
+
+def _stripes(u: np.ndarray, period: float) -> np.ndarray:
+    """Hard 1.0 / 0.0 stripes of width period/2."""
+    return (np.floor(2.0 * u / period) % 2.0).astype(np.float64)
+
+
+def _room_albedo(p: np.ndarray, axis: np.ndarray, side: np.ndarray) -> np.ndarray:
+    """Albedo of the room's inner faces. axis: 0/1/2 face normal axis, side: -1 (min) / +1 (max)."""
+    out = np.zeros((p.shape[0], 3))
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+
+    # Floor: 0.5 m checker (mid frequency) with a faint 0.1 m stripe modulation (high frequency).
+    m = (axis == 2) & (side < 0)
+    if m.any():
+        c = _mix((0.82, 0.74, 0.58), (0.30, 0.20, 0.12), _checker(x[m], y[m], 0.5))
+        c *= (0.9 + 0.1 * _stripes(x[m] + y[m], 0.2))[:, None]
+        out[m] = c
+    # Ceiling: smooth radial gradient (low frequency).
+    m = (axis == 2) & (side > 0)
+    if m.any():
+        r = np.sqrt(x[m] ** 2 + y[m] ** 2) / 3.2
+        out[m] = _mix((0.95, 0.95, 0.85), (0.45, 0.55, 0.75), np.clip(r, 0, 1))
+    # Wall x = max: vertical blue/white stripes, 0.25 m period (high frequency).
+    m = (axis == 0) & (side > 0)
+    if m.any():
+        out[m] = _mix((0.92, 0.92, 0.95), (0.15, 0.30, 0.70), _stripes(y[m], 0.25))
+    # Wall x = min: fine green/white checker, 0.15 m (highest frequency).
+    m = (axis == 0) & (side < 0)
+    if m.any():
+        out[m] = _mix((0.90, 0.95, 0.88), (0.20, 0.55, 0.25), _checker(y[m], z[m], 0.15))
+    # Wall y = max: smooth horizontal colour gradient + one soft sine band (low frequency).
+    m = (axis == 1) & (side > 0)
+    if m.any():
+        t = (x[m] - ROOM_MIN[0]) / (ROOM_MAX[0] - ROOM_MIN[0])
+        c = _mix((0.85, 0.35, 0.30), (0.30, 0.40, 0.85), t)
+        c *= (0.8 + 0.2 * np.sin(np.pi * z[m] / ROOM_MAX[2]))[:, None]
+        out[m] = c
+    # Wall y = min: diagonal orange/grey stripes, 0.4 m period.
+    m = (axis == 1) & (side < 0)
+    if m.any():
+        out[m] = _mix((0.55, 0.55, 0.55), (0.95, 0.60, 0.15), _stripes(x[m] + z[m], 0.4))
+    return out
+
+
+def _sphere_latlong(p_local: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Longitude in [-pi, pi] and latitude in [-pi/2, pi/2] of a point relative to a sphere centre."""
+    r = np.linalg.norm(p_local, axis=-1)
+    lon = np.arctan2(p_local[:, 1], p_local[:, 0])
+    lat = np.arcsin(np.clip(p_local[:, 2] / np.maximum(r, 1e-12), -1.0, 1.0))
+    return lon, lat
+
+
+def _tex_sphere_checker(pl: np.ndarray, face: np.ndarray) -> np.ndarray:
+    lon, lat = _sphere_latlong(pl)
+    w = _checker(lon, lat, np.pi / 6.0)  # 12 x 6 lat-long checker
+    return _mix((0.95, 0.85, 0.20), (0.80, 0.15, 0.15), w)
+
+
+def _tex_sphere_smooth(pl: np.ndarray, face: np.ndarray) -> np.ndarray:
+    n = pl / np.linalg.norm(pl, axis=-1, keepdims=True)
+    return np.clip(0.5 + 0.4 * n[:, [0, 1, 2]] * np.array([1.0, -1.0, 0.8]), 0.0, 1.0)
+
+
+def _tex_sphere_bands(pl: np.ndarray, face: np.ndarray) -> np.ndarray:
+    return _mix((0.95, 0.95, 0.95), (0.35, 0.10, 0.55), _stripes(pl[:, 2], 0.12))
+
+
+def _box_face_uv(pl: np.ndarray, face: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """The two in-face local coordinates of a box hit (face = normal axis 0/1/2)."""
+    u = np.where(face == 0, pl[:, 1], pl[:, 0])
+    v = np.where(face == 2, pl[:, 1], pl[:, 2])
+    return u, v
+
+
+def _tex_box_checker(pl: np.ndarray, face: np.ndarray) -> np.ndarray:
+    u, v = _box_face_uv(pl, face)
+    base = _mix((0.95, 0.95, 0.92), (0.10, 0.45, 0.45), _checker(u, v, 0.15))
+    # Per-face tint so the faces are distinguishable even at the same light level.
+    tint = np.array([[1.0, 0.9, 0.9], [0.9, 1.0, 0.9], [0.9, 0.9, 1.0]])[face]
+    return base * tint
+
+
+def _tex_box_diagonal(pl: np.ndarray, face: np.ndarray) -> np.ndarray:
+    u, v = _box_face_uv(pl, face)
+    return _mix((0.98, 0.55, 0.10), (0.40, 0.15, 0.50), _stripes(u + v, 0.2))
+
+
+# --------------------------------------------------------------------------------------------
+# Scene description (fixed: the seed only changes camera poses and point-cloud sampling).
+# --------------------------------------------------------------------------------------------
+
+
+def _rot_zx(yaw_deg: float, tilt_deg: float) -> np.ndarray:
+    """Rotation R_world_from_local = Rz(yaw) @ Rx(tilt)."""
+    a, b = np.deg2rad(yaw_deg), np.deg2rad(tilt_deg)
+    rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    rx = np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
+    return rz @ rx
+
+
+# (centre, radius, texture)
+_SPHERES: List[Tuple[np.ndarray, float, Callable]] = [
+    (np.array([0.0, 0.0, 0.5]), 0.5, _tex_sphere_checker),  # centrepiece the orbit looks at
+    (np.array([1.9, 1.4, 0.35]), 0.35, _tex_sphere_smooth),  # corner ball, low frequency
+    (np.array([-1.8, -1.3, 1.6]), 0.3, _tex_sphere_bands),  # floating ball, high frequency
+]
+# (centre, half extents, R_world_from_local, texture)
+_BOXES: List[Tuple[np.ndarray, np.ndarray, np.ndarray, Callable]] = [
+    (np.array([-1.85, 1.35, 0.45]), np.array([0.4, 0.3, 0.45]), np.eye(3), _tex_box_checker),
+    (np.array([1.75, -1.25, 0.6]), np.array([0.3, 0.45, 0.5]), _rot_zx(35.0, 12.0), _tex_box_diagonal),
+]
+
+
+# --------------------------------------------------------------------------------------------
+# Ray casting
+# --------------------------------------------------------------------------------------------
+
+
+def _safe_dirs(d: np.ndarray) -> np.ndarray:
+    """Replace exact zeros by a tiny signed value so slab tests never divide 0 by 0."""
+    return np.where(np.abs(d) < 1e-30, 1e-30, d)
+
+
+def _slab(o: np.ndarray, d: np.ndarray, half: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Entry/exit distances of rays (box-local frame) through the box [-half, half]."""
+    inv = 1.0 / _safe_dirs(d)
+    t1 = (-half[None] - o) * inv
+    t2 = (half[None] - o) * inv
+    return np.max(np.minimum(t1, t2), axis=1), np.min(np.maximum(t1, t2), axis=1)
+
+
+def _face_axis(pl: np.ndarray, half: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Face (normal axis, side) of points lying on a box surface, in the box-local frame."""
+    rel = np.abs(pl) / half[None]
+    axis = np.argmax(rel, axis=1)
+    side = np.sign(pl[np.arange(pl.shape[0]), axis])
+    side[side == 0] = 1.0
+    return axis, side
+
+
+def render_room_rays(origins: np.ndarray, dirs: np.ndarray, eps: float = 1e-9):
+    """Ray-cast the ground-truth scene for arbitrary rays.
+
+    Args:
+        origins: [N, 3] ray origins (world frame, metres). Any float array / tensor-like.
+        dirs: [N, 3] ray directions; need not be normalised.
+    Returns:
+        rgb [N, 3] float64 in [0, 1] (0 where nothing is hit),
+        depth [N] distance from the origin to the hit along the *normalised* direction
+        (inf where nothing is hit), hit [N] bool. Rays starting inside the room always hit.
+    """
+    o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+    n_rays = o.shape[0]
+
+    best_t = np.full(n_rays, np.inf)
+    best_id = np.full(n_rays, -1, dtype=np.int64)  # 0 = room, 1.. = objects
+
+    # Room: seen from the inside, so the visible surface is the slab exit.
+    centre = 0.5 * (ROOM_MIN + ROOM_MAX)
+    half_room = 0.5 * (ROOM_MAX - ROOM_MIN)
+    t_in, t_out = _slab(o - centre, d, half_room)
+    ok = (t_out > np.maximum(t_in, eps))
+    best_t[ok] = t_out[ok]
+    best_id[ok] = 0
+
+    objects: List[Tuple[str, tuple]] = [("sphere", s) for s in _SPHERES] + [("box", b) for b in _BOXES]
+    for k, (kind, prm) in enumerate(objects, start=1):
+        if kind == "sphere":
+            c, r, _ = prm
+            oc = o - c[None]
+            b = np.einsum("ij,ij->i", oc, d)
+            disc = b * b - (np.einsum("ij,ij->i", oc, oc) - r * r)
+            sq = np.sqrt(np.maximum(disc, 0.0))
+            t0, t1 = -b - sq, -b + sq
+            t = np.where(t0 > eps, t0, t1)  # nearest positive root
+            ok = (disc >= 0) & (t > eps)
+        else:
+            c, half, rot, _ = prm
+            ol = (o - c[None]) @ rot  # == R^T (o - c) row-wise
+            dl = d @ rot
+            t_in, t_out = _slab(ol, dl, half)
+            t = np.where(t_in > eps, t_in, t_out)
+            ok = (t_out >= np.maximum(t_in, eps))
+        closer = ok & (t < best_t)
+        best_t[closer] = t[closer]
+        best_id[closer] = k
+
+    hit = best_id >= 0
+    rgb = np.zeros((n_rays, 3))
+    normal = np.zeros((n_rays, 3))
+    p = o + d * np.where(hit, best_t, 0.0)[:, None]
+
+    sel = best_id == 0
+    if sel.any():
+        pl = p[sel] - centre[None]
+        axis, side = _face_axis(pl, half_room)
+        rgb[sel] = _room_albedo(p[sel], axis, side)
+        nrm = np.zeros((axis.shape[0], 3))
+        nrm[np.arange(axis.shape[0]), axis] = -side  # room normals point inwards
+        normal[sel] = nrm
+    for k, (kind, prm) in enumerate(objects, start=1):
+        sel = best_id == k
+        if not sel.any():
+            continue
+        if kind == "sphere":
+            c, r, tex = prm
+            pl = p[sel] - c[None]
+            normal[sel] = pl / np.linalg.norm(pl, axis=1, keepdims=True)
+            rgb[sel] = tex(pl, np.zeros(pl.shape[0], dtype=np.int64))
+        else:
+            c, half, rot, tex = prm
+            pl = (p[sel] - c[None]) @ rot
+            axis, side = _face_axis(pl, half)
+            nl = np.zeros_like(pl)
+            nl[np.arange(pl.shape[0]), axis] = side
+            normal[sel] = nl @ rot.T
+            rgb[sel] = tex(pl, axis)
+
+    # Two-sided Lambert: flip normals towards the viewer so shading never depends on winding.
+    flip = np.einsum("ij,ij->i", normal, d) > 0
+    normal[flip] *= -1.0
+    lambert = np.maximum(normal @ (-_LIGHT_DIR), 0.0)
+    rgb = np.clip(rgb * (_AMBIENT + _DIFFUSE * lambert)[:, None], 0.0, 1.0)
+    rgb[~hit] = 0.0
+    depth = np.where(hit, best_t, np.inf)
+    return rgb, depth, hit
+
+
+def is_inside_free_space(points: np.ndarray, margin: float = 0.0) -> np.ndarray:
+    """True for points inside the room and at least ``margin`` away from every object."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    ok = np.all((pts > ROOM_MIN + margin) & (pts < ROOM_MAX - margin), axis=1)
+    for c, r, _ in _SPHERES:
+        ok &= np.linalg.norm(pts - c[None], axis=1) > r + margin
+    for c, half, rot, _ in _BOXES:
+        pl = (pts - c[None]) @ rot
+        # Distance from a point to an oriented box (0 inside).
+        q = np.maximum(np.abs(pl) - half[None], 0.0)
+        ok &= np.linalg.norm(q, axis=1) > margin
+        ok &= ~np.all(np.abs(pl) <= half[None], axis=1)
+    return ok
+
+
+# --------------------------------------------------------------------------------------------
+# Cameras. Rays are built in the OpenCV camera frame (x right, y down, z forward); the json
+# stores nerfstudio/OpenGL camera-to-world matrices (x right, y up, z back).
+# --------------------------------------------------------------------------------------------
+
+
+def fisheye_intrinsics(size: int) -> Dict[str, float]:
+    """Ideal equidistant fisheye whose 180 deg circle exactly fits a size x size image."""
+    f = size / np.pi  # r = f * theta, r(90 deg) = size / 2
+    return {"fl_x": f, "fl_y": f, "cx": size / 2.0, "cy": size / 2.0, "w": size, "h": size}
+
+
+def pinhole_intrinsics(size: int) -> Dict[str, float]:
+    """Pinhole with a 90 deg horizontal/vertical FoV."""
+    f = (size / 2.0) / np.tan(np.deg2rad(45.0))
+    return {"fl_x": f, "fl_y": f, "cx": size / 2.0, "cy": size / 2.0, "w": size, "h": size}
+
+
+def _pixel_grid(size: int) -> Tuple[np.ndarray, np.ndarray]:
+    """Pixel-centre coordinates (u = j + 0.5, v = i + 0.5), each [size, size]."""
+    c = np.arange(size, dtype=np.float64) + 0.5
+    u, v = np.meshgrid(c, c, indexing="xy")
+    return u, v
+
+
+def fisheye_pixel_dirs(size: int) -> Tuple[np.ndarray, np.ndarray]:
+    """Unit OpenCV-camera directions [size, size, 3] of the equidistant fisheye pixel centres,
+    and the validity mask (theta <= 90 deg, i.e. inside the 180 deg circle)."""
+    k = fisheye_intrinsics(size)
+    u, v = _pixel_grid(size)
+    a = (u - k["cx"]) / k["fl_x"]
+    b = (v - k["cy"]) / k["fl_y"]
+    theta = np.sqrt(a * a + b * b)
+    # sin(theta)/theta -> 1 at the centre; theta never exactly 0 for pixel centres, but be safe.
+    s = np.where(theta > 1e-12, np.sin(theta) / np.maximum(theta, 1e-12), 1.0)
+    dirs = np.stack([a * s, b * s, np.cos(theta)], axis=-1)
+    return dirs, theta <= np.pi / 2.0
+
+
+def pinhole_pixel_dirs(size: int) -> np.ndarray:
+    """Unit OpenCV-camera directions [size, size, 3] of the pinhole pixel centres."""
+    k = pinhole_intrinsics(size)
+    u, v = _pixel_grid(size)
+    d = np.stack([(u - k["cx"]) / k["fl_x"], (v - k["cy"]) / k["fl_y"], np.ones_like(u)], axis=-1)
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def _look_rotation(forward: np.ndarray, roll: float) -> np.ndarray:
+    """R_world_from_cv with columns (right, down, forward) for a +z-up world, then rolled."""
+    fwd = forward / np.linalg.norm(forward)
+    right = np.cross(fwd, np.array([0.0, 0.0, 1.0]))
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    cr, sr = np.cos(roll), np.sin(roll)
+    # Roll about the optical axis keeps the frame right-handed (right x down = forward).
+    right, down = cr * right + sr * down, -sr * right + cr * down
+    return np.stack([right, down, fwd], axis=1)
+
+
+def camera_poses(n_views: int, seed: int = 0) -> List[np.ndarray]:
+    """OpenCV-convention camera-to-world 4x4 poses: a jittered elliptical loop around the room
+    centre with height, yaw (inward / outward / tangential) and pitch variation."""
+    rng = np.random.default_rng(seed)
+    poses = []
+    for k in range(n_views):
+        phi = 2.0 * np.pi * k / n_views
+        for _ in range(100):  # re-draw jitter until the camera is safely in free space
+            pos = np.array(
+                [
+                    1.45 * np.cos(phi) + rng.uniform(-0.1, 0.1),
+                    1.05 * np.sin(phi) + rng.uniform(-0.1, 0.1),
+                    1.25 + 0.3 * np.sin(2.0 * phi) + rng.uniform(-0.1, 0.1),
+                ]
+            )
+            if is_inside_free_space(pos[None], margin=0.2)[0]:
+                break
+        else:  # pragma: no cover - the loop is designed to stay clear of all objects
+            raise RuntimeError("could not place a camera in free space")
+        # Cycle looking inward, tangential, outward, tangential so walls and objects all get seen.
+        yaw = phi + np.pi + (k % 4) * (np.pi / 2.0) + rng.uniform(-0.3, 0.3)
+        pitch = np.deg2rad(25.0) * np.sin(3.0 * phi) + rng.uniform(-0.15, 0.15)
+        fwd = np.array([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)])
+        c2w = np.eye(4)
+        c2w[:3, :3] = _look_rotation(fwd, roll=rng.uniform(-0.15, 0.15))
+        c2w[:3, 3] = pos
+        poses.append(c2w)
+    return poses
+
+
+def opencv_to_nerfstudio_c2w(c2w_cv: np.ndarray) -> np.ndarray:
+    """OpenCV (x right, y down, z fwd) -> nerfstudio/OpenGL (x right, y up, z back) camera axes."""
+    out = np.array(c2w_cv, dtype=np.float64, copy=True)
+    out[:3, 1:3] *= -1.0
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Dataset writing
+# --------------------------------------------------------------------------------------------
+
+
+def _render_view(c2w_cv: np.ndarray, dirs_cam: np.ndarray) -> np.ndarray:
+    h, w, _ = dirs_cam.shape
+    d = dirs_cam.reshape(-1, 3) @ c2w_cv[:3, :3].T
+    o = np.broadcast_to(c2w_cv[:3, 3], d.shape)
+    rgb, _, _ = render_room_rays(o, d)
+    return rgb.reshape(h, w, 3)
+
+
+def _to_u8(img: np.ndarray) -> np.ndarray:
+    return np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8)
+
+
+def _write_png(path: Path, img_u8: np.ndarray) -> None:
+    if img_u8.ndim == 3:
+        img_u8 = cv2.cvtColor(img_u8, cv2.COLOR_RGB2BGR)
+    # Fixed compression level: identical bytes for identical pixels.
+    if not cv2.imwrite(str(path), img_u8, [cv2.IMWRITE_PNG_COMPRESSION, 6]):
+        raise OSError(f"failed to write {path}")
+
+
+def _write_ply(path: Path, xyz: np.ndarray, rgb_u8: np.ndarray) -> None:
+    """Binary little-endian PLY with float xyz and uchar rgb (what open3d / ns-process-data use)."""
+    n = xyz.shape[0]
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {n}\n"
+        "property float x\nproperty float y\nproperty float z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+        "end_header\n"
+    )
+    rec = np.empty(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+    rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    rec["r"], rec["g"], rec["b"] = rgb_u8[:, 0], rgb_u8[:, 1], rgb_u8[:, 2]
+    with open(path, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(rec.tobytes())
+
+
+def _seed_points(poses_cv: List[np.ndarray], n_points: int, rng: np.random.Generator):
+    """Surface points visible from the cameras (like an SfM cloud): cast random rays from
+    random camera centres and keep the hits with their exact shaded colours."""
+    centres = np.stack([p[:3, 3] for p in poses_cv])
+    o = centres[rng.integers(0, len(poses_cv), size=n_points)]
+    d = rng.normal(size=(n_points, 3))
+    rgb, depth, hit = render_room_rays(o, d)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    xyz = o[hit] + d[hit] * depth[hit, None]
+    return xyz, _to_u8(rgb[hit])
+
+
+def _splits(n_views: int, names: List[str]) -> Dict[str, List[str]]:
+    """Every 8th frame (index % 8 == 0) is held out as val/test; the rest is train."""
+    held = [names[i] for i in range(n_views) if i % 8 == 0]
+    train = [names[i] for i in range(n_views) if i % 8 != 0]
+    return {"train_filenames": train, "val_filenames": held, "test_filenames": held}
+
+
+def _write_dataset(root: Path, n_views: int, size: int, seed: int) -> None:
+    rng = np.random.default_rng(seed + 1_000_003)  # separate stream from the pose jitter
+    poses_cv = camera_poses(n_views, seed)
+    fe_dirs, fe_mask = fisheye_pixel_dirs(size)
+    ph_dirs = pinhole_pixel_dirs(size)
+
+    for sub in ("images_fisheye", "images_pinhole", "masks"):
+        (root / sub).mkdir()
+    mask_rel = "masks/fisheye_mask.png"
+    _write_png(root / mask_rel, (fe_mask * 255).astype(np.uint8))
+
+    names_fe, names_ph, frames_fe, frames_ph = [], [], [], []
+    for i, c2w in enumerate(poses_cv):
+        fe = _render_view(c2w, fe_dirs)
+        fe[~fe_mask] = 0.0  # outside the 180 deg circle: no light, as on a real fisheye sensor
+        ph = _render_view(c2w, ph_dirs)
+        fn_fe = f"images_fisheye/frame_{i:05d}.png"
+        fn_ph = f"images_pinhole/frame_{i:05d}.png"
+        _write_png(root / fn_fe, _to_u8(fe))
+        _write_png(root / fn_ph, _to_u8(ph))
+        tm = np.round(opencv_to_nerfstudio_c2w(c2w), 12).tolist()
+        names_fe.append(fn_fe)
+        names_ph.append(fn_ph)
+        frames_fe.append({"file_path": fn_fe, "transform_matrix": tm, "mask_path": mask_rel})
+        frames_ph.append({"file_path": fn_ph, "transform_matrix": tm})
+
+    xyz, rgb = _seed_points(poses_cv, 4000, rng)
+    _write_ply(root / "points3d.ply", xyz, rgb)
+
+    zero_dist = {"k1": 0.0, "k2": 0.0, "k3": 0.0, "k4": 0.0}
+    fe_meta = {
+        "camera_model": "OPENCV_FISHEYE",
+        **fisheye_intrinsics(size),
+        **zero_dist,
+        # Only used by nerfstudio's pixel sampler when no mask is given; the mask is authoritative.
+        "fisheye_crop_radius": size / 2.0,
+        # Poses are already in the final world frame; tell nerfstudio not to re-orient them.
+        "orientation_override": "none",
+        "ply_file_path": "points3d.ply",
+        **_splits(n_views, names_fe),
+        "frames": frames_fe,
+    }
+    ph_meta = {
+        "camera_model": "OPENCV",
+        **pinhole_intrinsics(size),
+        **zero_dist,
+        "p1": 0.0,
+        "p2": 0.0,
+        "orientation_override": "none",
+        "ply_file_path": "points3d.ply",
+        **_splits(n_views, names_ph),
+        "frames": frames_ph,
+    }
+    for name, meta in (("transforms.json", fe_meta), ("transforms_pinhole.json", ph_meta)):
+        (root / name).write_text(json.dumps(meta, indent=2) + "\n")
+    marker = {"generator": "geer_ns.data.synthetic_room", "version": SCENE_VERSION,
+              "n_views": n_views, "image_size": size, "seed": seed}
+    (root / MARKER_NAME).write_text(json.dumps(marker, indent=2) + "\n")
+
+
+def _read_marker(path: Path):
+    try:
+        return json.loads((path / MARKER_NAME).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def generate_room(out_dir: Path, n_views: int = 24, image_size: int = 96, seed: int = 0,
+                  overwrite: bool = False) -> Path:
+    """Write the synthetic-room dataset to ``out_dir`` and return its path.
+
+    Deterministic for given arguments. The dataset is built in a sibling temp directory and
+    renamed into place, so an interrupted run never leaves a half-written dataset. An existing
+    ``out_dir`` is replaced only if it is empty, was made by this generator (marker file), or
+    ``overwrite=True``; otherwise FileExistsError is raised and nothing is touched.
+    """
+    out_dir = Path(out_dir).expanduser().absolute()
+    if n_views < 1 or image_size < 2:
+        raise ValueError("need n_views >= 1 and image_size >= 2")
+    if out_dir.exists() or out_dir.is_symlink():
+        if not out_dir.is_dir() or out_dir.is_symlink():
+            raise FileExistsError(f"{out_dir} exists and is not a plain directory")
+        non_empty = any(out_dir.iterdir())
+        if non_empty and _read_marker(out_dir) is None and not overwrite:
+            raise FileExistsError(
+                f"{out_dir} is a non-empty directory not made by generate_room; pass overwrite=True to replace it")
+        # Guard against catastrophic mistakes even with overwrite=True.
+        if out_dir in (Path(out_dir.anchor), Path.home().absolute()):
+            raise FileExistsError(f"refusing to replace {out_dir}")
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
+    try:
+        _write_dataset(tmp, n_views, image_size, seed)
+        os.chmod(tmp, 0o755)  # mkdtemp makes 0700; a dataset should have normal permissions
+        if out_dir.exists():
+            # Swap via rename so out_dir is never half-written; drop the old copy last.
+            old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old-", dir=out_dir.parent))
+            os.rmdir(old)
+            os.rename(out_dir, old)
+            os.rename(tmp, out_dir)
+            shutil.rmtree(old)
+        else:
+            try:
+                os.rename(tmp, out_dir)
+            except OSError:
+                # A concurrent generator won the race; keep its (identical, deterministic) result.
+                if _read_marker(out_dir) is None:
+                    raise
+                shutil.rmtree(tmp, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out_dir
+
+
+def default_scene_dir() -> Path:
+    """Cached default dataset (``$GEER_NS_CACHE`` or ``~/.cache/geer_ns``)/synthetic_room_v1,
+    generated on first use (or if a previous cached copy is from another version)."""
+    root = Path(os.environ.get("GEER_NS_CACHE", "~/.cache/geer_ns")).expanduser()
+    path = root / f"synthetic_room_v{SCENE_VERSION}"
+    marker = _read_marker(path)
+    expected = {"version": SCENE_VERSION, "n_views": 24, "image_size": 96, "seed": 0}
+    if marker is None or any(marker.get(k) != v for k, v in expected.items()):
+        generate_room(path)
+    return path
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description="Generate the geer-ns synthetic room dataset.")
+    ap.add_argument("out_dir", type=Path)
+    ap.add_argument("--n-views", type=int, default=24)
+    ap.add_argument("--size", type=int, default=96, help="image width = height in pixels")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--overwrite", action="store_true", help="replace a non-empty foreign directory")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    path = generate_room(args.out_dir, args.n_views, args.size, args.seed, args.overwrite)
+    print(f"wrote {path} in {time.perf_counter() - t0:.2f}s")
+
+
+if __name__ == "__main__":
+    main()

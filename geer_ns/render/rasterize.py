@@ -1,0 +1,207 @@
+"""The 3DGEER pipeline in PyTorch: the specification for the CUDA kernels and the CPU renderer.
+
+    preprocess (per Gaussian)  view transform, whitening, PBF, colour        transforms/pbf/sh
+    associate (per tile)       PBF x CSF overlap, front-to-back lists        associate
+    render (per ray)           exact transmittance, front-to-back blending   transmittance/composite
+
+Everything is differentiable with autograd w.r.t. means, quats, scales, opacities and colours; the
+discrete steps (association, skipping, early termination) are piecewise constant.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .associate import TileLists, associate
+from .backend import Backend, resolve_backend
+from .composite import composite
+from .pbf import PBF, LambdaMode, compute_pbf, pbf_lambda_sq
+from .raygrid import RayGrid
+from .sh import sh_to_color
+from .transforms import covariance_factor, to_view_space, whitening
+from .transmittance import canonical_ray_response, pair_alpha
+from .validate import check_gaussians, check_tensor
+
+
+@dataclass
+class Preprocessed:
+    """Per-Gaussian quantities shared by every ray of one view."""
+
+    means_c: Tensor  # [N, 3] view-space means (read .grad after backward for densification)
+    whiten: Tensor  # [N, 3, 3] W = S^-1 R_v^T
+    o_u: Tensor  # [N, 3] camera centre in each canonical frame
+    colors: Tensor  # [N, 3]
+    opacities: Tensor  # [N]
+    depth: Tensor  # [N] Euclidean distance of the mean, the sort key
+    pbf: PBF
+
+
+@dataclass
+class RenderOutput:
+    rgb: Tensor  # [H, W, 3], background composited
+    depth: Tensor  # [H, W, 1] expected distance along the ray (0 where nothing was hit)
+    accumulation: Tensor  # [H, W, 1]
+    visible: Tensor  # [N] bool: associated with at least one active tile
+    tile_counts: Tensor  # [n_tiles] Gaussians per tile
+    means_c: Tensor  # [N, 3] view-space means; .grad is the densification signal
+    pbf: PBF
+    tiles: TileLists | None  # None for the brute-force reference
+
+
+def preprocess(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmat: Tensor,
+    sh_degree: int | None = None,
+    lambda_mode: LambdaMode = "opacity",
+) -> Preprocessed:
+    means_c, rot_v = to_view_space(means, quats, viewmat)
+    if means_c.requires_grad:
+        means_c.retain_grad()
+    w = whitening(rot_v, scales)
+    o_u = -torch.einsum("nij,nj->ni", w, means_c)
+    lam2, alive = pbf_lambda_sq(opacities.detach(), lambda_mode)
+    pbf = compute_pbf(means_c.detach(), covariance_factor(rot_v, scales).detach(), lam2, alive, o_u.detach())
+    if colors.ndim == 2:
+        rgb = colors
+    else:
+        degree = int(math.isqrt(colors.shape[1]) - 1) if sh_degree is None else sh_degree
+        cam_center = -viewmat[:3, :3].T @ viewmat[:3, 3]
+        rgb = sh_to_color(colors, means - cam_center, degree)
+    return Preprocessed(means_c, w, o_u, rgb, opacities, means_c.detach().norm(dim=-1), pbf)
+
+
+def _render_lists(
+    pre: Preprocessed, dirs: Tensor, ray_valid: Tensor, ray_index: Tensor, lists: Tensor, max_pairs: int
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Blend each group of rays ray_index [G, P] (-1 padded) against its Gaussian list lists [G, K].
+
+    Returns flat ray ids and their rgb, accumulated depth and accumulation (rays in group order).
+    """
+    groups, p = ray_index.shape
+    k = lists.shape[1]
+    chunk = max(1, max_pairs // max(1, p * k))
+    ids, rgbs, depths, accs = [], [], [], []
+    for start in range(0, groups, chunk):
+        r_idx = ray_index[start : start + chunk]
+        g_idx = lists[start : start + chunk]
+        r_ok = (r_idx >= 0) & ray_valid[r_idx.clamp_min(0)]
+        g_ok = g_idx >= 0
+        g = g_idx.clamp_min(0)
+        dist_sq, t_star = canonical_ray_response(pre.o_u[g], pre.whiten[g], dirs[r_idx.clamp_min(0)])
+        alpha = pair_alpha(
+            dist_sq,
+            t_star,
+            pre.opacities[g][:, None, :],
+            pre.pbf.camera_inside[g][:, None, :],
+            r_ok[:, :, None] & g_ok[:, None, :],
+        )
+        rgb, depth, acc = composite(alpha, pre.colors[g], t_star.clamp_min(0.0))
+        keep = r_idx >= 0
+        ids.append(r_idx[keep])
+        rgbs.append(rgb[keep])
+        depths.append(depth[keep])
+        accs.append(acc[keep])
+    return torch.cat(ids), torch.cat(rgbs), torch.cat(depths), torch.cat(accs)
+
+
+def _assemble(
+    grid: RayGrid, ids: Tensor, rgb: Tensor, depth: Tensor, acc: Tensor, background: Tensor | None
+) -> tuple[Tensor, Tensor, Tensor]:
+    n_rays = grid.num_rays
+    out_rgb = rgb.new_zeros(n_rays, 3).index_copy(0, ids, rgb)
+    out_depth = depth.new_zeros(n_rays).index_copy(0, ids, depth)
+    out_acc = acc.new_zeros(n_rays).index_copy(0, ids, acc)
+    if background is not None:
+        out_rgb = out_rgb + (1.0 - out_acc)[:, None] * background
+    expected_depth = out_depth / out_acc.clamp_min(1e-10)
+    shape = (grid.height, grid.width)
+    return out_rgb.reshape(*shape, 3), expected_depth.reshape(*shape, 1), out_acc.reshape(*shape, 1)
+
+
+def _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background) -> None:
+    check_gaussians(means, quats, scales, opacities, colors)
+    check_tensor("viewmat", viewmat, (4, 4))
+    if background is not None:
+        check_tensor("background", background, (3,))
+    if not isinstance(grid, RayGrid):
+        raise TypeError(f"grid: expected a RayGrid, got {type(grid).__name__}")
+
+
+def render(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmat: Tensor,
+    grid: RayGrid,
+    *,
+    sh_degree: int | None = None,
+    background: Tensor | None = None,
+    lambda_mode: LambdaMode = "opacity",
+    backend: Backend = "auto",
+    max_pairs: int = 1 << 22,
+) -> RenderOutput:
+    """Render one view with 3DGEER.
+
+    means [N,3], quats [N,4] (wxyz), scales [N,3] (> 0), opacities [N] in [0,1], colors [N,3] (RGB) or
+    [N,K,3] (SH coefficients, degree `sh_degree`, default the largest K allows), viewmat [4,4]
+    world-to-camera (OpenCV axes), grid: the view's rays. float32 or float64 (everything follows means).
+    `max_pairs` caps the (ray, Gaussian) pairs held in memory at once.
+    """
+    _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background)
+    if resolve_backend(backend, means.device) == "cuda":  # pragma: no cover - needs the extension
+        raise RuntimeError("the CUDA backend is not part of this build")
+    grid = grid.to(means.device)
+    dirs = grid.dirs.to(means.dtype)
+    viewmat = viewmat.to(means.dtype)
+    pre = preprocess(means, quats, scales, opacities, colors, viewmat, sh_degree, lambda_mode)
+    tiles = associate(pre.pbf, grid, pre.depth)
+    ids, rgb, depth, acc = _render_lists(pre, dirs, grid.valid, grid.tile_rays, tiles.gaussians, max_pairs)
+    out_rgb, out_depth, out_acc = _assemble(grid, ids, rgb, depth, acc, background)
+    visible = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
+    listed = tiles.gaussians[grid.tile_active]
+    visible[listed[listed >= 0]] = True
+    return RenderOutput(out_rgb, out_depth, out_acc, visible, tiles.counts, pre.means_c, pre.pbf, tiles)
+
+
+def render_brute_force(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmat: Tensor,
+    grid: RayGrid,
+    *,
+    sh_degree: int | None = None,
+    background: Tensor | None = None,
+    rays_per_group: int = 64,
+    max_pairs: int = 1 << 22,
+) -> RenderOutput:
+    """Reference renderer: every valid ray against every Gaussian, no PBF, no tiles, same ordering.
+
+    The tiled renderer must match it exactly whenever association is complete.
+    """
+    _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background)
+    grid = grid.to(means.device)
+    dirs = grid.dirs.to(means.dtype)
+    pre = preprocess(means, quats, scales, opacities, colors, viewmat.to(means.dtype), sh_degree)
+    order = torch.sort(pre.depth, stable=True).indices
+    n_rays = grid.num_rays
+    pad = (-n_rays) % rays_per_group
+    ray_index = torch.cat([torch.arange(n_rays, device=means.device), means.new_full((pad,), -1).long()])
+    ray_index = ray_index.reshape(-1, rays_per_group)
+    lists = order[None].expand(ray_index.shape[0], -1)
+    ids, rgb, depth, acc = _render_lists(pre, dirs, grid.valid, ray_index, lists, max_pairs)
+    out_rgb, out_depth, out_acc = _assemble(grid, ids, rgb, depth, acc, background)
+    visible = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
+    return RenderOutput(out_rgb, out_depth, out_acc, visible, means.new_zeros(0).long(), pre.means_c, pre.pbf, None)

@@ -1,0 +1,156 @@
+"""Stage 0: ray grids. A camera's rays (unit directions in the camera frame) grouped into tiles, the
+camera sub-frusta (CSFs) of paper Sec. 3.2, each with the angular bounds of its own rays.
+
+Two constructors: `RayGrid.beap` samples rays uniformly in (theta, phi) = (atan(x/z), atan(y/z))
+(paper Eq. 6 and 11), so image tiles and CSFs share one parameterisation; `RayGrid.from_rays` takes
+any camera model's per-pixel rays (fisheye, pinhole, equirectangular, ...). Both derive the tile
+bounds from the tile's rays themselves, so the bounds are exact for the rays that are rendered.
+Invalid rays (outside a fisheye circle, masked) are skipped; a tile without a valid ray is inactive.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .pbf import mirror_tangent
+
+# Angular slack on tile bounds (radians): far below a pixel, far above atan2's rounding.
+_TILE_BOUND_SLACK = 1e-6
+# Rays this close to the axis of a bounding plane family have an undefined angle in that plane.
+_AXIAL_EPS = 1e-7
+
+
+@dataclass
+class RayGrid:
+    dirs: Tensor  # [H*W, 3] unit directions, camera frame (OpenCV)
+    valid: Tensor  # [H*W] bool
+    height: int
+    width: int
+    tile_size: int
+    tile_rays: Tensor  # [n_tiles, tile_size^2] long indices into dirs, -1 where the tile overhangs
+    tile_theta: Tensor  # [n_tiles, 2] (lo, hi) of atan2(x, z) over the tile's valid rays
+    tile_phi: Tensor  # [n_tiles, 2] (lo, hi) of atan2(y, z)
+    tile_active: Tensor  # [n_tiles] bool: the tile has at least one valid ray
+
+    @property
+    def num_rays(self) -> int:
+        return self.dirs.shape[0]
+
+    @property
+    def num_tiles(self) -> int:
+        return self.tile_rays.shape[0]
+
+    @property
+    def tiles_y(self) -> int:
+        return -(-self.height // self.tile_size)
+
+    @property
+    def tiles_x(self) -> int:
+        return -(-self.width // self.tile_size)
+
+    def to(self, device: torch.device | str) -> "RayGrid":
+        return RayGrid(
+            self.dirs.to(device), self.valid.to(device), self.height, self.width, self.tile_size,
+            self.tile_rays.to(device), self.tile_theta.to(device), self.tile_phi.to(device),
+            self.tile_active.to(device),
+        )
+
+    def tile_mirror_bounds(self, xi: float = 1.0) -> tuple[Tensor, Tensor]:
+        """Tile bounds in the mirror-tangent domain (Eq. D.7): ([n_tiles, 2] theta, [n_tiles, 2] phi)."""
+        return mirror_tangent(self.tile_theta, xi), mirror_tangent(self.tile_phi, xi)
+
+    # ----------------------------------------------------------------------------------- builders
+    @classmethod
+    def from_rays(cls, dirs: Tensor, valid: Tensor | None = None, tile_size: int = 16) -> "RayGrid":
+        """Grid from per-pixel rays dirs [H, W, 3] (any norm) and an optional validity mask [H, W]."""
+        if dirs.ndim != 3 or dirs.shape[-1] != 3:
+            raise ValueError(f"dirs: expected shape [H, W, 3], got {tuple(dirs.shape)}")
+        if tile_size < 1:
+            raise ValueError(f"tile_size: must be >= 1, got {tile_size}")
+        height, width = dirs.shape[:2]
+        norm = dirs.norm(dim=-1, keepdim=True)
+        ok = torch.isfinite(dirs).all(-1) & (norm[..., 0] > 0)
+        valid = ok if valid is None else (valid.to(torch.bool) & ok)
+        unit = torch.where(ok[..., None], dirs / norm.clamp_min(torch.finfo(dirs.dtype).tiny), 0.0)
+        unit = unit.reshape(-1, 3)
+        valid = valid.reshape(-1)
+
+        tile_rays = _tile_ray_indices(height, width, tile_size, dirs.device)
+        ray_ok = (tile_rays >= 0) & valid[tile_rays.clamp_min(0)]
+        d = unit[tile_rays.clamp_min(0)]  # [T, P, 3]
+        x, y, z = d.unbind(-1)
+        tile_theta = _tile_angle_bounds(x, z, ray_ok)
+        tile_phi = _tile_angle_bounds(y, z, ray_ok)
+        return cls(unit, valid, height, width, tile_size, tile_rays, tile_theta, tile_phi, ray_ok.any(-1))
+
+    @classmethod
+    def beap(
+        cls,
+        width: int,
+        height: int,
+        fov_x: float,
+        fov_y: float,
+        tile_size: int = 16,
+        valid: Tensor | None = None,
+        center: tuple[float, float] = (0.0, 0.0),
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str = "cpu",
+    ) -> "RayGrid":
+        """BEAP grid (paper Eq. 11): w x h cells uniform in theta over fov_x and phi over fov_y (radians),
+        centred on `center` = (theta, phi). Angles must stay inside (-pi/2, pi/2)."""
+        dirs = beap_directions(width, height, fov_x, fov_y, center, dtype, device)
+        return cls.from_rays(dirs, valid, tile_size)
+
+
+def beap_directions(
+    width: int,
+    height: int,
+    fov_x: float,
+    fov_y: float,
+    center: tuple[float, float] = (0.0, 0.0),
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str = "cpu",
+) -> Tensor:
+    """Unit directions [h, w, 3] at BEAP cell centres: theta_j = c_x + fov_x * ((j + 0.5) / w - 0.5)."""
+    theta = center[0] + fov_x * ((torch.arange(width, dtype=torch.float64) + 0.5) / width - 0.5)
+    phi = center[1] + fov_y * ((torch.arange(height, dtype=torch.float64) + 0.5) / height - 0.5)
+    limit = math.pi / 2
+    if theta.abs().max() >= limit or phi.abs().max() >= limit:
+        raise ValueError("BEAP angles must lie inside (-90, 90) degrees; use RayGrid.from_rays beyond that")
+    t, p = torch.meshgrid(theta, phi, indexing="xy")  # [h, w]
+    # Direction with x/z = tan(theta), y/z = tan(phi) (paper Eq. E.1-E.3).
+    d = torch.stack([torch.tan(t), torch.tan(p), torch.ones_like(t)], -1)
+    return (d / d.norm(dim=-1, keepdim=True)).to(dtype=dtype, device=device)
+
+
+def _tile_ray_indices(height: int, width: int, tile_size: int, device) -> Tensor:
+    ty, tx = -(-height // tile_size), -(-width // tile_size)
+    oy = torch.arange(tile_size, device=device)
+    rows = (torch.arange(ty, device=device)[:, None] * tile_size + oy[None])  # [ty, ts]
+    cols = (torch.arange(tx, device=device)[:, None] * tile_size + oy[None])  # [tx, ts]
+    r = rows[:, None, :, None].expand(ty, tx, tile_size, tile_size)
+    c = cols[None, :, None, :].expand(ty, tx, tile_size, tile_size)
+    idx = r * width + c
+    idx = torch.where((r < height) & (c < width), idx, torch.full_like(idx, -1))
+    return idx.reshape(ty * tx, tile_size * tile_size)
+
+
+def _tile_angle_bounds(a: Tensor, z: Tensor, ok: Tensor) -> Tensor:
+    """[T, 2] (lo, hi) of atan2(a, z) over the valid rays of each tile, conservatively widened.
+
+    A tile whose rays straddle the +-pi seam, or that holds a ray along the plane family's axis
+    (a = z = 0, angle undefined), gets the full range [-pi, pi].
+    """
+    ang = torch.atan2(a, z)
+    inf = torch.tensor(math.inf, dtype=ang.dtype, device=ang.device)
+    lo = torch.where(ok, ang, inf).amin(-1)
+    hi = torch.where(ok, ang, -inf).amax(-1)
+    axial = (ok & (torch.sqrt(a * a + z * z) < _AXIAL_EPS)).any(-1)
+    full = axial | ((hi - lo) > math.pi)
+    lo = torch.where(full, torch.full_like(lo, -math.pi), lo - _TILE_BOUND_SLACK)
+    hi = torch.where(full, torch.full_like(hi, math.pi), hi + _TILE_BOUND_SLACK)
+    return torch.stack([lo, hi], -1)

@@ -1,0 +1,50 @@
+"""Stage 1: Gaussians to view space and to each Gaussian's canonical (whitened) frame.
+
+Conventions: quaternions are wxyz and are normalised here; the camera frame is OpenCV's
+(x right, y down, z forward); `viewmat` maps world to camera.
+
+A Gaussian is x = R S u + mu with u ~ N(0, I) (paper Eq. B.4). Its canonical frame is reached with
+the whitening matrix W = S^-1 R^T, so that the covariance Sigma = R S S^T R^T becomes the identity.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+# Scales below this are clamped: they would push W = S^-1 R^T past float32's range (1/1e-12 * 1e4 m
+# stays far below 3e38 even squared). A 1e-12 scale is already a perfect needle/disk in practice.
+MIN_SCALE = 1e-12
+
+
+def quat_to_rotmat(quats: Tensor) -> Tensor:
+    """Rotation matrices [..., 3, 3] from quaternions [..., 4] (wxyz, any norm)."""
+    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(quats.dtype).tiny)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(q.shape[:-1] + (3, 3))
+
+
+def to_view_space(means: Tensor, quats: Tensor, viewmat: Tensor) -> tuple[Tensor, Tensor]:
+    """View-space means [N, 3] and view-space rotations R_v = R_c R [N, 3, 3]."""
+    rot_c = viewmat[:3, :3]
+    means_c = means @ rot_c.T + viewmat[:3, 3]
+    rot_v = rot_c @ quat_to_rotmat(quats)
+    return means_c, rot_v
+
+
+def whitening(rot_v: Tensor, scales: Tensor) -> Tensor:
+    """W = S^-1 R_v^T [N, 3, 3]: maps view-space offsets into the canonical frame."""
+    inv_s = 1.0 / scales.clamp_min(MIN_SCALE)
+    return inv_s[:, :, None] * rot_v.transpose(-1, -2)
+
+
+def covariance_factor(rot_v: Tensor, scales: Tensor) -> Tensor:
+    """M = R_v S [N, 3, 3], with view-space covariance Sigma_c = M M^T (kept factored for stability)."""
+    return rot_v * scales.clamp_min(MIN_SCALE)[:, None, :]

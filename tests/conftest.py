@@ -1,0 +1,82 @@
+"""Shared fixtures: seeded random scenes, reference ray sets and the location of ../shared/data."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def shared_data(*parts: str) -> Path:
+    """Path under ../shared/data; skips the test, saying why, when that data is not beside the checkout."""
+    path = SHARED_DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"shared test data not found at {path} (expected ../shared/data beside the checkout)")
+    return path
+
+
+def random_quats(n: int, gen: torch.Generator, dtype=torch.float64) -> torch.Tensor:
+    return torch.randn(n, 4, generator=gen, dtype=dtype)
+
+
+def random_scene(
+    n: int,
+    seed: int,
+    *,
+    dtype=torch.float64,
+    center=(0.0, 0.0, 4.0),
+    spread=1.5,
+    scale_range=(0.02, 0.4),
+    opacity_range=(0.05, 0.95),
+    around: bool = False,
+):
+    """Random anisotropic Gaussians. around=True scatters them on all sides of the camera (wide FoV)."""
+    gen = torch.Generator().manual_seed(seed)
+    if around:
+        d = torch.randn(n, 3, generator=gen, dtype=dtype)
+        d = d / d.norm(dim=-1, keepdim=True)
+        means = d * (0.3 + 4.0 * torch.rand(n, 1, generator=gen, dtype=dtype))
+    else:
+        means = torch.tensor(center, dtype=dtype) + spread * torch.randn(n, 3, generator=gen, dtype=dtype)
+    lo, hi = (math.log(s) for s in scale_range)
+    scales = torch.exp(lo + (hi - lo) * torch.rand(n, 3, generator=gen, dtype=dtype))
+    quats = random_quats(n, gen, dtype)
+    opacities = opacity_range[0] + (opacity_range[1] - opacity_range[0]) * torch.rand(n, generator=gen, dtype=dtype)
+    colors = torch.rand(n, 3, generator=gen, dtype=dtype)
+    return means, quats, scales, opacities, colors
+
+
+def random_viewmat(seed: int, dtype=torch.float64, translation_scale: float = 0.5) -> torch.Tensor:
+    """A random rigid world-to-camera transform."""
+    gen = torch.Generator().manual_seed(seed)
+    q = torch.randn(4, generator=gen, dtype=dtype)
+    from geer_ns.render import quat_to_rotmat
+
+    vm = torch.eye(4, dtype=dtype)
+    vm[:3, :3] = quat_to_rotmat(q)
+    vm[:3, 3] = translation_scale * torch.randn(3, generator=gen, dtype=dtype)
+    return vm
+
+
+def equidistant_fisheye_rays(size: int, fov_deg: float = 180.0, dtype=torch.float64):
+    """Rays of an ideal equidistant fisheye (r = f * angle) whose image circle spans fov_deg."""
+    f = (size / 2) / math.radians(fov_deg / 2)
+    c = (torch.arange(size, dtype=dtype) + 0.5) - size / 2
+    v, u = torch.meshgrid(c, c, indexing="ij")
+    r = torch.sqrt(u * u + v * v)
+    ang = r / f
+    psi = torch.atan2(v, u)
+    dirs = torch.stack([torch.sin(ang) * torch.cos(psi), torch.sin(ang) * torch.sin(psi), torch.cos(ang)], -1)
+    return dirs, ang <= math.radians(fov_deg / 2)
+
+
+def equirect_rays(width: int, height: int, dtype=torch.float64):
+    """Rays of a full 360 x 180 degree equirectangular image (longitude 0 looks along +z, y down)."""
+    lon = ((torch.arange(width, dtype=dtype) + 0.5) / width - 0.5) * 2 * math.pi
+    lat = ((torch.arange(height, dtype=dtype) + 0.5) / height - 0.5) * math.pi
+    la, lo = torch.meshgrid(lat, lon, indexing="ij")
+    return torch.stack([torch.cos(la) * torch.sin(lo), torch.sin(la), torch.cos(la) * torch.cos(lo)], -1)
