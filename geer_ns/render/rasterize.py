@@ -79,19 +79,30 @@ def preprocess(
 
 
 def _render_lists(
-    pre: Preprocessed, dirs: Tensor, ray_valid: Tensor, ray_index: Tensor, lists: Tensor, max_pairs: int
+    pre: Preprocessed,
+    dirs: Tensor,
+    ray_valid: Tensor,
+    ray_index: Tensor,
+    lists: Tensor,
+    counts: Tensor,
+    max_pairs: int,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Blend each group of rays ray_index [G, P] (-1 padded) against its Gaussian list lists [G, K].
+    """Blend each group of rays ray_index [G, P] (-1 padded) against its Gaussian list lists [G, K]
+    holding counts [G] entries. Groups are batched by similar counts so little work goes to padding.
 
-    Returns flat ray ids and their rgb, accumulated depth and accumulation (rays in group order).
+    Returns flat ray ids and their rgb, accumulated depth and accumulation.
     """
-    groups, p = ray_index.shape
-    k = lists.shape[1]
-    chunk = max(1, max_pairs // max(1, p * k))
+    p = ray_index.shape[1]
+    by_count = torch.sort(counts, descending=True, stable=True).indices
     ids, rgbs, depths, accs = [], [], [], []
-    for start in range(0, groups, chunk):
-        r_idx = ray_index[start : start + chunk]
-        g_idx = lists[start : start + chunk]
+    start = 0
+    while start < by_count.numel():
+        k = max(1, int(counts[by_count[start]]))
+        chunk = max(1, max_pairs // (p * k))
+        sel = by_count[start : start + chunk]
+        start += chunk
+        r_idx = ray_index[sel]
+        g_idx = lists[sel, :k] if lists.shape[1] >= k else lists[sel]
         r_ok = (r_idx >= 0) & ray_valid[r_idx.clamp_min(0)]
         g_ok = g_idx >= 0
         g = g_idx.clamp_min(0)
@@ -165,7 +176,9 @@ def render(
     viewmat = viewmat.to(means.dtype)
     pre = preprocess(means, quats, scales, opacities, colors, viewmat, sh_degree, lambda_mode)
     tiles = associate(pre.pbf, grid, pre.depth)
-    ids, rgb, depth, acc = _render_lists(pre, dirs, grid.valid, grid.tile_rays, tiles.gaussians, max_pairs)
+    ids, rgb, depth, acc = _render_lists(
+        pre, dirs, grid.valid, grid.tile_rays, tiles.gaussians, tiles.counts, max_pairs
+    )
     out_rgb, out_depth, out_acc = _assemble(grid, ids, rgb, depth, acc, background)
     visible = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
     listed = tiles.gaussians[grid.tile_active]
@@ -201,7 +214,8 @@ def render_brute_force(
     ray_index = torch.cat([torch.arange(n_rays, device=means.device), means.new_full((pad,), -1).long()])
     ray_index = ray_index.reshape(-1, rays_per_group)
     lists = order[None].expand(ray_index.shape[0], -1)
-    ids, rgb, depth, acc = _render_lists(pre, dirs, grid.valid, ray_index, lists, max_pairs)
+    counts = torch.full((ray_index.shape[0],), order.numel(), dtype=torch.long, device=means.device)
+    ids, rgb, depth, acc = _render_lists(pre, dirs, grid.valid, ray_index, lists, counts, max_pairs)
     out_rgb, out_depth, out_acc = _assemble(grid, ids, rgb, depth, acc, background)
     visible = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
     return RenderOutput(out_rgb, out_depth, out_acc, visible, means.new_zeros(0).long(), pre.means_c, pre.pbf, None)

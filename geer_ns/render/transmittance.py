@@ -18,6 +18,18 @@ from .pbf import ALPHA_MIN
 ALPHA_MAX = 0.99
 
 
+def ray_frame(o_u: Tensor, w: Tensor) -> Tensor:
+    """Per-Gaussian rows that turn a camera-frame ray direction d into the canonical ray [K, 7, 3]:
+    rows 0-2 give d_u = W d, rows 3-5 the moment m_u = o_u x d_u = ([o_u]_x W) d, row 6 gives o_u . d_u.
+
+    Stacking them lets one batched matmul produce every (ray, Gaussian) pair's canonical ray; the moment
+    is still the cross product (regrouped, with the same rounding order of magnitude), never C.16.
+    """
+    moment = torch.linalg.cross(o_u[..., :, None].expand_as(w), w, dim=-2)  # columns: o_u x W e_j
+    along = torch.einsum("...i,...ij->...j", o_u, w)[..., None, :]
+    return torch.cat([w, moment, along], dim=-2)
+
+
 def canonical_ray_response(o_u: Tensor, w: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
     """Squared canonical distance D^2 and the ray parameter of maximum response t*.
 
@@ -25,13 +37,14 @@ def canonical_ray_response(o_u: Tensor, w: Tensor, dirs: Tensor) -> tuple[Tensor
     dirs [..., P, 3] unit ray directions (camera frame). Returns D^2 and t* of shape [..., P, K]; t* is the
     distance along the unit ray to the point of maximum response (negative: behind the camera).
     """
-    d_u = torch.einsum("...kij,...pj->...pki", w, dirs)
-    norm = d_u.norm(dim=-1)
-    d_hat = d_u / norm.clamp_min(torch.finfo(d_u.dtype).tiny)[..., None]
-    o = o_u.unsqueeze(-3).expand_as(d_hat)
-    moment = torch.linalg.cross(o, d_hat, dim=-1)
-    dist_sq = (moment * moment).sum(-1)
-    t_star = -(o * d_hat).sum(-1) / norm.clamp_min(torch.finfo(d_u.dtype).tiny)
+    frame = ray_frame(o_u, w)  # [..., K, 7, 3]
+    rows = frame.flatten(-3, -2) @ dirs.transpose(-1, -2)  # [..., K*7, P]
+    rows = rows.unflatten(-2, (frame.shape[-3], 7)).transpose(-1, -3)  # [..., P, 7, K]
+    d_u, moment, along = rows[..., 0:3, :], rows[..., 3:6, :], rows[..., 6, :]
+    inv_norm = torch.rsqrt((d_u * d_u).sum(-2).clamp_min(torch.finfo(d_u.dtype).tiny))
+    m_hat = moment * inv_norm[..., None, :]  # normalise before squaring: no overflow for 1e-8 scales
+    dist_sq = (m_hat * m_hat).sum(-2)
+    t_star = -along * inv_norm * inv_norm
     return dist_sq, t_star
 
 
