@@ -194,3 +194,14 @@ def test_masked_rays_cost_nothing_and_show_background():
     assert empty_tiles.sum() >= 4
     assert torch.equal(~grid.tile_active, empty_tiles)
     assert (out.tile_counts[empty_tiles] == 0).all()
+
+
+def test_view_with_nothing_visible_still_backpropagates():
+    """A training view that sees no Gaussian returns the background and a zero (not missing) gradient."""
+    means = torch.tensor([[0.0, 0.0, -3.0]], requires_grad=True)
+    grid = RayGrid.beap(16, 16, 1.0, 1.0, tile_size=8)
+    out = render(means, torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.1), torch.tensor([0.5]),
+                 torch.rand(1, 3), torch.eye(4), grid, background=torch.ones(3))
+    assert torch.equal(out.rgb, torch.ones(16, 16, 3)) and float(out.accumulation.sum()) == 0.0
+    out.rgb.sum().backward()
+    assert torch.equal(means.grad, torch.zeros(1, 3))

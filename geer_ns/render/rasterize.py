@@ -88,21 +88,23 @@ def _render_lists(
     max_pairs: int,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Blend each group of rays ray_index [G, P] (-1 padded) against its Gaussian list lists [G, K]
-    holding counts [G] entries. Groups are batched by similar counts so little work goes to padding.
+    holding counts [G] entries. Groups are batched by similar counts so little work goes to padding, and
+    groups with no Gaussian (empty or inactive tiles) cost nothing: their rays keep the zero defaults.
 
     Returns flat ray ids and their rgb, accumulated depth and accumulation.
     """
     p = ray_index.shape[1]
     by_count = torch.sort(counts, descending=True, stable=True).indices
+    by_count = by_count[counts[by_count] > 0]
     ids, rgbs, depths, accs = [], [], [], []
     start = 0
     while start < by_count.numel():
-        k = max(1, int(counts[by_count[start]]))
+        k = int(counts[by_count[start]])
         chunk = max(1, max_pairs // (p * k))
         sel = by_count[start : start + chunk]
         start += chunk
         r_idx = ray_index[sel]
-        g_idx = lists[sel, :k] if lists.shape[1] >= k else lists[sel]
+        g_idx = lists[sel, :k]
         r_ok = (r_idx >= 0) & ray_valid[r_idx.clamp_min(0)]
         g_ok = g_idx >= 0
         g = g_idx.clamp_min(0)
@@ -120,6 +122,9 @@ def _render_lists(
         rgbs.append(rgb[keep])
         depths.append(depth[keep])
         accs.append(acc[keep])
+    if not ids:  # nothing visible: empty outputs still attached to the graph, so backward() works
+        zero = sum(t.sum() * 0.0 for t in (pre.means_c, pre.whiten, pre.opacities, pre.colors))
+        return ray_index.new_zeros(0), zero.expand(0, 3), zero.expand(0), zero.expand(0)
     return torch.cat(ids), torch.cat(rgbs), torch.cat(depths), torch.cat(accs)
 
 
