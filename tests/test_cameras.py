@@ -182,7 +182,8 @@ def test_pinhole_matches_cv2(rational: bool, seed: int) -> None:
     # Unprojection vs cv2.undistortPoints (normalised coordinates, compared in pixels via the focal).
     uv = np.stack([rng.uniform(0, W, 2000), rng.uniform(0, H, 2000)], -1)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
-    und = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, D, criteria=crit)[:, 0]
+    # OpenCV 4.x takes iteration criteria through undistortPointsIter (5.x also via undistortPoints).
+    und = cv2.undistortPointsIter(uv.reshape(-1, 1, 2), K, D, None, None, crit)[:, 0]
     dirs, ok = cam.unproject(torch.from_numpy(uv))
     assert bool(ok.all())
     q = (dirs[:, :2] / dirs[:, 2:]).numpy()

@@ -174,8 +174,11 @@ def render(
     `max_pairs` caps the (ray, Gaussian) pairs held in memory at once.
     """
     _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background)
-    if resolve_backend(backend, means.device) == "cuda":  # pragma: no cover - needs the extension
-        raise RuntimeError("the CUDA backend is not part of this build")
+    if resolve_backend(backend, means.device) == "cuda":  # pragma: no cover - needs a GPU
+        from .cuda_backend import render_cuda
+
+        return render_cuda(means, quats, scales, opacities, colors, viewmat, grid, sh_degree=sh_degree,
+                           background=background, lambda_mode=lambda_mode)
     grid = grid.to(means.device)
     dirs = grid.dirs.to(means.dtype)
     viewmat = viewmat.to(means.dtype)

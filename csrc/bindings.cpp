@@ -1,0 +1,287 @@
+// Torch glue for the 3DGEER CUDA stages: checks tensors, allocates outputs, fills the launcher
+// structs of geer_launchers.h and runs them on the current stream. The same operation names and
+// signatures are implemented on the CPU by cpu_math_test.cpp; geer_ns/render/cuda_backend.py drives
+// either one.
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+#include <ATen/ATen.h>
+#include <torch/csrc/utils/pybind.h>
+
+#include <vector>
+
+#include "geer_launchers.h"
+
+namespace {
+
+void check_input(const at::Tensor& t, const char* name) {
+    TORCH_CHECK(t.is_cuda(), "geer: ", name, " must be a CUDA tensor");
+    TORCH_CHECK(t.is_contiguous(), "geer: ", name, " must be contiguous");
+}
+
+void check_float(const at::Tensor& t, const at::Tensor& ref, const char* name) {
+    check_input(t, name);
+    TORCH_CHECK(t.scalar_type() == ref.scalar_type(), "geer: ", name, " must be ", ref.scalar_type());
+}
+
+void check_kind(const at::Tensor& t, at::ScalarType type, const char* name) {
+    check_input(t, name);
+    TORCH_CHECK(t.scalar_type() == type, "geer: ", name, " must be ", type);
+}
+
+template <typename T> const T* cptr(const at::Tensor& t) { return t.numel() ? t.data_ptr<T>() : nullptr; }
+template <typename T> T* mptr(at::Tensor& t) { return t.numel() ? t.data_ptr<T>() : nullptr; }
+const uint8_t* bptr(const at::Tensor& t) { return t.numel() ? reinterpret_cast<const uint8_t*>(t.data_ptr<bool>()) : nullptr; }
+uint8_t* mbptr(at::Tensor& t) { return t.numel() ? reinterpret_cast<uint8_t*>(t.data_ptr<bool>()) : nullptr; }
+
+cudaStream_t stream() { return c10::cuda::getCurrentCUDAStream().stream(); }
+
+// Small per-view constants (camera centre, rotation) travel by value in the launch arguments.
+template <typename T> void to_host(const at::Tensor& t, T* out, int count) {
+    TORCH_CHECK(t.numel() == count, "geer: expected ", count, " values, got ", t.numel());
+    const at::Tensor c = t.detach().to(at::kCPU).contiguous();
+    for (int i = 0; i < count; ++i) out[i] = c.data_ptr<T>()[i];
+}
+
+template <typename F> void dispatch(const at::Tensor& t, F&& f) {
+    if (t.scalar_type() == at::kFloat) f(float{});
+    else if (t.scalar_type() == at::kDouble) f(double{});
+    else TORCH_CHECK(false, "geer: float32 or float64 expected, got ", t.scalar_type());
+}
+
+template <typename T>
+geer::PreprocessArgs<T> preprocess_args(const at::Tensor& means_c, const at::Tensor& quats, const at::Tensor& scales,
+                                        const at::Tensor& opacities, const at::Tensor& sh, const at::Tensor& means_w,
+                                        const at::Tensor& cam_center, const at::Tensor& rot_c, int64_t sh_degree,
+                                        bool paper_lambda) {
+    check_float(means_c, means_c, "means_c");
+    check_float(quats, means_c, "quats");
+    check_float(scales, means_c, "scales");
+    if (opacities.defined()) check_float(opacities, means_c, "opacities");
+    TORCH_CHECK(sh_degree >= -1 && sh_degree <= 3, "geer: sh_degree must be in -1..3");
+    geer::PreprocessArgs<T> a{};
+    a.n = int(means_c.size(0));
+    a.means_c = cptr<T>(means_c);
+    a.quats = cptr<T>(quats);
+    a.scales = cptr<T>(scales);
+    a.opacities = opacities.defined() ? cptr<T>(opacities) : nullptr;
+    a.sh_degree = int(sh_degree);
+    if (sh_degree >= 0) {
+        check_float(sh, means_c, "sh");
+        check_float(means_w, means_c, "means_w");
+        TORCH_CHECK(sh.dim() == 3 && sh.size(1) >= (sh_degree + 1) * (sh_degree + 1) && sh.size(2) == 3,
+                    "geer: sh must be [N, K >= (degree+1)^2, 3]");
+        a.sh = cptr<T>(sh);
+        a.sh_k = int(sh.size(1));
+        a.means_w = cptr<T>(means_w);
+    }
+    to_host<T>(cam_center, a.cam_center, 3);
+    to_host<T>(rot_c, a.rot_c, 9);
+    a.paper_lambda = paper_lambda ? 1 : 0;
+    return a;
+}
+
+// ------------------------------------------------------------------------------------ stage 1
+std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats, at::Tensor scales,
+                                           at::Tensor opacities, at::Tensor sh, at::Tensor means_w,
+                                           at::Tensor cam_center, at::Tensor rot_c, int64_t sh_degree,
+                                           bool paper_lambda) {
+    const c10::cuda::OptionalCUDAGuard guard(device_of(means_c));
+    const int64_t n = means_c.size(0);
+    auto opts = means_c.options();
+    auto whiten = at::empty({n, 3, 3}, opts), o_u = at::empty({n, 3}, opts), rgb = at::zeros({n, 3}, opts);
+    auto bounds = at::empty({n, 4}, opts);
+    auto alive = at::empty({n}, opts.dtype(at::kBool)), inside = at::empty({n}, opts.dtype(at::kBool));
+    dispatch(means_c, [&](auto tag) {
+        using T = decltype(tag);
+        auto a = preprocess_args<T>(means_c, quats, scales, opacities, sh, means_w, cam_center, rot_c, sh_degree,
+                                    paper_lambda);
+        a.whiten = mptr<T>(whiten);
+        a.o_u = mptr<T>(o_u);
+        a.rgb = mptr<T>(rgb);
+        a.bounds = mptr<T>(bounds);
+        a.alive = mbptr(alive);
+        a.inside = mbptr(inside);
+        geer::launch_preprocess_forward<T>(a, stream());
+    });
+    return {whiten, o_u, rgb, bounds, alive, inside};
+}
+
+// ------------------------------------------------------------------------------------ stage 2
+std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tensor rank, at::Tensor tile_bounds,
+                                  at::Tensor active, at::Tensor col_bounds, at::Tensor row_bounds, int64_t tiles_x,
+                                  int64_t tiles_y, bool separable) {
+    const c10::cuda::OptionalCUDAGuard guard(device_of(bounds));
+    check_float(bounds, bounds, "bounds");
+    check_kind(alive, at::kBool, "alive");
+    check_kind(rank, at::kInt, "rank");
+    check_float(tile_bounds, bounds, "tile_bounds");
+    check_kind(active, at::kBool, "active");
+    const int64_t n = bounds.size(0), n_tiles = tile_bounds.size(0);
+    TORCH_CHECK(n_tiles == tiles_x * tiles_y, "geer: tile count mismatch");
+    TORCH_CHECK(n_tiles < (int64_t(1) << 31), "geer: too many tiles");
+    if (separable) {
+        check_float(col_bounds, bounds, "col_bounds");
+        check_float(row_bounds, bounds, "row_bounds");
+    }
+    auto iopts = bounds.options().dtype(at::kInt);
+    auto ranges = at::zeros({n_tiles, 2}, iopts);
+    at::Tensor ids_sorted;
+    dispatch(bounds, [&](auto tag) {
+        using T = decltype(tag);
+        geer::AssociateArgs<T> a{};
+        a.n = int(n);
+        a.bounds = cptr<T>(bounds);
+        a.alive = bptr(alive);
+        a.rank = cptr<int32_t>(rank);
+        a.tile_bounds = cptr<T>(tile_bounds);
+        a.active = bptr(active);
+        a.n_tiles = int(n_tiles);
+        a.tiles_x = int(tiles_x);
+        a.tiles_y = int(tiles_y);
+        a.separable = separable ? 1 : 0;
+        a.col_bounds = separable ? cptr<T>(col_bounds) : nullptr;
+        a.row_bounds = separable ? cptr<T>(row_bounds) : nullptr;
+        auto counts = at::zeros({n}, iopts);
+        geer::launch_count_tiles<T>(a, mptr<int32_t>(counts), stream());
+        auto inclusive = at::cumsum(counts, 0, at::kLong);
+        const int64_t m = n ? inclusive[n - 1].item<int64_t>() : 0;  // one host sync: the pair count
+        TORCH_CHECK(m < (int64_t(1) << 31), "geer: more than 2^31 (tile, Gaussian) pairs");
+        auto offsets = (inclusive - counts).contiguous();
+        auto keys = at::empty({m}, bounds.options().dtype(at::kLong));
+        auto ids = at::empty({m}, iopts);
+        geer::launch_emit_pairs<T>(a, mptr<int64_t>(offsets), reinterpret_cast<uint64_t*>(mptr<int64_t>(keys)),
+                                   mptr<int32_t>(ids), stream());
+        int tile_bits = 0;
+        while ((int64_t(1) << tile_bits) < n_tiles) ++tile_bits;
+        const int end_bit = 32 + tile_bits;
+        auto keys_sorted = at::empty_like(keys);
+        ids_sorted = at::empty_like(ids);
+        const size_t temp_bytes = geer::sort_pairs_temp_bytes(m, end_bit);
+        auto temp = at::empty({int64_t(temp_bytes)}, bounds.options().dtype(at::kByte));
+        geer::sort_pairs(mptr<uint8_t>(temp), temp_bytes, reinterpret_cast<const uint64_t*>(cptr<int64_t>(keys)),
+                         reinterpret_cast<uint64_t*>(mptr<int64_t>(keys_sorted)), cptr<int32_t>(ids),
+                         mptr<int32_t>(ids_sorted), m, end_bit, stream());
+        geer::launch_tile_ranges(reinterpret_cast<const uint64_t*>(cptr<int64_t>(keys_sorted)), m,
+                                 mptr<int32_t>(ranges), stream());
+    });
+    return {ids_sorted, ranges};
+}
+
+// ------------------------------------------------------------------------------------ stage 3
+template <typename T>
+geer::RenderArgs<T> render_args(const at::Tensor& whiten, const at::Tensor& o_u, const at::Tensor& rgb,
+                                const at::Tensor& opacities, const at::Tensor& inside, const at::Tensor& dirs,
+                                const at::Tensor& valid, const at::Tensor& ids, const at::Tensor& ranges,
+                                int64_t height, int64_t width, int64_t tile_size) {
+    check_float(whiten, whiten, "whiten");
+    check_float(o_u, whiten, "o_u");
+    check_float(rgb, whiten, "rgb");
+    check_float(opacities, whiten, "opacities");
+    check_kind(inside, at::kBool, "inside");
+    check_float(dirs, whiten, "dirs");
+    check_kind(valid, at::kBool, "valid");
+    check_kind(ids, at::kInt, "ids");
+    check_kind(ranges, at::kInt, "ranges");
+    TORCH_CHECK(tile_size >= 1 && tile_size <= 32, "geer: tile_size must be in 1..32 (one thread per ray)");
+    TORCH_CHECK(dirs.size(0) == height * width, "geer: dirs must hold height * width rays");
+    const int64_t n_tiles = ((height + tile_size - 1) / tile_size) * ((width + tile_size - 1) / tile_size);
+    TORCH_CHECK(ranges.size(0) == n_tiles, "geer: ranges must hold one row per tile");
+    geer::RenderArgs<T> a{};
+    a.n = int(whiten.size(0));
+    a.whiten = cptr<T>(whiten);
+    a.o_u = cptr<T>(o_u);
+    a.rgb = cptr<T>(rgb);
+    a.opacities = cptr<T>(opacities);
+    a.inside = bptr(inside);
+    a.dirs = cptr<T>(dirs);
+    a.valid = bptr(valid);
+    a.ids = cptr<int32_t>(ids);
+    a.ranges = cptr<int32_t>(ranges);
+    a.height = int(height);
+    a.width = int(width);
+    a.tile_size = int(tile_size);
+    return a;
+}
+
+std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
+                                       at::Tensor inside, at::Tensor dirs, at::Tensor valid, at::Tensor ids,
+                                       at::Tensor ranges, int64_t height, int64_t width, int64_t tile_size) {
+    const c10::cuda::OptionalCUDAGuard guard(device_of(whiten));
+    const int64_t r = height * width;
+    auto opts = whiten.options();
+    auto out_rgb = at::empty({r, 3}, opts), depth = at::empty({r}, opts), acc = at::empty({r}, opts);
+    auto t_final = at::empty({r}, opts);
+    auto n_contrib = at::empty({r}, opts.dtype(at::kInt));
+    dispatch(whiten, [&](auto tag) {
+        using T = decltype(tag);
+        auto a = render_args<T>(whiten, o_u, rgb, opacities, inside, dirs, valid, ids, ranges, height, width,
+                                tile_size);
+        geer::RenderOutputs<T> out{mptr<T>(out_rgb), mptr<T>(depth), mptr<T>(acc), mptr<T>(t_final),
+                                   mptr<int32_t>(n_contrib)};
+        geer::launch_render_forward<T>(a, out, stream());
+    });
+    return {out_rgb, depth, acc, t_final, n_contrib};
+}
+
+std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
+                                        at::Tensor inside, at::Tensor dirs, at::Tensor valid, at::Tensor ids,
+                                        at::Tensor ranges, int64_t height, int64_t width, int64_t tile_size,
+                                        at::Tensor t_final, at::Tensor n_contrib, at::Tensor g_rgb,
+                                        at::Tensor g_depth, at::Tensor g_acc) {
+    const c10::cuda::OptionalCUDAGuard guard(device_of(whiten));
+    const int64_t n = whiten.size(0);
+    auto opts = whiten.options();
+    auto gw = at::zeros({n, 3, 3}, opts), go = at::zeros({n, 3}, opts), gc = at::zeros({n, 3}, opts);
+    auto gs = at::zeros({n}, opts);
+    dispatch(whiten, [&](auto tag) {
+        using T = decltype(tag);
+        auto a = render_args<T>(whiten, o_u, rgb, opacities, inside, dirs, valid, ids, ranges, height, width,
+                                tile_size);
+        check_float(t_final, whiten, "t_final");
+        check_kind(n_contrib, at::kInt, "n_contrib");
+        check_float(g_rgb, whiten, "g_rgb");
+        check_float(g_depth, whiten, "g_depth");
+        check_float(g_acc, whiten, "g_acc");
+        geer::RenderGradArgs<T> g{cptr<T>(t_final), cptr<int32_t>(n_contrib), cptr<T>(g_rgb), cptr<T>(g_depth),
+                                  cptr<T>(g_acc), mptr<T>(gw), mptr<T>(go), mptr<T>(gc), mptr<T>(gs)};
+        geer::launch_render_backward<T>(a, g, stream());
+    });
+    return {gw, go, gc, gs};
+}
+
+// ------------------------------------------------------------------------------------ stage 4
+std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats, at::Tensor scales, at::Tensor sh,
+                                            at::Tensor means_w, at::Tensor cam_center, at::Tensor rot_c,
+                                            int64_t sh_degree, at::Tensor g_whiten, at::Tensor g_o_u,
+                                            at::Tensor g_rgb) {
+    const c10::cuda::OptionalCUDAGuard guard(device_of(means_c));
+    const int64_t n = means_c.size(0);
+    auto opts = means_c.options();
+    auto g_mc = at::empty({n, 3}, opts), g_q = at::empty({n, 4}, opts), g_s = at::empty({n, 3}, opts);
+    auto g_sh = sh_degree >= 0 ? at::empty_like(sh) : at::empty({0}, opts);
+    auto g_mw = at::zeros({n, 3}, opts);
+    dispatch(means_c, [&](auto tag) {
+        using T = decltype(tag);
+        auto a = preprocess_args<T>(means_c, quats, scales, at::Tensor(), sh, means_w, cam_center, rot_c, sh_degree,
+                                    false);
+        check_float(g_whiten, means_c, "g_whiten");
+        check_float(g_o_u, means_c, "g_o_u");
+        if (sh_degree >= 0) check_float(g_rgb, means_c, "g_rgb");
+        geer::PreprocessGradArgs<T> g{cptr<T>(g_whiten), cptr<T>(g_o_u), sh_degree >= 0 ? cptr<T>(g_rgb) : nullptr,
+                                      mptr<T>(g_mc),     mptr<T>(g_q),   mptr<T>(g_s),
+                                      sh_degree >= 0 ? mptr<T>(g_sh) : nullptr, mptr<T>(g_mw)};
+        geer::launch_preprocess_backward<T>(a, g, stream());
+    });
+    return {g_mc, g_q, g_s, g_sh, g_mw};
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+    m.doc() = "3DGEER CUDA kernels (geer_ns.render.cuda_backend)";
+    m.def("preprocess_forward", &preprocess_forward);
+    m.def("associate", &associate);
+    m.def("render_forward", &render_forward);
+    m.def("render_backward", &render_backward);
+    m.def("preprocess_backward", &preprocess_backward);
+}

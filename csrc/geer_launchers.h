@@ -1,0 +1,117 @@
+// Host-side entry points of the 3DGEER CUDA stages: plain structs of raw device pointers, one
+// launcher per stage, explicitly instantiated for float and double in the .cu files. No torch here:
+// bindings.cpp allocates the tensors and fills these structs; the .cu files build with plain nvcc.
+//
+// Layouts (all contiguous, row-major): N Gaussians, T tiles, R = height * width rays, M pairs.
+#pragma once
+
+#include <cuda_runtime_api.h>
+#include <stddef.h>
+#include <stdint.h>
+
+namespace geer {
+
+// ------------------------------------------------------------------ stage 1: preprocess (per Gaussian)
+template <typename T> struct PreprocessArgs {
+    int n;
+    const T* means_c;    // [N,3] view-space means
+    const T* quats;      // [N,4] wxyz, any norm
+    const T* scales;     // [N,3]
+    const T* opacities;  // [N]
+    const T* sh;         // [N,K,3] SH coefficients (null when sh_degree < 0: colours are given as RGB)
+    int sh_k;            // K
+    int sh_degree;       // active degree, -1 for RGB colours
+    const T* means_w;    // [N,3] world means (SH view direction = mean - camera centre)
+    T cam_center[3];     // world camera centre
+    T rot_c[9];          // world-to-camera rotation (viewmat[:3,:3])
+    int paper_lambda;    // 1: lambda = 3 (paper); 0: opacity-aware lambda^2 = 2 ln(255 sigma)
+    // outputs
+    T* whiten;           // [N,9]
+    T* o_u;              // [N,3]
+    T* rgb;              // [N,3] (untouched when sh_degree < 0)
+    T* bounds;           // [N,4] theta_lo, theta_hi, phi_lo, phi_hi
+    uint8_t* alive;      // [N]
+    uint8_t* inside;     // [N]
+};
+template <typename T> void launch_preprocess_forward(const PreprocessArgs<T>& a, cudaStream_t stream);
+
+// ------------------------------------------------------------------ stage 2: association (per tile)
+template <typename T> struct AssociateArgs {
+    int n;
+    const T* bounds;        // [N,4] PBF bounds (unwrapped angles)
+    const uint8_t* alive;   // [N]
+    const int32_t* rank;    // [N] front-to-back rank (stable sort of depth)
+    const T* tile_bounds;   // [T,4] mirror-tangent bounds: theta lo, hi, phi lo, hi
+    const uint8_t* active;  // [T]
+    int n_tiles, tiles_x, tiles_y;
+    int separable;          // BEAP-style grid: col/row bounds below are valid
+    const T* col_bounds;    // [tiles_x,2] mirror-tangent theta bounds per tile column
+    const T* row_bounds;    // [tiles_y,2] mirror-tangent phi bounds per tile row
+};
+// Pass 1: number of tiles each Gaussian overlaps -> counts [N].
+template <typename T> void launch_count_tiles(const AssociateArgs<T>& a, int32_t* counts, cudaStream_t stream);
+// Pass 2: with offsets [N] (exclusive scan of counts), write keys (tile << 32 | rank) and Gaussian ids.
+template <typename T>
+void launch_emit_pairs(const AssociateArgs<T>& a, const int64_t* offsets, uint64_t* keys, int32_t* ids,
+                       cudaStream_t stream);
+// Radix sort of M pairs by key (bits [0, end_bit)); temp storage size first, then the sort.
+size_t sort_pairs_temp_bytes(int64_t m, int end_bit);
+void sort_pairs(void* temp, size_t temp_bytes, const uint64_t* keys_in, uint64_t* keys_out, const int32_t* ids_in,
+                int32_t* ids_out, int64_t m, int end_bit, cudaStream_t stream);
+// Per-tile [start, end) into the sorted pairs; ranges [T,2] must be zeroed by the caller.
+void launch_tile_ranges(const uint64_t* sorted_keys, int64_t m, int32_t* ranges, cudaStream_t stream);
+
+// ------------------------------------------------------------------ stage 3: render (per tile / ray)
+template <typename T> struct RenderArgs {
+    int n;
+    const T* whiten;         // [N,9]
+    const T* o_u;            // [N,3]
+    const T* rgb;            // [N,3]
+    const T* opacities;      // [N]
+    const uint8_t* inside;   // [N]
+    const T* dirs;           // [R,3] unit ray directions (camera frame)
+    const uint8_t* valid;    // [R]
+    const int32_t* ids;      // [M] Gaussian ids sorted by (tile, rank)
+    const int32_t* ranges;   // [T,2]
+    int height, width, tile_size;
+};
+template <typename T> struct RenderOutputs {
+    T* rgb;           // [R,3] blended colour, no background
+    T* depth;         // [R] sum of w max(t*, 0)
+    T* acc;           // [R] sum of w
+    T* t_final;       // [R] transmittance after the last blended Gaussian
+    int32_t* n_contrib;  // [R] 1 + list position (within the tile) of the last blended Gaussian
+};
+template <typename T> void launch_render_forward(const RenderArgs<T>& a, const RenderOutputs<T>& out, cudaStream_t stream);
+
+template <typename T> struct RenderGradArgs {
+    const T* t_final;           // [R] from the forward
+    const int32_t* n_contrib;   // [R]
+    const T* g_rgb;             // [R,3] dL/d(rgb), dL/d(depth sum), dL/d(accumulation)
+    const T* g_depth;           // [R]
+    const T* g_acc;             // [R]
+    // outputs, zeroed by the caller, accumulated with atomics
+    T* g_whiten;                // [N,9]
+    T* g_o_u;                   // [N,3]
+    T* g_colors;                // [N,3]
+    T* g_opacities;             // [N]
+};
+template <typename T>
+void launch_render_backward(const RenderArgs<T>& a, const RenderGradArgs<T>& g, cudaStream_t stream);
+
+// ------------------------------------------------------------------ stage 4: preprocess backward
+template <typename T> struct PreprocessGradArgs {
+    const T* g_whiten;   // [N,9] from the render backward
+    const T* g_o_u;      // [N,3]
+    const T* g_rgb;      // [N,3] (ignored when sh_degree < 0)
+    // outputs (fully written)
+    T* g_means_c;        // [N,3]
+    T* g_quats;          // [N,4]
+    T* g_scales;         // [N,3]
+    T* g_sh;             // [N,K,3] (bands above sh_degree written as 0; null when sh_degree < 0)
+    T* g_means_w;        // [N,3] through the SH view direction (0 when sh_degree < 1)
+};
+template <typename T>
+void launch_preprocess_backward(const PreprocessArgs<T>& a, const PreprocessGradArgs<T>& g, cudaStream_t stream);
+
+}  // namespace geer

@@ -1,0 +1,701 @@
+// 3DGEER math shared by the CUDA kernels and a CPU build (tests/test_csrc_math.py).
+//
+// Every function here is the per-Gaussian, per-pair or per-ray step of the PyTorch twin in
+// geer_ns/render/ (the specification), written to round the same way where that matters:
+//   transforms.py  quat_to_rotmat, whitening (W = S^-1 R_v^T, MIN_SCALE clamp), o_u = -W mu_c
+//   pbf.py         lambda^2 rule, _plane_bounds (rotated-frame tangent solve), mirror_tangent
+//   associate.py   interval pieces at the +-pi seam, tile overlap in the mirror-tangent domain
+//   transmittance  ray frame, D^2 = |m_u / |d_u||^2, t*, alpha = min(0.99, sigma exp(-D^2/2)), gate
+//   composite.py   front-to-back blending, stop before T < 1e-4
+//   sh.py          real SH up to degree 3, +0.5, clamp at 0
+// and the analytic backward of each (paper App. C, two-stage layout: the per-pair part runs in the
+// render kernel, the per-Gaussian part in the preprocess backward).
+//
+// Plain C++ (no CUDA or torch headers); GEER_HD marks functions for both host and device.
+#pragma once
+
+#include <math.h>
+#include <stdint.h>
+
+#if defined(__CUDACC__)
+#define GEER_HD __host__ __device__ __forceinline__
+#else
+#define GEER_HD inline
+#endif
+
+namespace geer {
+
+// ---------------------------------------------------------------------------------- constants
+// Python floats cast to the compute type, exactly as torch does with scalar operands.
+constexpr double kPi = 3.14159265358979323846;
+constexpr double kAlphaMin = 1.0 / 255.0;      // pbf.ALPHA_MIN
+constexpr double kAlphaMax = 0.99;             // transmittance.ALPHA_MAX
+constexpr double kTMin = 1e-4;                 // composite.T_MIN
+constexpr double kMinScale = 1e-12;            // transforms.MIN_SCALE
+constexpr double kPaperLambda = 3.0;           // pbf.PAPER_LAMBDA
+constexpr double kLamSqRelSlack = 1e-3;        // pbf._LAMBDA_SQ_REL_SLACK
+constexpr double kLamSqAbsSlack = 1e-4;        // pbf._LAMBDA_SQ_ABS_SLACK
+
+template <typename T> struct Limits;
+template <> struct Limits<float> {
+    GEER_HD static float tiny() { return 1.17549435082228750797e-38f; }  // torch.finfo(float32).tiny
+    GEER_HD static float inf() { return INFINITY; }
+};
+template <> struct Limits<double> {
+    GEER_HD static double tiny() { return 2.22507385850720138309e-308; }
+    GEER_HD static double inf() { return double(INFINITY); }
+};
+
+// Overloads so that float code stays in float (no silent promotion to double).
+GEER_HD float g_sqrt(float x) { return sqrtf(x); }
+GEER_HD double g_sqrt(double x) { return sqrt(x); }
+GEER_HD float g_atan2(float y, float x) { return atan2f(y, x); }
+GEER_HD double g_atan2(double y, double x) { return atan2(y, x); }
+GEER_HD float g_tan(float x) { return tanf(x); }
+GEER_HD double g_tan(double x) { return tan(x); }
+GEER_HD float g_exp(float x) { return expf(x); }
+GEER_HD double g_exp(double x) { return exp(x); }
+GEER_HD float g_log(float x) { return logf(x); }
+GEER_HD double g_log(double x) { return log(x); }
+template <typename T> GEER_HD T g_abs(T x) { return x < T(0) ? -x : x; }
+// torch.maximum / clamp semantics for ordinary numbers (inputs here are never NaN).
+template <typename T> GEER_HD T g_max(T a, T b) { return a > b ? a : b; }
+template <typename T> GEER_HD T g_min(T a, T b) { return a < b ? a : b; }
+
+// ---------------------------------------------------------------------------------- vectors
+template <typename T> struct Vec3 {
+    T x, y, z;
+};
+// Row-major 3x3: m[3 * row + col].
+template <typename T> struct Mat3 {
+    T m[9];
+};
+
+template <typename T> GEER_HD Vec3<T> v3(T x, T y, T z) { return Vec3<T>{x, y, z}; }
+template <typename T> GEER_HD Vec3<T> load3(const T* p) { return Vec3<T>{p[0], p[1], p[2]}; }
+template <typename T> GEER_HD void store3(T* p, const Vec3<T>& v) { p[0] = v.x; p[1] = v.y; p[2] = v.z; }
+template <typename T> GEER_HD Vec3<T> operator+(const Vec3<T>& a, const Vec3<T>& b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
+template <typename T> GEER_HD Vec3<T> operator-(const Vec3<T>& a, const Vec3<T>& b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
+template <typename T> GEER_HD Vec3<T> operator*(T s, const Vec3<T>& a) { return {s * a.x, s * a.y, s * a.z}; }
+template <typename T> GEER_HD T dot(const Vec3<T>& a, const Vec3<T>& b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+template <typename T> GEER_HD Vec3<T> cross(const Vec3<T>& a, const Vec3<T>& b) {
+    return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+}
+template <typename T> GEER_HD Vec3<T> matvec(const Mat3<T>& a, const Vec3<T>& v) {
+    return {a.m[0] * v.x + a.m[1] * v.y + a.m[2] * v.z, a.m[3] * v.x + a.m[4] * v.y + a.m[5] * v.z,
+            a.m[6] * v.x + a.m[7] * v.y + a.m[8] * v.z};
+}
+// a^T v
+template <typename T> GEER_HD Vec3<T> matTvec(const Mat3<T>& a, const Vec3<T>& v) {
+    return {a.m[0] * v.x + a.m[3] * v.y + a.m[6] * v.z, a.m[1] * v.x + a.m[4] * v.y + a.m[7] * v.z,
+            a.m[2] * v.x + a.m[5] * v.y + a.m[8] * v.z};
+}
+template <typename T> GEER_HD Mat3<T> matmul(const Mat3<T>& a, const Mat3<T>& b) {
+    Mat3<T> c;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            c.m[3 * i + j] = a.m[3 * i] * b.m[j] + a.m[3 * i + 1] * b.m[3 + j] + a.m[3 * i + 2] * b.m[6 + j];
+    return c;
+}
+// a^T b
+template <typename T> GEER_HD Mat3<T> matTmul(const Mat3<T>& a, const Mat3<T>& b) {
+    Mat3<T> c;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            c.m[3 * i + j] = a.m[i] * b.m[j] + a.m[3 + i] * b.m[3 + j] + a.m[6 + i] * b.m[6 + j];
+    return c;
+}
+template <typename T> GEER_HD Mat3<T> load_mat3(const T* p) {
+    Mat3<T> a;
+    for (int i = 0; i < 9; ++i) a.m[i] = p[i];
+    return a;
+}
+template <typename T> GEER_HD void store_mat3(T* p, const Mat3<T>& a) {
+    for (int i = 0; i < 9; ++i) p[i] = a.m[i];
+}
+
+// ================================================================================ forward: Gaussian
+// transforms.quat_to_rotmat: wxyz, any norm (normalised with the norm clamped at tiny).
+template <typename T> GEER_HD void normalize_quat(const T* q, T* qn, T* norm_out) {
+    T n = g_sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    *norm_out = n;
+    T nc = g_max(n, Limits<T>::tiny());
+    for (int i = 0; i < 4; ++i) qn[i] = q[i] / nc;
+}
+
+template <typename T> GEER_HD Mat3<T> quat_to_rotmat(const T* quat) {
+    T q[4], n;
+    normalize_quat(quat, q, &n);
+    const T w = q[0], x = q[1], y = q[2], z = q[3];
+    Mat3<T> r;
+    r.m[0] = T(1) - T(2) * (y * y + z * z); r.m[1] = T(2) * (x * y - w * z); r.m[2] = T(2) * (x * z + w * y);
+    r.m[3] = T(2) * (x * y + w * z); r.m[4] = T(1) - T(2) * (x * x + z * z); r.m[5] = T(2) * (y * z - w * x);
+    r.m[6] = T(2) * (x * z - w * y); r.m[7] = T(2) * (y * z + w * x); r.m[8] = T(1) - T(2) * (x * x + y * y);
+    return r;
+}
+
+template <typename T> GEER_HD T clamp_scale(T s) { return g_max(s, T(kMinScale)); }
+
+// W = S^-1 R_v^T: W[i][j] = R_v[j][i] / s_i (transforms.whitening).
+template <typename T> GEER_HD Mat3<T> whitening(const Mat3<T>& rot_v, const T* scales) {
+    Mat3<T> w;
+    for (int i = 0; i < 3; ++i) {
+        const T inv_s = T(1) / clamp_scale(scales[i]);
+        for (int j = 0; j < 3; ++j) w.m[3 * i + j] = inv_s * rot_v.m[3 * j + i];
+    }
+    return w;
+}
+
+// o_u = W (o - mu_c) with the camera at the origin of the view frame.
+template <typename T> GEER_HD Vec3<T> camera_in_canonical(const Mat3<T>& w, const Vec3<T>& mean_c) {
+    const Vec3<T> p = matvec(w, mean_c);
+    return Vec3<T>{-p.x, -p.y, -p.z};
+}
+
+// pbf.pbf_lambda_sq: (lambda^2 with slack, alive).
+template <typename T> GEER_HD T pbf_lambda_sq(T opacity, bool paper_lambda) {
+    T lam2 = paper_lambda ? T(kPaperLambda * kPaperLambda)
+                          : T(2.0) * g_log(g_max(T(255.0) * opacity, T(1.0)));
+    return lam2 * T(1.0 + kLamSqRelSlack) + T(kLamSqAbsSlack);
+}
+template <typename T> GEER_HD bool pbf_alive(T opacity) { return opacity >= T(kAlphaMin); }
+
+// pbf._plane_bounds: angular interval (lo, hi), angle = atan2(a, z), of the ellipse with mean
+// (mu_a, mu_z) and covariance factor rows row_a, row_z, seen from the origin of the (a, z) plane.
+// Solved in the frame rotated so that the mean lies on +z (no mu mu^T - lambda^2 Sigma cancellation).
+template <typename T>
+GEER_HD void plane_bounds(T mu_a, T mu_z, const Vec3<T>& row_a, const Vec3<T>& row_z, T lam2, bool force_full,
+                          T* lo_out, T* hi_out) {
+    const T tiny = Limits<T>::tiny();
+    const T pi = T(kPi);
+    const T r = g_sqrt(mu_a * mu_a + mu_z * mu_z);
+    const T r_safe = g_max(r, tiny);
+    const T theta_mu = g_atan2(mu_a, mu_z);
+    const T cos_t = mu_z / r_safe, sin_t = mu_a / r_safe;
+    const Vec3<T> row_x = cos_t * row_a - sin_t * row_z;   // across the mean's direction
+    const Vec3<T> row_zp = sin_t * row_a + cos_t * row_z;  // along it
+    const T s_xx = dot(row_x, row_x), s_xz = dot(row_x, row_zp), s_zz = dot(row_zp, row_zp);
+    const Vec3<T> c = cross(row_x, row_zp);
+    const T det = dot(c, c);  // Lagrange identity: det(S')
+    const T disc = lam2 * (r * r) * s_xx - lam2 * lam2 * det;
+    const T t00 = lam2 * s_xx, t02 = lam2 * s_xz, t22 = lam2 * s_zz - r * r;
+    const T sq = g_sqrt(g_max(disc, T(0)));
+
+    T low = 0, high = 0, last_mag = 0;
+    for (int k = 0; k < 2; ++k) {
+        const T sign = k == 0 ? T(1) : T(-1);
+        // The same tangent line written two ways; take the better-conditioned one.
+        const T va0 = t02 + sign * sq, va1 = t22;
+        const T vb0 = t00, vb1 = t02 - sign * sq;
+        const T mag_a = g_abs(va0) + g_abs(va1), mag_b = g_abs(vb0) + g_abs(vb1);
+        const bool use_a = mag_a >= mag_b;
+        const T delta = use_a ? g_atan2(va0, va1) : g_atan2(vb0, vb1);  // relative to the mean, (-pi, pi]
+        const T l = delta > T(0) ? delta - pi : delta;
+        const T h = delta < T(0) ? delta + pi : delta;
+        low = k == 0 ? l : g_max(low, l);
+        high = k == 0 ? h : g_min(high, h);
+        last_mag = g_max(mag_a, mag_b);  // the twin tests degeneracy on the second (sign = -1) line
+    }
+    const bool degenerate = (last_mag <= tiny) || (r <= tiny);
+    const bool full = force_full || (disc < T(0)) || degenerate;
+    *lo_out = full ? -pi : theta_mu + low;
+    *hi_out = full ? pi : theta_mu + high;
+}
+
+// pbf.mirror_tangent with xi = 1: tan(theta / 2), +-inf at +-pi.
+template <typename T> GEER_HD T mirror_tangent(T theta) {
+    const T pi = T(kPi);
+    if (theta >= pi) return Limits<T>::inf();
+    if (theta <= -pi) return -Limits<T>::inf();
+    return g_tan(T(0.5) * theta);
+}
+
+// Everything the preprocess stage produces for one Gaussian.
+template <typename T> struct GaussianForward {
+    Mat3<T> w;        // whitening matrix
+    Vec3<T> o_u;      // camera centre in the canonical frame
+    T bounds[4];      // PBF (theta_lo, theta_hi, phi_lo, phi_hi), unwrapped angles
+    T lam2;
+    bool alive;
+    bool camera_inside;
+};
+
+// The per-Gaussian forward of rasterize.preprocess (without colour): view rotation, whitening, o_u, PBF.
+template <typename T>
+GEER_HD GaussianForward<T> preprocess_gaussian(const Vec3<T>& mean_c, const T* quat, const T* scales, T opacity,
+                                               const Mat3<T>& rot_c, bool paper_lambda) {
+    GaussianForward<T> g;
+    const Mat3<T> rot_v = matmul(rot_c, quat_to_rotmat(quat));
+    g.w = whitening(rot_v, scales);
+    g.o_u = camera_in_canonical(g.w, mean_c);
+    g.lam2 = pbf_lambda_sq(opacity, paper_lambda);
+    g.alive = pbf_alive(opacity);
+    g.camera_inside = dot(g.o_u, g.o_u) <= g.lam2;
+    // Covariance factor M = R_v S (rows), Sigma_c = M M^T.
+    Vec3<T> rows[3];
+    for (int i = 0; i < 3; ++i)
+        rows[i] = Vec3<T>{rot_v.m[3 * i] * clamp_scale(scales[0]), rot_v.m[3 * i + 1] * clamp_scale(scales[1]),
+                          rot_v.m[3 * i + 2] * clamp_scale(scales[2])};
+    plane_bounds(mean_c.x, mean_c.z, rows[0], rows[2], g.lam2, g.camera_inside, &g.bounds[0], &g.bounds[1]);
+    plane_bounds(mean_c.y, mean_c.z, rows[1], rows[2], g.lam2, g.camera_inside, &g.bounds[2], &g.bounds[3]);
+    return g;
+}
+
+// ---------------------------------------------------------------------------------- SH colour
+// Real SH constants (sh.py), in the compute type.
+#define GEER_SH_C0 0.28209479177387814
+#define GEER_SH_C1 0.4886025119029199
+#define GEER_SH_C2_0 1.0925484305920792
+#define GEER_SH_C2_1 -1.0925484305920792
+#define GEER_SH_C2_2 0.31539156525252005
+#define GEER_SH_C2_3 -1.0925484305920792
+#define GEER_SH_C2_4 0.5462742152960396
+#define GEER_SH_C3_0 -0.5900435899266435
+#define GEER_SH_C3_1 2.890611442640554
+#define GEER_SH_C3_2 -0.4570457994644658
+#define GEER_SH_C3_3 0.3731763325901154
+#define GEER_SH_C3_4 -0.4570457994644658
+#define GEER_SH_C3_5 1.445305721320277
+#define GEER_SH_C3_6 -0.5900435899266435
+
+GEER_HD constexpr int num_sh_bases(int degree) { return (degree + 1) * (degree + 1); }
+
+// Basis values b[k] (k < (degree+1)^2) at the unit direction (x, y, z); optionally their gradients.
+template <typename T>
+GEER_HD void sh_basis(int degree, T x, T y, T z, T* b, Vec3<T>* db /* may be null */) {
+    b[0] = T(GEER_SH_C0);
+    if (db) db[0] = Vec3<T>{0, 0, 0};
+    if (degree < 1) return;
+    const T c1 = T(GEER_SH_C1);
+    b[1] = -c1 * y; b[2] = c1 * z; b[3] = -c1 * x;
+    if (db) { db[1] = {0, -c1, 0}; db[2] = {0, 0, c1}; db[3] = {-c1, 0, 0}; }
+    if (degree < 2) return;
+    const T xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
+    b[4] = T(GEER_SH_C2_0) * xy;
+    b[5] = T(GEER_SH_C2_1) * yz;
+    b[6] = T(GEER_SH_C2_2) * (T(2) * zz - xx - yy);
+    b[7] = T(GEER_SH_C2_3) * xz;
+    b[8] = T(GEER_SH_C2_4) * (xx - yy);
+    if (db) {
+        db[4] = T(GEER_SH_C2_0) * Vec3<T>{y, x, 0};
+        db[5] = T(GEER_SH_C2_1) * Vec3<T>{0, z, y};
+        db[6] = T(GEER_SH_C2_2) * Vec3<T>{-T(2) * x, -T(2) * y, T(4) * z};
+        db[7] = T(GEER_SH_C2_3) * Vec3<T>{z, 0, x};
+        db[8] = T(GEER_SH_C2_4) * Vec3<T>{T(2) * x, -T(2) * y, 0};
+    }
+    if (degree < 3) return;
+    b[9] = T(GEER_SH_C3_0) * y * (T(3) * xx - yy);
+    b[10] = T(GEER_SH_C3_1) * xy * z;
+    b[11] = T(GEER_SH_C3_2) * y * (T(4) * zz - xx - yy);
+    b[12] = T(GEER_SH_C3_3) * z * (T(2) * zz - T(3) * xx - T(3) * yy);
+    b[13] = T(GEER_SH_C3_4) * x * (T(4) * zz - xx - yy);
+    b[14] = T(GEER_SH_C3_5) * z * (xx - yy);
+    b[15] = T(GEER_SH_C3_6) * x * (xx - T(3) * yy);
+    if (db) {
+        db[9] = T(GEER_SH_C3_0) * Vec3<T>{T(6) * xy, T(3) * xx - T(3) * yy, 0};
+        db[10] = T(GEER_SH_C3_1) * Vec3<T>{yz, xz, xy};
+        db[11] = T(GEER_SH_C3_2) * Vec3<T>{-T(2) * xy, T(4) * zz - xx - T(3) * yy, T(8) * yz};
+        db[12] = T(GEER_SH_C3_3) * Vec3<T>{-T(6) * xz, -T(6) * yz, T(6) * zz - T(3) * xx - T(3) * yy};
+        db[13] = T(GEER_SH_C3_4) * Vec3<T>{T(4) * zz - T(3) * xx - yy, -T(2) * xy, T(8) * xz};
+        db[14] = T(GEER_SH_C3_5) * Vec3<T>{T(2) * xz, -T(2) * yz, xx - yy};
+        db[15] = T(GEER_SH_C3_6) * Vec3<T>{T(3) * xx - T(3) * yy, -T(6) * xy, 0};
+    }
+}
+
+// Unit view direction (sh.py normalises with the norm clamped at tiny); returns the norm.
+template <typename T> GEER_HD Vec3<T> sh_direction(const Vec3<T>& dir, T* norm_out) {
+    const T n = g_sqrt(dot(dir, dir));
+    *norm_out = n;
+    const T nc = g_max(n, Limits<T>::tiny());
+    return Vec3<T>{dir.x / nc, dir.y / nc, dir.z / nc};
+}
+
+// sh_to_color for one Gaussian: coeffs [K][3] (K >= (degree+1)^2), dir = mean - camera centre (world).
+// Writes the unclamped value (before the clamp at 0) to raw if given.
+template <typename T>
+GEER_HD Vec3<T> sh_to_color(const T* coeffs, int degree, const Vec3<T>& dir, Vec3<T>* raw = nullptr) {
+    T n;
+    const Vec3<T> d = sh_direction(dir, &n);
+    T b[16];
+    sh_basis<T>(degree, d.x, d.y, d.z, b, nullptr);
+    Vec3<T> acc{0, 0, 0};
+    const int nb = num_sh_bases(degree);
+    for (int k = 0; k < nb; ++k) acc = acc + b[k] * load3(coeffs + 3 * k);
+    acc = acc + Vec3<T>{T(0.5), T(0.5), T(0.5)};
+    if (raw) *raw = acc;
+    return Vec3<T>{g_max(acc.x, T(0)), g_max(acc.y, T(0)), g_max(acc.z, T(0))};
+}
+
+// ================================================================================ association
+// associate._interval_pieces: unwrapped [lo, hi] split at the +-pi seam into two mirror-tangent pieces.
+// The second piece is empty (lo = +inf, hi = -inf) when there is no wrap.
+template <typename T> struct MirrorPieces {
+    T a_lo, a_hi, b_lo, b_hi;
+};
+
+template <typename T> GEER_HD MirrorPieces<T> interval_pieces(T lo, T hi) {
+    const T pi = T(kPi), two_pi = T(2 * kPi);
+    const T a_lo = g_min(g_max(lo, -pi), pi), a_hi = g_min(g_max(hi, -pi), pi);
+    const bool wraps_up = hi > pi, wraps_down = lo < -pi;
+    const T b_lo = wraps_up ? -pi : lo + two_pi;
+    const T b_hi = wraps_up ? hi - two_pi : pi;
+    const bool has_b = wraps_up || wraps_down;
+    MirrorPieces<T> p;
+    p.a_lo = mirror_tangent(a_lo);
+    p.a_hi = mirror_tangent(a_hi);
+    p.b_lo = has_b ? mirror_tangent(b_lo) : Limits<T>::inf();
+    p.b_hi = has_b ? mirror_tangent(b_hi) : -Limits<T>::inf();
+    return p;
+}
+
+// associate._overlaps for one tile interval [t_lo, t_hi] (mirror domain).
+template <typename T> GEER_HD bool pieces_overlap(const MirrorPieces<T>& p, T t_lo, T t_hi) {
+    return (p.a_lo <= t_hi && t_lo <= p.a_hi) || (p.b_lo <= t_hi && t_lo <= p.b_hi);
+}
+
+// The tiles of one view as the association sees them. Bounds are in the mirror-tangent domain.
+template <typename T> struct TileGrid {
+    const T* tile_bounds;     // [n_tiles][4]: theta lo, hi, phi lo, hi
+    const uint8_t* active;    // [n_tiles]
+    int n_tiles;
+    int tiles_x, tiles_y;
+    // Separable (BEAP) grids: tile (ty, tx) has theta bounds col[tx] and phi bounds row[ty], both
+    // non-decreasing in lo and hi, so the tiles a Gaussian overlaps form rectangles found by binary search.
+    bool separable;
+    const T* col_bounds;      // [tiles_x][2]
+    const T* row_bounds;      // [tiles_y][2]
+};
+
+// First index i in [0, n) with a[2 i + k] >= v (a non-decreasing), n if none.
+template <typename T> GEER_HD int lower_bound_strided(const T* a, int n, int k, T v) {
+    int lo = 0, hi = n;
+    while (lo < hi) {
+        const int mid = (lo + hi) >> 1;
+        if (a[2 * mid + k] >= v) hi = mid; else lo = mid + 1;
+    }
+    return lo;
+}
+// First index i in [0, n) with a[2 i + k] > v, n if none.
+template <typename T> GEER_HD int upper_bound_strided(const T* a, int n, int k, T v) {
+    int lo = 0, hi = n;
+    while (lo < hi) {
+        const int mid = (lo + hi) >> 1;
+        if (a[2 * mid + k] > v) hi = mid; else lo = mid + 1;
+    }
+    return lo;
+}
+
+// Half-open index ranges of the separable columns (or rows) that overlap either piece; up to two,
+// disjoint and ordered. Returns how many.
+template <typename T> GEER_HD int separable_ranges(const T* bounds, int n, const MirrorPieces<T>& p, int* r) {
+    int cnt = 0;
+    const T los[2] = {p.a_lo, p.b_lo}, his[2] = {p.a_hi, p.b_hi};
+    for (int k = 0; k < 2; ++k) {
+        const int first = lower_bound_strided(bounds, n, 1, los[k]);   // hi >= piece lo
+        const int last = upper_bound_strided(bounds, n, 0, his[k]);    // lo <= piece hi, exclusive
+        if (first >= last) continue;
+        r[2 * cnt] = first;
+        r[2 * cnt + 1] = last;
+        ++cnt;
+    }
+    if (cnt == 2) {  // merge overlapping ranges so that no tile is listed twice
+        if (r[2] < r[0]) { int a = r[0], b = r[1]; r[0] = r[2]; r[1] = r[3]; r[2] = a; r[3] = b; }
+        if (r[2] <= r[1]) { r[1] = g_max(r[1], r[3]); cnt = 1; }
+    }
+    return cnt;
+}
+
+// Calls f(tile) for every active tile whose theta and phi ranges both overlap the Gaussian's PBF
+// (associate.associate), in increasing tile order per rectangle. Returns the number of tiles.
+// Separable grids: O(log T + hits). Other grids: every tile is tested, O(T) per Gaussian.
+template <typename T, typename F>
+GEER_HD int for_each_overlapping_tile(const T* pbf_bounds, bool alive, const TileGrid<T>& grid, F&& f) {
+    if (!alive) return 0;
+    const MirrorPieces<T> pt = interval_pieces(pbf_bounds[0], pbf_bounds[1]);
+    const MirrorPieces<T> pp = interval_pieces(pbf_bounds[2], pbf_bounds[3]);
+    int count = 0;
+    if (grid.separable) {
+        int cr[4], rr[4];
+        const int nc = separable_ranges(grid.col_bounds, grid.tiles_x, pt, cr);
+        const int nr = separable_ranges(grid.row_bounds, grid.tiles_y, pp, rr);
+        for (int a = 0; a < nr; ++a)
+            for (int ty = rr[2 * a]; ty < rr[2 * a + 1]; ++ty)
+                for (int b = 0; b < nc; ++b)
+                    for (int tx = cr[2 * b]; tx < cr[2 * b + 1]; ++tx) {
+                        const int tile = ty * grid.tiles_x + tx;
+                        if (!grid.active[tile]) continue;
+                        f(tile);
+                        ++count;
+                    }
+        return count;
+    }
+    for (int tile = 0; tile < grid.n_tiles; ++tile) {
+        if (!grid.active[tile]) continue;
+        const T* tb = grid.tile_bounds + 4 * tile;
+        if (pieces_overlap(pt, tb[0], tb[1]) && pieces_overlap(pp, tb[2], tb[3])) {
+            f(tile);
+            ++count;
+        }
+    }
+    return count;
+}
+
+// Sort key of one (tile, Gaussian) pair: tile in the high 32 bits, the Gaussian's front-to-back rank
+// (stable sort of depth, ties by index: exactly the twin's order) in the low 32 bits.
+GEER_HD constexpr uint64_t pair_key(int tile, int rank) { return (uint64_t(uint32_t(tile)) << 32) | uint64_t(uint32_t(rank)); }
+
+// ================================================================================ forward: pair
+// One Gaussian as the render stage sees it (transmittance.ray_frame, plus what blending needs).
+template <typename T> struct GaussFrame {
+    T w[9];       // rows 0-2: d_u = W d
+    T mom[9];     // rows 3-5: m_u = ([o_u]_x W) d (columns o_u x W e_j)
+    T along[3];   // row 6: o_u . d_u = (W^T o_u) . d
+    T o[3];       // o_u (for the backward)
+    T rgb[3];
+    T opacity;
+    int inside;   // camera inside the PBF ellipsoid: the t* > 0 gate does not apply
+};
+
+template <typename T>
+GEER_HD void make_frame(const T* w, const T* o_u, const T* rgb, T opacity, bool inside, GaussFrame<T>& f) {
+    for (int i = 0; i < 9; ++i) f.w[i] = w[i];
+    for (int j = 0; j < 3; ++j) {
+        const Vec3<T> col{w[j], w[3 + j], w[6 + j]};
+        const Vec3<T> o = load3(o_u);
+        const Vec3<T> c = cross(o, col);
+        f.mom[j] = c.x; f.mom[3 + j] = c.y; f.mom[6 + j] = c.z;
+        f.along[j] = o_u[0] * w[j] + o_u[1] * w[3 + j] + o_u[2] * w[6 + j];
+    }
+    for (int i = 0; i < 3; ++i) { f.o[i] = o_u[i]; f.rgb[i] = rgb[i]; }
+    f.opacity = opacity;
+    f.inside = inside ? 1 : 0;
+}
+
+template <typename T> struct PairEval {
+    Vec3<T> d_u;   // W d
+    Vec3<T> m_hat; // m_u / |d_u|
+    T inv_norm;    // 1 / |d_u| (|d_u|^2 clamped at tiny)
+    bool clamped;  // |d_u|^2 < tiny: inv_norm does not depend on d_u
+    T dist_sq;     // D^2
+    T t_star;      // distance along the unit ray to the maximum response
+    T gauss;       // exp(-D^2 / 2)
+    T raw;         // sigma exp(-D^2 / 2)
+    T alpha;       // min(0.99, raw), 0 where the pair does not contribute
+};
+
+// transmittance.canonical_ray_response + pair_alpha for one (ray, Gaussian) pair.
+template <typename T> GEER_HD PairEval<T> eval_pair(const GaussFrame<T>& g, const Vec3<T>& d) {
+    PairEval<T> e;
+    e.d_u = Vec3<T>{g.w[0] * d.x + g.w[1] * d.y + g.w[2] * d.z, g.w[3] * d.x + g.w[4] * d.y + g.w[5] * d.z,
+                    g.w[6] * d.x + g.w[7] * d.y + g.w[8] * d.z};
+    const Vec3<T> m{g.mom[0] * d.x + g.mom[1] * d.y + g.mom[2] * d.z, g.mom[3] * d.x + g.mom[4] * d.y + g.mom[5] * d.z,
+                    g.mom[6] * d.x + g.mom[7] * d.y + g.mom[8] * d.z};
+    const T a = g.along[0] * d.x + g.along[1] * d.y + g.along[2] * d.z;
+    const T nsq = dot(e.d_u, e.d_u);
+    e.clamped = nsq < Limits<T>::tiny();
+    e.inv_norm = T(1) / g_sqrt(g_max(nsq, Limits<T>::tiny()));
+    e.m_hat = e.inv_norm * m;  // normalise before squaring: no overflow for 1e-8 scales
+    e.dist_sq = dot(e.m_hat, e.m_hat);
+    e.t_star = -a * e.inv_norm * e.inv_norm;
+    e.gauss = g_exp(T(-0.5) * e.dist_sq);
+    e.raw = g.opacity * e.gauss;
+    const T alpha = g_min(e.raw, T(kAlphaMax));
+    const bool keep = alpha >= T(kAlphaMin) && (e.t_star > T(0) || g.inside);
+    e.alpha = keep ? alpha : T(0);
+    return e;
+}
+
+// ================================================================================ forward: ray
+template <typename T> struct RayForward {
+    T rgb[3];
+    T depth;      // sum of w_i max(t*_i, 0)
+    T acc;        // sum of w_i
+    T trans;      // transmittance after the last blended Gaussian
+    int n_contrib;  // 1 + list position of the last blended Gaussian (0: none)
+    bool done;    // stopped (T would fall below T_MIN) or the ray is invalid
+};
+
+template <typename T> GEER_HD void ray_forward_init(RayForward<T>& s, bool valid) {
+    s.rgb[0] = s.rgb[1] = s.rgb[2] = T(0);
+    s.depth = s.acc = T(0);
+    s.trans = T(1);
+    s.n_contrib = 0;
+    s.done = !valid;
+}
+
+// Blend the Gaussian at list position `pos` (composite.composite: stop before T < T_MIN).
+template <typename T>
+GEER_HD void ray_forward_step(RayForward<T>& s, const GaussFrame<T>& g, const Vec3<T>& d, int pos) {
+    if (s.done) return;
+    const PairEval<T> e = eval_pair(g, d);
+    if (e.alpha == T(0)) return;
+    const T t_after = s.trans * (T(1) - e.alpha);
+    if (t_after < T(kTMin)) {
+        s.done = true;
+        return;
+    }
+    const T w = e.alpha * s.trans;
+    for (int c = 0; c < 3; ++c) s.rgb[c] += w * g.rgb[c];
+    s.depth += w * g_max(e.t_star, T(0));
+    s.acc += w;
+    s.trans = t_after;
+    s.n_contrib = pos + 1;
+}
+
+// ================================================================================ backward: pair
+// dL/dD^2, dL/dt* of one pair -> dL/d(o_u), dL/dW (paper C.3-C.4, RenderCUDA part).
+// With m = o_u x d_u, n = 1 / |d_u|, m_hat = m n, d_hat = d_u n:
+//   D^2 = |m|^2 n^2        dD^2/dm = 2 n m_hat      dD^2/dd_u (via n) = -2 D^2 n d_hat
+//   t*  = -(o_u . d_u) n^2 dt*/do_u = -n d_hat      dt*/dd_u = -n^2 o_u - 2 t* n d_hat
+//   d(m . g)/do_u = d_u x g,  d(m . g)/dd_u = g x o_u
+// so dL/do_u = 2 gD (d_hat x m_hat) - gt n d_hat and dL/dd_u = n [2 gD (m_hat x o_u) - gt n o_u
+// - 2 (gD D^2 + gt t*) d_hat], dL/dW = dL/dd_u d^T (C.9). Everything stays O(|o_u|), never |m|^2.
+template <typename T>
+GEER_HD void pair_response_backward(const PairEval<T>& e, const Vec3<T>& o_u, const Vec3<T>& d, T g_dist_sq,
+                                    T g_t_star, Vec3<T>& g_o, T* g_w /* 9, accumulated */) {
+    const T n = e.inv_norm;
+    const Vec3<T> d_hat = n * e.d_u;
+    g_o = (T(2) * g_dist_sq) * cross(d_hat, e.m_hat) - (g_t_star * n) * d_hat;
+    Vec3<T> g_du = (T(2) * g_dist_sq) * cross(e.m_hat, o_u) - (g_t_star * n) * o_u;
+    if (!e.clamped) g_du = g_du - (T(2) * (g_dist_sq * e.dist_sq + g_t_star * e.t_star)) * d_hat;
+    g_du = n * g_du;
+    const T gd[3] = {g_du.x, g_du.y, g_du.z};
+    const T dv[3] = {d.x, d.y, d.z};
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) g_w[3 * i + j] += gd[i] * dv[j];
+}
+
+// ================================================================================ backward: ray
+// Back-to-front state of one ray (3DGS-style): transmittance before the current Gaussian is
+// recovered as T_after / (1 - alpha); `rec` is sum_{j > i} alpha_j prod_{i<k<j} (1 - alpha_k) v_j with
+// v = gC . c + gZ z + gA, so that dL/dalpha_i = T_i (v_i - rec).
+template <typename T> struct RayBackward {
+    T trans;      // transmittance after the Gaussian about to be processed
+    T rec;
+    T g_rgb[3];   // dL/d(rgb sum), dL/d(depth sum), dL/d(accumulation) of this ray
+    T g_depth;
+    T g_acc;
+};
+
+// Per-pair gradient contributions, to be summed into the Gaussian's buffers.
+template <typename T> struct PairGrad {
+    T w[9];
+    T o[3];
+    T rgb[3];
+    T opacity;
+};
+
+template <typename T> GEER_HD void pair_grad_zero(PairGrad<T>& p) {
+    for (int i = 0; i < 9; ++i) p.w[i] = T(0);
+    for (int i = 0; i < 3; ++i) p.o[i] = p.rgb[i] = T(0);
+    p.opacity = T(0);
+}
+
+// One Gaussian of the ray's blended prefix, back to front. Returns false (p untouched) when the pair
+// did not contribute (alpha = 0), which is what the forward skipped too.
+template <typename T>
+GEER_HD bool ray_backward_step(RayBackward<T>& s, const GaussFrame<T>& g, const Vec3<T>& d, PairGrad<T>& p) {
+    const PairEval<T> e = eval_pair(g, d);
+    if (e.alpha == T(0)) return false;
+    const T one_minus = T(1) - e.alpha;
+    const T t_before = s.trans / one_minus;
+    const T w = e.alpha * t_before;
+    const T z = g_max(e.t_star, T(0));
+    const T v = s.g_rgb[0] * g.rgb[0] + s.g_rgb[1] * g.rgb[1] + s.g_rgb[2] * g.rgb[2] + s.g_depth * z + s.g_acc;
+    const T g_alpha = t_before * (v - s.rec);
+    s.rec = e.alpha * v + one_minus * s.rec;
+    s.trans = t_before;
+
+    pair_grad_zero(p);
+    for (int c = 0; c < 3; ++c) p.rgb[c] = w * s.g_rgb[c];
+    // depth uses max(t*, 0); torch's clamp_min passes the gradient where t* >= 0.
+    const T g_t = e.t_star >= T(0) ? w * s.g_depth : T(0);
+    // alpha = min(0.99, sigma G): no gradient through the clamp (torch passes it where raw <= 0.99).
+    T g_d2 = T(0);
+    if (e.raw <= T(kAlphaMax)) {
+        p.opacity = g_alpha * e.gauss;
+        g_d2 = T(-0.5) * g_alpha * e.raw;
+    }
+    Vec3<T> g_o;
+    pair_response_backward(e, load3(g.o), d, g_d2, g_t, g_o, p.w);
+    p.o[0] = g_o.x; p.o[1] = g_o.y; p.o[2] = g_o.z;
+    return true;
+}
+
+// ================================================================================ backward: Gaussian
+// dL/dW (render part, C.9) and dL/d(o_u) -> dL/d(mean_c), dL/dquat, dL/dscale (PreprocessCUDA,
+// C.4-C.6). o_u = -W mean_c adds dL/do_u (-mean_c)^T to dL/dW (C.4, PC part) and gives
+// dL/dmean_c = -W^T dL/do_u (C.15). W[i][j] = R_v[j][i] / s_i with R_v = R_c R(q / |q|).
+template <typename T>
+GEER_HD void preprocess_backward_gaussian(const Vec3<T>& mean_c, const T* quat, const T* scales, const Mat3<T>& rot_c,
+                                          const T* g_w_render, const Vec3<T>& g_o, Vec3<T>& g_mean_c, T* g_quat,
+                                          T* g_scale) {
+    const Mat3<T> rot = quat_to_rotmat(quat);
+    const Mat3<T> rot_v = matmul(rot_c, rot);
+    const Mat3<T> w = whitening(rot_v, scales);
+    // Total dL/dW.
+    Mat3<T> gw;
+    const T go[3] = {g_o.x, g_o.y, g_o.z}, mu[3] = {mean_c.x, mean_c.y, mean_c.z};
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) gw.m[3 * i + j] = g_w_render[3 * i + j] - go[i] * mu[j];
+    const Vec3<T> gm = matTvec(w, g_o);
+    g_mean_c = Vec3<T>{-gm.x, -gm.y, -gm.z};
+    // Scales (C.10): dW[i][j]/ds_i = -R_v[j][i] / s_i^2 = -W[i][j] / s_i (no gradient below MIN_SCALE).
+    Mat3<T> g_rot_v;
+    for (int i = 0; i < 3; ++i) {
+        const T inv_s = T(1) / clamp_scale(scales[i]);
+        T acc = T(0);
+        for (int j = 0; j < 3; ++j) {
+            acc += gw.m[3 * i + j] * rot_v.m[3 * j + i];
+            g_rot_v.m[3 * j + i] = gw.m[3 * i + j] * inv_s;
+        }
+        g_scale[i] = scales[i] >= T(kMinScale) ? -acc * inv_s * inv_s : T(0);
+    }
+    // Rotation (C.11-C.14, written for R(q) of a unit quaternion, then projected for |q| != 1).
+    const Mat3<T> g = matTmul(rot_c, g_rot_v);  // dL/dR
+    T q[4], qn;
+    normalize_quat(quat, q, &qn);
+    const T qw = q[0], qx = q[1], qy = q[2], qz = q[3];
+    const T* G = g.m;
+    T gq[4];
+    gq[0] = T(2) * (-qz * G[1] + qy * G[2] + qz * G[3] - qx * G[5] - qy * G[6] + qx * G[7]);
+    gq[1] = T(2) * (qy * G[1] + qz * G[2] + qy * G[3] - T(2) * qx * G[4] - qw * G[5] + qz * G[6] + qw * G[7]
+                    - T(2) * qx * G[8]);
+    gq[2] = T(2) * (-T(2) * qy * G[0] + qx * G[1] + qw * G[2] + qx * G[3] + qz * G[5] - qw * G[6] + qz * G[7]
+                    - T(2) * qy * G[8]);
+    gq[3] = T(2) * (-T(2) * qz * G[0] - qw * G[1] + qx * G[2] + qw * G[3] - T(2) * qz * G[4] + qy * G[5]
+                    + qx * G[6] + qy * G[7]);
+    // q_hat = q / max(|q|, tiny): dq = (g - q_hat (q_hat . g)) / |q| (no norm gradient when clamped).
+    if (qn >= Limits<T>::tiny()) {
+        const T proj = qw * gq[0] + qx * gq[1] + qy * gq[2] + qz * gq[3];
+        for (int k = 0; k < 4; ++k) g_quat[k] = (gq[k] - q[k] * proj) / qn;
+    } else {
+        for (int k = 0; k < 4; ++k) g_quat[k] = gq[k] / Limits<T>::tiny();
+    }
+}
+
+// dL/drgb -> dL/dcoeffs [K][3] (bands <= degree written, others untouched) and dL/d(dir) (dir = mean -
+// camera centre, world). The clamp at 0 passes the gradient where the value is >= 0 (torch clamp_min).
+template <typename T>
+GEER_HD void sh_backward(const T* coeffs, int degree, const Vec3<T>& dir, const Vec3<T>& g_rgb, T* g_coeffs,
+                         Vec3<T>& g_dir) {
+    T n;
+    const Vec3<T> d = sh_direction(dir, &n);
+    T b[16];
+    Vec3<T> db[16];
+    sh_basis<T>(degree, d.x, d.y, d.z, b, db);
+    const int nb = num_sh_bases(degree);
+    Vec3<T> raw{T(0.5), T(0.5), T(0.5)};
+    for (int k = 0; k < nb; ++k) raw = raw + b[k] * load3(coeffs + 3 * k);
+    const Vec3<T> g{raw.x >= T(0) ? g_rgb.x : T(0), raw.y >= T(0) ? g_rgb.y : T(0), raw.z >= T(0) ? g_rgb.z : T(0)};
+    Vec3<T> g_d{T(0), T(0), T(0)};
+    for (int k = 0; k < nb; ++k) {
+        store3(g_coeffs + 3 * k, b[k] * g);
+        g_d = g_d + dot(load3(coeffs + 3 * k), g) * db[k];
+    }
+    g_dir = Vec3<T>{T(0), T(0), T(0)};
+    if (degree >= 1 && n >= Limits<T>::tiny()) g_dir = (T(1) / n) * (g_d - dot(d, g_d) * d);
+    else if (degree >= 1) g_dir = (T(1) / Limits<T>::tiny()) * g_d;
+}
+
+}  // namespace geer

@@ -1,0 +1,163 @@
+// Stage 3, per tile (camera sub-frustum) and ray: exact ray-Gaussian response and blending.
+//
+// Forward: one block per tile, one thread per ray (block size rounded up to whole warps). The rays of
+// a tile share its front-to-back Gaussian list; the block loads it in batches into shared memory
+// (each Gaussian's ray frame is built once per tile there), every thread blends the batch into its
+// ray, and the block stops as soon as all of its rays are done (3DGS early termination).
+// Backward: same layout, the list traversed back to front from the block's last blended Gaussian;
+// per-pair gradients of (W, o_u, colour, opacity) are summed over the warp with shuffles and added
+// to the Gaussian's buffers with one atomic per warp and value.
+// Per-pair and per-ray math: geer_math.h (eval_pair, ray_forward_step, ray_backward_step).
+#include "geer_launchers.h"
+#include "geer_math.h"
+
+namespace geer {
+
+// Gaussians per shared-memory batch: ~30 KB of frames for either precision.
+template <typename T> struct Batch { static constexpr int value = sizeof(T) == 4 ? 256 : 128; };
+
+static int threads_per_tile(int tile_size) { return ((tile_size * tile_size + 31) / 32) * 32; }
+
+// The ray a thread owns: the tile's pixel (row-major within the tile, as raygrid._tile_ray_indices).
+struct RaySlot {
+    int ray;        // index into the R rays, valid when in_image
+    bool in_image;  // the tile does not overhang the image here (and the thread is not warp padding)
+};
+
+template <typename T> __device__ __forceinline__ RaySlot ray_slot(const RenderArgs<T>& a, int tile, int tid) {
+    const int ts = a.tile_size;
+    const int tiles_x = (a.width + ts - 1) / ts;
+    const int row = (tile / tiles_x) * ts + tid / ts;
+    const int col = (tile % tiles_x) * ts + tid % ts;
+    RaySlot s;
+    s.in_image = tid < ts * ts && row < a.height && col < a.width;
+    s.ray = s.in_image ? row * a.width + col : 0;
+    return s;
+}
+
+template <typename T> __device__ __forceinline__ void load_frame(const RenderArgs<T>& a, int g, GaussFrame<T>& f) {
+    make_frame(a.whiten + 9 * g, a.o_u + 3 * g, a.rgb + 3 * g, a.opacities[g], a.inside[g] != 0, f);
+}
+
+template <typename T>
+__global__ void render_forward_kernel(const RenderArgs<T> a, const RenderOutputs<T> out) {
+    constexpr int kBatch = Batch<T>::value;
+    __shared__ GaussFrame<T> frames[kBatch];
+    const int tile = blockIdx.x;
+    const int tid = threadIdx.x;
+    const RaySlot slot = ray_slot(a, tile, tid);
+    const bool valid = slot.in_image && a.valid[slot.ray] != 0;
+    const Vec3<T> d = valid ? load3(a.dirs + 3 * slot.ray) : Vec3<T>{T(0), T(0), T(0)};
+    RayForward<T> st;
+    ray_forward_init(st, valid);
+
+    const int start = a.ranges[2 * tile], end = a.ranges[2 * tile + 1];
+    for (int base = start; base < end; base += kBatch) {
+        // Also the barrier that keeps the previous batch alive until every thread has used it.
+        if (__syncthreads_count(st.done ? 1 : 0) == int(blockDim.x)) break;
+        const int nb = min(kBatch, end - base);
+        for (int k = tid; k < nb; k += blockDim.x) load_frame(a, a.ids[base + k], frames[k]);
+        __syncthreads();
+        for (int k = 0; k < nb && !st.done; ++k) ray_forward_step(st, frames[k], d, base + k - start);
+    }
+    if (!slot.in_image) return;
+    const int r = slot.ray;
+    for (int c = 0; c < 3; ++c) out.rgb[3 * r + c] = st.rgb[c];
+    out.depth[r] = st.depth;
+    out.acc[r] = st.acc;
+    out.t_final[r] = st.trans;
+    out.n_contrib[r] = st.n_contrib;
+}
+
+template <typename T> __device__ __forceinline__ T warp_sum(T v) {
+    for (int off = 16; off > 0; off >>= 1) v += __shfl_down_sync(0xffffffffu, v, off);
+    return v;
+}
+
+template <typename T>
+__global__ void render_backward_kernel(const RenderArgs<T> a, const RenderGradArgs<T> g) {
+    constexpr int kBatch = Batch<T>::value;
+    __shared__ GaussFrame<T> frames[kBatch];
+    __shared__ int frame_ids[kBatch];
+    __shared__ int block_n;
+    const int tile = blockIdx.x;
+    const int tid = threadIdx.x;
+    const int lane = tid & 31;
+    const RaySlot slot = ray_slot(a, tile, tid);
+    const bool valid = slot.in_image && a.valid[slot.ray] != 0;
+    const int r = slot.ray;
+    const Vec3<T> d = valid ? load3(a.dirs + 3 * r) : Vec3<T>{T(0), T(0), T(0)};
+    const int my_n = valid ? g.n_contrib[r] : 0;
+    RayBackward<T> st;
+    st.trans = valid ? g.t_final[r] : T(1);
+    st.rec = T(0);
+    for (int c = 0; c < 3; ++c) st.g_rgb[c] = valid ? g.g_rgb[3 * r + c] : T(0);
+    st.g_depth = valid ? g.g_depth[r] : T(0);
+    st.g_acc = valid ? g.g_acc[r] : T(0);
+
+    // Nothing after the block's last blended Gaussian needs a visit.
+    if (tid == 0) block_n = 0;
+    __syncthreads();
+    if (my_n > 0) atomicMax(&block_n, my_n);
+    __syncthreads();
+    const int start = a.ranges[2 * tile];
+    const int stop = start + block_n;
+
+    for (int top = stop; top > start; top -= kBatch) {
+        const int nb = min(kBatch, top - start);
+        __syncthreads();  // the previous batch is no longer read
+        for (int k = tid; k < nb; k += blockDim.x) {
+            const int gid = a.ids[top - 1 - k];
+            frame_ids[k] = gid;
+            load_frame(a, gid, frames[k]);
+        }
+        __syncthreads();
+        for (int k = 0; k < nb; ++k) {
+            const int pos = top - 1 - k - start;  // list position within the tile
+            PairGrad<T> p;
+            const bool contrib = pos < my_n && ray_backward_step(st, frames[k], d, p);
+            if (!__any_sync(0xffffffffu, contrib)) continue;
+            if (!contrib) pair_grad_zero(p);
+            const int gid = frame_ids[k];
+            // Sum the warp's contributions first: one atomic per warp and value instead of per ray.
+            T* dst_w = g.g_whiten + 9 * gid;
+            for (int i = 0; i < 9; ++i) {
+                const T v = warp_sum(p.w[i]);
+                if (lane == 0) atomicAdd(dst_w + i, v);
+            }
+            for (int i = 0; i < 3; ++i) {
+                const T vo = warp_sum(p.o[i]);
+                const T vc = warp_sum(p.rgb[i]);
+                if (lane == 0) {
+                    atomicAdd(g.g_o_u + 3 * gid + i, vo);
+                    atomicAdd(g.g_colors + 3 * gid + i, vc);
+                }
+            }
+            const T vs = warp_sum(p.opacity);
+            if (lane == 0) atomicAdd(g.g_opacities + gid, vs);
+        }
+    }
+}
+
+template <typename T>
+void launch_render_forward(const RenderArgs<T>& a, const RenderOutputs<T>& out, cudaStream_t stream) {
+    const int ts = a.tile_size;
+    const int n_tiles = ((a.height + ts - 1) / ts) * ((a.width + ts - 1) / ts);
+    if (n_tiles <= 0) return;
+    render_forward_kernel<T><<<n_tiles, threads_per_tile(ts), 0, stream>>>(a, out);
+}
+
+template <typename T>
+void launch_render_backward(const RenderArgs<T>& a, const RenderGradArgs<T>& g, cudaStream_t stream) {
+    const int ts = a.tile_size;
+    const int n_tiles = ((a.height + ts - 1) / ts) * ((a.width + ts - 1) / ts);
+    if (n_tiles <= 0) return;
+    render_backward_kernel<T><<<n_tiles, threads_per_tile(ts), 0, stream>>>(a, g);
+}
+
+template void launch_render_forward<float>(const RenderArgs<float>&, const RenderOutputs<float>&, cudaStream_t);
+template void launch_render_forward<double>(const RenderArgs<double>&, const RenderOutputs<double>&, cudaStream_t);
+template void launch_render_backward<float>(const RenderArgs<float>&, const RenderGradArgs<float>&, cudaStream_t);
+template void launch_render_backward<double>(const RenderArgs<double>&, const RenderGradArgs<double>&, cudaStream_t);
+
+}  // namespace geer

@@ -1,0 +1,300 @@
+"""The CUDA backend: csrc/ kernels behind the same API and outputs as the PyTorch twin (rasterize.render).
+
+    preprocess (per Gaussian)   csrc/preprocess.cu           W, o_u, PBF, SH colour
+    associate (per tile)        csrc/associate.cu            count, emit (tile << 32 | rank), radix sort, ranges
+    render (per tile / ray)     csrc/render.cu               shared-memory batches, early termination
+    backward                    csrc/render.cu (per ray), csrc/preprocess_backward.cu (per Gaussian)
+
+Two autograd Functions carry the paper's two-stage backward (App. C.2): `_Rasterize` (RenderCUDA: per-pair
+gradients of W, o_u, colour and opacity) and `_Preprocess` (PreprocessCUDA: to means, quats, scales, SH).
+The view transform means_c = R_c mu + t stays in PyTorch so that `means_c.grad` is the same densification
+signal as the twin's. Background and expected depth are PyTorch ops on the kernel outputs.
+
+The extension is built on first use with torch.utils.cpp_extension.load (JIT, cached under .cache/ in the
+repository or $GEER_EXT_DIR; TORCH_CUDA_ARCH_LIST defaults to "9.0"). Importing this module never builds
+anything and works without a GPU.
+
+Every operation also exists on the CPU (csrc/cpu_math_test.cpp, same names and signatures, built by
+`load_cpu_ops`), which runs the kernels' math in plain loops: `render_cuda(..., ops=load_cpu_ops())` drives
+this whole module on the CPU, which is how tests/test_csrc_math.py checks it against the twin.
+
+Differences from the twin, all by design: the CUDA path returns `tiles=None` (lists live as sorted pairs on
+the device); on separable (BEAP) grids a Gaussian's tiles are found by binary search against per-column /
+per-row bounds (the union over each column's / row's tiles, within 1e-6 of every tile's own bound), which
+may add a pair whose bound touches a tile only within that slack; such a pair has alpha < 1/255 on every
+ray of the tile (the PBF is complete), so images do not change, only `tile_counts` by such pairs. viewmat
+gradients are not computed (an error if viewmat requires grad).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from .pbf import PBF, LambdaMode
+from .raygrid import RayGrid
+
+# The kernels compile and their math is checked on the CPU (tests/test_csrc_math.py), but they have not yet
+# run on a GPU against the twin. backend="auto" must keep choosing the PyTorch twin while this is False; a
+# GPU session sets it to True once tests/test_cuda_gpu.py passes there.
+CUDA_VERIFIED = False
+
+_CSRC = Path(__file__).resolve().parents[2] / "csrc"
+_CUDA_SOURCES = ("bindings.cpp", "preprocess.cu", "associate.cu", "render.cu", "preprocess_backward.cu")
+_CPU_SOURCES = ("cpu_math_test.cpp",)
+# Absolute tolerance (mirror-tangent domain) for treating a grid as separable, see module docstring.
+_SEPARABLE_TOL = 1e-6
+
+_lock = threading.Lock()
+_modules: dict[str, ModuleType] = {}
+_errors: dict[str, BaseException] = {}
+
+
+def build_root() -> Path:
+    """Where JIT builds are cached: $GEER_EXT_DIR, else <repo>/.cache/geer_ext (git-ignored)."""
+    env = os.environ.get("GEER_EXT_DIR")
+    return Path(env) if env else _CSRC.parent / ".cache" / "geer_ext"
+
+
+def _load(name: str, sources: tuple[str, ...], cuda: bool, verbose: bool) -> ModuleType:
+    with _lock:
+        if name in _modules:
+            return _modules[name]
+        if name in _errors:
+            raise RuntimeError(f"building {name} failed earlier in this process") from _errors[name]
+        from torch.utils import cpp_extension
+
+        build_dir = build_root() / name
+        build_dir.mkdir(parents=True, exist_ok=True)
+        kwargs: dict[str, Any] = {}
+        if cuda:
+            os.environ.setdefault("TORCH_CUDA_ARCH_LIST", "9.0")
+            # No --use_fast_math: the kernels must round like the twin (tan, exp, atan2, division).
+            kwargs["extra_cuda_cflags"] = ["-O3", "-lineinfo"]
+        try:
+            module = cpp_extension.load(
+                name=name,
+                sources=[str(_CSRC / s) for s in sources],
+                extra_cflags=["-O2"],
+                extra_include_paths=[str(_CSRC)],
+                build_directory=str(build_dir),
+                with_cuda=cuda,
+                verbose=verbose,
+                **kwargs,
+            )
+        except BaseException as exc:  # remember: a failed build is not retried on every render
+            _errors[name] = exc
+            raise
+        _modules[name] = module
+        return module
+
+
+def load_extension(verbose: bool = False) -> ModuleType:
+    """The CUDA extension (built on first call; minutes on a cold cache)."""
+    return _load("geer_cuda", _CUDA_SOURCES, cuda=True, verbose=verbose)
+
+
+def load_cpu_ops(verbose: bool = False) -> ModuleType:
+    """geer_math.h compiled for the CPU with the CUDA extension's operations (tests and debugging)."""
+    return _load("geer_cpu_math_test", _CPU_SOURCES, cuda=False, verbose=verbose)
+
+
+def extension_available() -> bool:
+    """Whether the CUDA extension can be used here: a GPU is present and the extension builds and loads.
+    Never raises; on a machine without CUDA it returns False without trying to build."""
+    if not torch.cuda.is_available():
+        return False
+    try:
+        load_extension()
+    except Exception:  # noqa: BLE001 - any build/load failure means "not available"
+        return False
+    return True
+
+
+# ----------------------------------------------------------------------------------------- autograd
+class _Preprocess(torch.autograd.Function):
+    """Per Gaussian: (means_c, quats, scales, SH, world means) -> (W, o_u, colour) + PBF (no grad)."""
+
+    @staticmethod
+    def forward(ctx, means_c, quats, scales, sh, means_w, opacities, rot_c, cam_center, sh_degree, paper, ops):
+        whiten, o_u, rgb, bounds, alive, inside = ops.preprocess_forward(
+            means_c, quats, scales, opacities, sh, means_w, cam_center, rot_c, sh_degree, paper
+        )
+        ctx.save_for_backward(means_c, quats, scales, sh, means_w, rot_c, cam_center)
+        ctx.sh_degree = sh_degree
+        ctx.ops = ops
+        ctx.mark_non_differentiable(bounds, alive, inside)
+        return whiten, o_u, rgb, bounds, alive, inside
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_whiten, g_o_u, g_rgb, *_):
+        means_c, quats, scales, sh, means_w, rot_c, cam_center = ctx.saved_tensors
+        n = means_c.shape[0]
+        g_whiten = _zeros_if_none(g_whiten, (n, 3, 3), means_c)
+        g_o_u = _zeros_if_none(g_o_u, (n, 3), means_c)
+        g_rgb = _zeros_if_none(g_rgb, (n, 3), means_c)
+        g_mc, g_q, g_s, g_sh, g_mw = ctx.ops.preprocess_backward(
+            means_c, quats, scales, sh, means_w, cam_center, rot_c, ctx.sh_degree, g_whiten, g_o_u, g_rgb
+        )
+        has_sh = ctx.sh_degree >= 0
+        return (g_mc, g_q, g_s, g_sh if has_sh else None, g_mw if has_sh else None) + (None,) * 6
+
+
+class _Rasterize(torch.autograd.Function):
+    """Per tile / ray: (W, o_u, colour, opacity) -> (rgb sum, depth sum, accumulation) per ray."""
+
+    @staticmethod
+    def forward(ctx, whiten, o_u, rgb, opacities, inside, dirs, valid, ids, ranges, height, width, tile_size, ops):
+        out_rgb, depth, acc, t_final, n_contrib = ops.render_forward(
+            whiten, o_u, rgb, opacities, inside, dirs, valid, ids, ranges, height, width, tile_size
+        )
+        ctx.save_for_backward(whiten, o_u, rgb, opacities, inside, dirs, valid, ids, ranges, t_final, n_contrib)
+        ctx.layout = (height, width, tile_size)
+        ctx.ops = ops
+        return out_rgb, depth, acc
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_rgb, g_depth, g_acc):
+        whiten, o_u, rgb, opacities, inside, dirs, valid, ids, ranges, t_final, n_contrib = ctx.saved_tensors
+        r = dirs.shape[0]
+        g_rgb = _zeros_if_none(g_rgb, (r, 3), whiten).contiguous()
+        g_depth = _zeros_if_none(g_depth, (r,), whiten).contiguous()
+        g_acc = _zeros_if_none(g_acc, (r,), whiten).contiguous()
+        gw, go, gc, gs = ctx.ops.render_backward(
+            whiten, o_u, rgb, opacities, inside, dirs, valid, ids, ranges, *ctx.layout, t_final, n_contrib,
+            g_rgb, g_depth, g_acc,
+        )
+        return (gw, go, gc, gs) + (None,) * 9
+
+
+def _zeros_if_none(g: Tensor | None, shape, like: Tensor) -> Tensor:
+    return like.new_zeros(shape) if g is None else g.contiguous()
+
+
+# ----------------------------------------------------------------------------------------- helpers
+def _sh_setup(colors: Tensor, sh_degree: int | None) -> int:
+    """Active SH degree (-1: colours are RGB), with sh.py's errors."""
+    if colors.ndim == 2:
+        return -1
+    degree = int(math.isqrt(colors.shape[1]) - 1) if sh_degree is None else sh_degree
+    if not 0 <= degree <= 3:
+        raise ValueError(f"sh_degree must be in 0..3, got {degree}")
+    if colors.shape[1] < (degree + 1) ** 2:
+        raise ValueError(f"colors: SH degree {degree} needs {(degree + 1) ** 2} coefficients, got {colors.shape[1]}")
+    return degree
+
+
+def separable_axes(theta_m: Tensor, phi_m: Tensor, active: Tensor, tiles_y: int, tiles_x: int):
+    """(col [tiles_x, 2], row [tiles_y, 2]) mirror-tangent bounds when the tile grid is separable (every tile
+    active, each tile's theta bounds those of its column and phi bounds those of its row within
+    _SEPARABLE_TOL, non-decreasing along the axis): BEAP grids. None otherwise."""
+    if theta_m.shape[0] != tiles_y * tiles_x or not bool(active.all()):
+        return None
+    th = theta_m.reshape(tiles_y, tiles_x, 2)
+    ph = phi_m.reshape(tiles_y, tiles_x, 2)
+    col = torch.stack([th[..., 0].amin(0), th[..., 1].amax(0)], -1)
+    row = torch.stack([ph[..., 0].amin(1), ph[..., 1].amax(1)], -1)
+    if not (torch.isfinite(col).all() and torch.isfinite(row).all()):
+        return None
+    spread = max(float((th - col[None]).abs().max()), float((ph - row[:, None]).abs().max()))
+    if spread > _SEPARABLE_TOL:
+        return None
+    for axis in (col, row):
+        if axis.shape[0] > 1 and not bool((axis[1:] >= axis[:-1]).all()):
+            return None
+    return col.contiguous(), row.contiguous()
+
+
+# ----------------------------------------------------------------------------------------- pipeline
+def render_cuda(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmat: Tensor,
+    grid: RayGrid,
+    *,
+    sh_degree: int | None = None,
+    background: Tensor | None = None,
+    lambda_mode: LambdaMode = "opacity",
+    ops: ModuleType | None = None,
+):
+    """rasterize.render on the kernels (inputs already validated by render). `ops` defaults to the CUDA
+    extension; pass load_cpu_ops() to run the same pipeline on the CPU."""
+    from .rasterize import (
+        RenderOutput,  # late: rasterize imports backend, which may import this module
+    )
+
+    if ops is None:
+        ops = load_extension()
+    if lambda_mode not in ("opacity", "paper"):
+        raise ValueError(f"lambda_mode must be 'opacity' or 'paper', got {lambda_mode!r}")
+    if viewmat.requires_grad and torch.is_grad_enabled():
+        raise ValueError("viewmat: gradients w.r.t. the camera pose are not supported by the CUDA backend")
+    if not 1 <= grid.tile_size <= 32:
+        raise ValueError(f"the CUDA backend needs tile_size in 1..32 (one thread per ray), got {grid.tile_size}")
+    dtype, device = means.dtype, means.device
+    n = means.shape[0]
+    grid = grid.to(device)
+    dirs = grid.dirs.to(dtype).contiguous()
+    viewmat = viewmat.detach().to(dtype)
+    rot_c, t_c = viewmat[:3, :3], viewmat[:3, 3]
+
+    # Stage 1. View transform in PyTorch (transforms.to_view_space), the rest per Gaussian in the kernel.
+    means_c = means @ rot_c.T + t_c
+    if means_c.requires_grad:
+        means_c.retain_grad()
+    degree = _sh_setup(colors, sh_degree)
+    cam_center = (-rot_c.T @ t_c).contiguous()
+    sh = colors.contiguous() if degree >= 0 else means.new_zeros(n, 0, 3)
+    whiten, o_u, rgb_sh, bounds, alive, inside = _Preprocess.apply(
+        means_c.contiguous(), quats.contiguous(), scales.contiguous(), sh, means.contiguous(),
+        opacities.detach().contiguous(), rot_c.contiguous(), cam_center, degree, lambda_mode == "paper", ops,
+    )
+    rgb = colors.contiguous() if degree < 0 else rgb_sh
+
+    # Stage 2. Front-to-back rank: the twin's stable depth sort, so lists match it exactly.
+    depth = means_c.detach().norm(dim=-1)
+    order = torch.sort(depth, stable=True).indices
+    rank = torch.empty(n, dtype=torch.int32, device=device)
+    rank[order] = torch.arange(n, dtype=torch.int32, device=device)
+    theta_m, phi_m = grid.tile_mirror_bounds()
+    theta_m, phi_m = theta_m.to(dtype), phi_m.to(dtype)
+    tile_bounds = torch.cat([theta_m, phi_m], -1).contiguous()
+    axes = separable_axes(theta_m, phi_m, grid.tile_active, grid.tiles_y, grid.tiles_x)
+    empty = means.new_zeros(0, 2)
+    col, row = axes if axes is not None else (empty, empty)
+    ids, ranges = ops.associate(
+        bounds.contiguous(), alive.contiguous(), rank, tile_bounds, grid.tile_active.contiguous(), col, row,
+        grid.tiles_x, grid.tiles_y, axes is not None,
+    )
+
+    # Stage 3. Per tile / ray.
+    rgb_sum, depth_sum, acc = _Rasterize.apply(
+        whiten, o_u, rgb, opacities.contiguous(), inside, dirs, grid.valid.contiguous(), ids, ranges,
+        grid.height, grid.width, grid.tile_size, ops,
+    )
+    out_rgb = rgb_sum
+    if background is not None:
+        out_rgb = out_rgb + (1.0 - acc)[:, None] * background.to(dtype)
+    expected_depth = depth_sum / acc.clamp_min(1e-10)
+    shape = (grid.height, grid.width)
+
+    visible = torch.zeros(n, dtype=torch.bool, device=device)
+    visible[ids.long()] = True
+    tile_counts = (ranges[:, 1] - ranges[:, 0]).long()
+    pbf = PBF(bounds[:, 0], bounds[:, 1], bounds[:, 2], bounds[:, 3], alive, inside)
+    return RenderOutput(
+        out_rgb.reshape(*shape, 3), expected_depth.reshape(*shape, 1), acc.reshape(*shape, 1), visible,
+        tile_counts, means_c, pbf, None,
+    )

@@ -1,0 +1,178 @@
+"""The CUDA kernels on a GPU against the PyTorch twin (skipped without CUDA).
+
+tests/test_csrc_math.py already checks the kernels' math on the CPU; this adds what only a GPU exercises:
+the JIT build, shared-memory batches (lists longer than one batch), warp padding (tile sizes that are not
+a multiple of 32 rays), warp-reduced atomics, the radix sort and tile ranges. When all of it passes on a
+GPU, set cuda_backend.CUDA_VERIFIED = True so that backend="auto" may choose the kernels.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import pytest
+import torch
+from conftest import (
+    equidistant_fisheye_rays,
+    equirect_rays,
+    random_scene,
+    random_viewmat,
+)
+
+from geer_ns.render import RayGrid, cuda_backend, render
+
+pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+
+F32, F64 = torch.float32, torch.float64
+FIELDS = ("means", "quats", "scales", "opacities", "colors", "means_c")
+DEV = "cuda"
+
+
+@pytest.fixture(scope="module")
+def cuda_ops():
+    t0 = time.time()
+    ops = cuda_backend.load_extension(verbose=True)
+    print(f"geer_cuda built/loaded in {time.time() - t0:.1f} s")
+    return ops
+
+
+def _grids(dtype):
+    fd, fv = equidistant_fisheye_rays(64, 180.0, dtype=dtype)
+    return {
+        "beap": (RayGrid.beap(80, 48, math.radians(120), math.radians(90), tile_size=16, dtype=dtype), False),
+        "fisheye180": (RayGrid.from_rays(fd, fv, tile_size=16), True),
+        "equirect360": (RayGrid.from_rays(equirect_rays(96, 48, dtype=dtype), None, tile_size=16), True),
+    }
+
+
+def _scene(n, seed, around, dtype, **kw):
+    return [t.to(DEV, dtype) for t in random_scene(n, seed, around=around, **kw)]
+
+
+def _image_close(ours, ref, dtype, name):
+    err = (ours - ref).abs().amax(-1).reshape(-1).double()
+    scale = max(1.0, float(ref.abs().max()))
+    if dtype == F64:
+        assert float(err.max()) <= 1e-10 * scale, f"{name}: {float(err.max()):.3e}"
+        return
+    bad = err > 1e-5 * scale  # float32: pairs exactly on the 1/255 threshold may round either way
+    assert int(bad.sum()) <= max(2, err.numel() // 500), f"{name}: {int(bad.sum())} pixels off"
+    assert float(err.max()) <= 1e-2 * scale, f"{name}: {float(err.max()):.3e}"
+
+
+def _grads(fn, inputs, seed):
+    leaves = [t.detach().clone().requires_grad_(True) for t in inputs]
+    out = fn(*leaves)
+    gen = torch.Generator().manual_seed(seed)
+    h, w = out.rgb.shape[:2]
+    tr, td, ta = (torch.rand(h, w, c, generator=gen, dtype=F64).to(out.rgb) for c in (3, 1, 1))
+    loss = ((out.rgb - tr) ** 2).sum() + 0.1 * ((out.depth - 3 * td) ** 2).sum() + ((out.accumulation - ta) ** 2).sum()
+    loss.backward()
+    return [t.grad for t in leaves] + [out.means_c.grad]
+
+
+def _rel(a, b):
+    return float((a.double() - b.double()).norm() / b.double().norm().clamp_min(1e-300))
+
+
+@pytest.mark.parametrize("dtype", [F32, F64])
+@pytest.mark.parametrize("grid_name", ["beap", "fisheye180", "equirect360"])
+def test_forward_matches_twin(cuda_ops, grid_name, dtype):
+    grid, around = _grids(dtype)[grid_name]
+    scene = _scene(300, 11, around, dtype)
+    vm = (random_viewmat(3, translation_scale=0.2) if around else torch.eye(4, dtype=F64)).to(DEV, dtype)
+    bg = torch.tensor([0.1, 0.2, 0.3], dtype=dtype, device=DEV)
+    ref = render(*scene, vm, grid, background=bg, backend="torch")
+    ours = cuda_backend.render_cuda(*scene, vm, grid, background=bg, ops=cuda_ops)
+    for name in ("rgb", "depth", "accumulation"):
+        _image_close(getattr(ours, name), getattr(ref, name), dtype, name)
+    assert torch.equal(ours.visible, ref.visible)
+    if grid_name != "beap":
+        assert torch.equal(ours.tile_counts, ref.tile_counts)
+    # Same math on the CPU (geer_math.h in plain loops): isolates GPU plumbing from math.
+    if dtype == F64:
+        cpu = cuda_backend.render_cuda(*[t.cpu() for t in scene], vm.cpu(), grid, background=bg.cpu(),
+                                       ops=cuda_backend.load_cpu_ops())
+        for name in ("rgb", "depth", "accumulation"):
+            assert float((getattr(ours, name).cpu() - getattr(cpu, name)).abs().max()) <= 1e-12, name
+        assert torch.equal(ours.tile_counts.cpu(), cpu.tile_counts)
+
+
+@pytest.mark.parametrize("grid_name", ["beap", "fisheye180", "equirect360"])
+@pytest.mark.parametrize("degree", [None, 3])
+def test_gradients_match_twin_float64(cuda_ops, grid_name, degree):
+    grid, around = _grids(F64)[grid_name]
+    means, quats, scales, opac, colors = _scene(120, 5, around, F64, spread=0.8)
+    if degree is not None:
+        colors = torch.randn(120, 16, 3, generator=torch.Generator().manual_seed(1), dtype=F64).to(DEV) * 0.4
+    vm = (random_viewmat(2, translation_scale=0.1) if around else torch.eye(4, dtype=F64)).to(DEV)
+    bg = torch.tensor([0.2, 0.3, 0.4], dtype=F64, device=DEV)
+    inputs = (means, quats, scales, opac, colors)
+    ref = _grads(lambda *a: render(*a, vm, grid, sh_degree=degree, background=bg, backend="torch"), inputs, 0)
+    ours = _grads(lambda *a: cuda_backend.render_cuda(*a, vm, grid, sh_degree=degree, background=bg, ops=cuda_ops),
+                  inputs, 0)
+    for name, a, b in zip(FIELDS, ours, ref):
+        assert _rel(a, b) <= 1e-8, f"{name}: {_rel(a, b):.3e}"
+
+
+def test_float32_gradients_close_to_float64(cuda_ops):
+    grid = RayGrid.beap(64, 64, math.radians(60), math.radians(60), tile_size=16)
+    scene = random_scene(200, 8, spread=0.5, scale_range=(0.05, 0.3), opacity_range=(0.1, 0.8))
+    g64 = _grads(lambda *a: render(*a, torch.eye(4, dtype=F64, device=DEV), grid, backend="torch"),
+                 [t.to(DEV) for t in scene], 1)
+    g32 = _grads(lambda *a: cuda_backend.render_cuda(*a, torch.eye(4, device=DEV), grid, ops=cuda_ops),
+                 [t.to(DEV, F32) for t in scene], 1)
+    for name, a, b in zip(FIELDS, g32, g64):
+        assert _rel(a, b) <= 1e-3, f"{name}: {_rel(a, b):.3e}"
+
+
+@pytest.mark.parametrize("tile_size", [1, 4, 7, 8, 16, 32])
+def test_tile_sizes_and_long_lists(cuda_ops, tile_size):
+    """Warp padding (tile_size^2 not a multiple of 32), 1024-thread blocks, and lists much longer than one
+    shared-memory batch (256 float32 / 128 float64 Gaussians), with rays stopping inside a batch."""
+    for dtype in (F32, F64):
+        grid = RayGrid.beap(40, 36, math.radians(50), math.radians(45), tile_size=tile_size, dtype=dtype)
+        scene = _scene(1500, 3, False, dtype, spread=0.3, scale_range=(0.05, 0.2), opacity_range=(0.02, 0.3))
+        vm = torch.eye(4, dtype=dtype, device=DEV)
+        ref = render(*scene, vm, grid, backend="torch")
+        ours = cuda_backend.render_cuda(*scene, vm, grid, ops=cuda_ops)
+        assert int(ref.tile_counts.max()) > 600
+        for name in ("rgb", "depth", "accumulation"):
+            _image_close(getattr(ours, name), getattr(ref, name), dtype, name)
+        if dtype == F64:
+            g_ref = _grads(lambda *a, g=grid, v=vm: render(*a, v, g, backend="torch"), scene, 2)
+            g_ours = _grads(lambda *a, g=grid, v=vm: cuda_backend.render_cuda(*a, v, g, ops=cuda_ops), scene, 2)
+            for name, a, b in zip(FIELDS, g_ours, g_ref):
+                assert _rel(a, b) <= 1e-8, f"{name}: {_rel(a, b):.3e}"
+
+
+def test_deterministic_forward(cuda_ops):
+    grid, _ = _grids(F32)["fisheye180"]
+    scene = _scene(2000, 4, True, F32)
+    vm = torch.eye(4, device=DEV)
+    a = cuda_backend.render_cuda(*scene, vm, grid, ops=cuda_ops)
+    b = cuda_backend.render_cuda(*scene, vm, grid, ops=cuda_ops)
+    assert torch.equal(a.rgb, b.rgb) and torch.equal(a.depth, b.depth)
+
+
+def test_large_scene_finite_and_timed(cuda_ops):
+    """A training-sized view: finite outputs and gradients; prints timings (CUDA vs twin) for the report."""
+    grid = RayGrid.beap(512, 384, math.radians(150), math.radians(120), tile_size=16)
+    scene = _scene(200_000, 7, True, F32, scale_range=(0.005, 0.1))
+    vm = torch.eye(4, device=DEV)
+    leaves = [t.clone().requires_grad_(True) for t in scene]
+    for _ in range(2):  # warm-up, then timed
+        torch.cuda.synchronize()
+        t0 = time.time()
+        out = cuda_backend.render_cuda(*leaves, vm, grid, ops=cuda_ops)
+        torch.cuda.synchronize()
+        t1 = time.time()
+        out.rgb.sum().backward()
+        torch.cuda.synchronize()
+        t2 = time.time()
+    print(f"CUDA 512x384, 200k Gaussians: forward {1e3 * (t1 - t0):.1f} ms, backward {1e3 * (t2 - t1):.1f} ms, "
+          f"{int(out.tile_counts.sum())} pairs")
+    assert torch.isfinite(out.rgb).all()
+    for t in leaves:
+        assert torch.isfinite(t.grad).all()
