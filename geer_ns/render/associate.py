@@ -54,7 +54,6 @@ def _overlaps(tile_bounds: Tensor, pieces: tuple[Tensor, Tensor, Tensor, Tensor]
 @torch.no_grad()
 def associate(pbf: PBF, grid: RayGrid, depth: Tensor, xi: float = 1.0, tile_chunk: int = 256) -> TileLists:
     """Per-tile Gaussian lists sorted front to back by `depth` [N] (Euclidean distance of the mean)."""
-    n = pbf.num_gaussians
     device = depth.device
     order = torch.sort(depth, stable=True).indices  # front to back
     theta_pieces = tuple(p[order] for p in _interval_pieces(pbf.theta_lo, pbf.theta_hi, xi))

@@ -1,0 +1,74 @@
+"""nerfstudio method configs: `geer` (DefaultStrategy densification) and `geer-mcmc` (MCMCStrategy).
+
+Registered through the `nerfstudio.method_configs` entry points in pyproject.toml. Schedules and
+learning rates are splatfacto's (nerfstudio 1.1.5), so results compare one to one.
+"""
+
+from __future__ import annotations
+
+import torch
+from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig
+from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+from nerfstudio.plugins.types import MethodSpecification
+
+from geer_ns import host_fixes
+from geer_ns.data.datamanager import GeerDataManagerConfig
+from geer_ns.model import GeerModelConfig
+
+# ns-eval / ns-viewer / ns-render import the method registry (and so this module) before loading a
+# checkpoint: allow-list its globals for torch's weights_only loader (nerfstudio issue 3683).
+host_fixes.allow_nerfstudio_checkpoints()
+
+MAX_STEPS = 30000
+
+
+def _adam(lr: float, scheduler=None) -> dict:
+    return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15), "scheduler": scheduler}
+
+
+def splatfacto_optimizers(max_steps: int = MAX_STEPS) -> dict:
+    """splatfacto's per-parameter optimizers (nerfstudio 1.1.5 method_configs)."""
+    warm = dict(warmup_steps=1000, lr_pre_warmup=0)
+    return {
+        "means": _adam(1.6e-4, ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=max_steps)),
+        "features_dc": _adam(0.0025),
+        "features_rest": _adam(0.0025 / 20),
+        "opacities": _adam(0.05),
+        "scales": _adam(0.005),
+        "quats": _adam(0.001),
+        "camera_opt": _adam(1e-4, ExponentialDecaySchedulerConfig(lr_final=5e-7, max_steps=max_steps, **warm)),
+        "bilateral_grid": _adam(2e-3, ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=max_steps, **warm)),
+    }
+
+
+def geer_trainer_config(method_name: str, model: GeerModelConfig) -> TrainerConfig:
+    return TrainerConfig(
+        method_name=method_name,
+        steps_per_eval_image=100,
+        steps_per_eval_batch=0,
+        steps_per_save=2000,
+        steps_per_eval_all_images=1000,
+        max_num_iterations=MAX_STEPS,
+        mixed_precision=False,
+        pipeline=VanillaPipelineConfig(datamanager=GeerDataManagerConfig(), model=model),
+        optimizers=splatfacto_optimizers(),
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
+        vis="viewer",
+        # nerfstudio defaults to "cuda" even where there is none; geer runs on either.
+        machine=MachineConfig(device_type="cuda" if torch.cuda.is_available() else "cpu"),
+    )
+
+
+geer_method = MethodSpecification(
+    config=geer_trainer_config("geer", GeerModelConfig()),
+    description="3DGEER: exact Gaussian ray tracing for any camera (fisheye, 360), BEAP supervision, "
+    "splatfacto schedule with gsplat DefaultStrategy densification",
+)
+
+geer_mcmc_method = MethodSpecification(
+    config=geer_trainer_config("geer-mcmc", GeerModelConfig(strategy="mcmc")),
+    description="3DGEER with gsplat's MCMCStrategy (relocation + noise) instead of split/clone/prune",
+)

@@ -1,0 +1,826 @@
+"""COLMAP dataparser for geer, built on ``pycolmap.Reconstruction``.
+
+Why not nerfstudio's own ``colmap`` dataparser: nerfstudio 1.1.5 raises for every OPENCV_FISHEYE calibration
+with k4 != 0 (nerfstudio issue 3611: it mistakes the fisheye k4 for OpenCV's rational k4) and maps
+FULL_OPENCV, FOV and THIN_PRISM_FISHEYE to NotImplementedError. geer renders exact per-pixel rays of the
+calibrated model and never undistorts, so it must take those datasets as they are.
+
+Layout (``data`` is the dataset root)::
+
+    data/
+      sparse/0/ | colmap/sparse/0/ | sparse/   COLMAP model, text or binary (first that exists, or
+                                               ``colmap_path``); points3D.{txt,bin} may be missing
+      images/<name>                            one file per registered COLMAP image (name as in images.txt,
+                                               sub-folders allowed)
+      images_<N>/<name>                        optional downscaled copies (``downscale_factor`` = N)
+      masks/<name with .png suffix>            optional masks, same relative names (``masks_N`` when downscaled)
+      train_list.txt / test_list.txt /         optional split lists: one image name per line (relative to
+      val_list.txt                             images/, as in images.txt)
+
+Cameras
+-------
+The exact COLMAP model of every image is kept (``metadata["geer_colmap_cameras"]``, one
+:class:`ColmapCameraSpec` per image of the split, at the loaded resolution, plus tensors in
+``Cameras.metadata``); geer renders with it through :func:`camera_model_for_image` /
+:func:`camera_model_from_cameras`. The nerfstudio ``Cameras`` get the closest type nerfstudio knows, so that
+nerfstudio's viewer and ray generator still show something sensible:
+
+=========================================  ===========================================  =====
+COLMAP model                               nerfstudio camera_type, distortion_params   exact
+=========================================  ===========================================  =====
+SIMPLE_PINHOLE PINHOLE SIMPLE_RADIAL       PERSPECTIVE (k1 k2 0 0 p1 p2)                yes
+RADIAL OPENCV
+FULL_OPENCV                                PERSPECTIVE (k1 k2 k3 0 p1 p2)               if k4 = k5 = k6 = 0
+OPENCV_FISHEYE                             FISHEYE (k1 k2 k3 k4 0 0)                    yes (k4 != 0 too)
+SIMPLE_RADIAL_FISHEYE RADIAL_FISHEYE       FISHEYE (k1 k2 0 0 0 0), fx = fy = f         yes
+SIMPLE_FISHEYE FISHEYE                     FISHEYE (0 ...)                              yes
+THIN_PRISM_FISHEYE                         FISHEYE (k1 k2 k3 k4 p1 p2)                  if sx1 = sy1 = 0
+RAD_TAN_THIN_PRISM_FISHEYE                 FISHEYE624 (12 params) when every image      yes
+                                           uses that one camera, else fitted FISHEYE    (else no)
+FOV                                        PERSPECTIVE, or FISHEYE when the image       omega = 0 only
+                                           reaches 80 degrees off-axis
+EQUIRECTANGULAR                            EQUIRECTANGULAR (fx = W/2, fy = H)           yes
+=========================================  ===========================================  =====
+
+Where nerfstudio cannot represent the model, the nerfstudio camera is a least-squares fit of the exact model
+over the image (in nerfstudio's own ideal-point space; a common focal scale and 0 to 4 radial terms plus
+tangential, keeping the candidate whose nerfstudio undistortion reproduces the exact rays best); cx, cy stay
+the COLMAP ones. FISHEYE624 is used only when all images share one RAD_TAN_THIN_PRISM_FISHEYE camera:
+nerfstudio 1.1.5's ray generation uses the first camera's 624 parameters for every 624 camera and fails with
+an IndexError when 624 cameras are mixed with other types (then ``distortion_params`` has 12 columns).
+
+Poses, orientation, centring and scale follow nerfstudio's colmap dataparser (OpenCV -> OpenGL camera axes,
+COLMAP world -> z-up, ``auto_orient_and_center_poses``, scale to [-1, 1]); ``dataparser_transform`` and
+``dataparser_scale`` map COLMAP world points into the output frame, and the seed points
+(``points3D_xyz`` / ``points3D_rgb``) are mapped the same way.
+
+Images are ordered by name. Split: the list files above when present (a missing counterpart is "all other
+images"), otherwise ``eval_mode`` as in nerfstudio (default ``interval``: every ``eval_interval``-th image,
+starting with the first, is eval).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import shutil
+import struct
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal, NamedTuple, Optional, Sequence, Tuple, Type
+
+import numpy as np
+import torch
+from PIL import Image
+
+from nerfstudio.cameras import camera_utils
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
+from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.data.utils.dataparsers_utils import (
+    get_train_eval_split_all,
+    get_train_eval_split_filename,
+    get_train_eval_split_fraction,
+    get_train_eval_split_interval,
+)
+from nerfstudio.plugins.registry_dataparser import DataParserSpecification
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from geer_ns.cameras import CameraModel, from_nerfstudio, from_pycolmap
+
+__all__ = [
+    "ColmapCameraSpec",
+    "GeerColmapDataParserConfig",
+    "GeerColmapDataParser",
+    "NerfstudioIntrinsics",
+    "camera_model_for_image",
+    "camera_model_from_cameras",
+    "geer_colmap_dataparser",
+    "nerfstudio_intrinsics",
+]
+
+GEER_CAMERAS_KEY = "geer_colmap_cameras"
+# Cameras.metadata keys (tensors, so that they follow nerfstudio's indexing / slicing of Cameras).
+MODEL_ID_KEY = "geer_colmap_model_id"  # int64 [N, 1]: pycolmap.CameraModelId value
+PARAMS_KEY = "geer_colmap_params"  # float64 [N, MAX_PARAMS]: COLMAP params, zero padded
+NS_TYPE_KEY = "geer_ns_camera_type"  # int64 [N, 1]: the nerfstudio CameraType value the parser chose
+DISTORTED_KEY = "geer_ns_distorted"  # bool [N, 1]: the parser gave the nerfstudio camera non-zero distortion
+NS_INTRINSICS_KEY = "geer_ns_intrinsics"  # float64 [N, 4]: fx, fy, cx, cy the parser gave the nerfstudio camera
+MAX_PARAMS = 16
+
+MAX_AUTO_RESOLUTION = 1600  # same rule as nerfstudio's colmap dataparser
+_DEFAULT_MODEL_DIRS = (Path("sparse/0"), Path("colmap/sparse/0"), Path("sparse"))
+_FISHEYE_FAMILY = {
+    "OPENCV_FISHEYE",
+    "SIMPLE_RADIAL_FISHEYE",
+    "RADIAL_FISHEYE",
+    "SIMPLE_FISHEYE",
+    "FISHEYE",
+    "THIN_PRISM_FISHEYE",
+}
+_PERSPECTIVE_LIMIT_DEG = 80.0  # approximated models reaching this far off-axis are shown as FISHEYE
+
+
+class ColmapCameraSpec(NamedTuple):
+    """The exact COLMAP camera of one image (at the loaded resolution)."""
+
+    model: str
+    width: int
+    height: int
+    params: Tuple[float, ...]
+    camera_id: int
+    nerfstudio_exact: bool  # whether the nerfstudio Cameras entry represents it exactly
+
+
+class NerfstudioIntrinsics(NamedTuple):
+    camera_type: CameraType
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: Tuple[float, ...]  # 6 values (k1 k2 k3 k4 p1 p2), or 12 for FISHEYE624
+    exact: bool
+
+
+# ==================================================================================================
+# COLMAP model -> nerfstudio camera
+# ==================================================================================================
+
+
+def _param_names(model: str) -> List[str]:
+    import pycolmap
+
+    cam = pycolmap.Camera.create_from_model_name(0, model, 1.0, 2, 2)
+    return [n.strip() for n in cam.params_info.split(",")]
+
+
+def _pycolmap_camera(model: str, width: int, height: int, params: Sequence[float], camera_id: int = 1):
+    import pycolmap
+
+    return pycolmap.Camera(
+        camera_id=int(camera_id), model=model, width=int(width), height=int(height), params=[float(p) for p in params]
+    )
+
+
+def _fit_distortion(exact: CameraModel, fx: float, fy: float, cx: float, cy: float, fisheye: bool):
+    """Least-squares nerfstudio camera (fx', fy', k1..k4, p1, p2) for ``exact``, in nerfstudio's ideal space.
+
+    nerfstudio maps the ideal point q (x/z for PERSPECTIVE, theta * azimuth for FISHEYE) to
+    d = q (1 + k1 r2 + k2 r2^2 + k3 r2^3 + k4 r2^4) + tangential(p1, p2), pixel = (fx' d_x + cx, fy' d_y + cy).
+    With fx' = c0 fx this is linear in (c0, c0 k, c0 p). Candidates with 0..4 radial terms are fitted; the one
+    whose nerfstudio undistortion (``radial_and_tangential_undistort``, what nerfstudio's ray generator runs)
+    best reproduces the exact ideal points wins: high-order fits can make that Newton iteration diverge.
+    Returns (fx', fy', coefficients, largest off-axis angle in degrees over the image, error in pixels).
+    """
+    # Sample directions (projection is closed form; unprojection would need Newton) and keep those that land
+    # inside the image.
+    n_theta, n_az = 48, 64
+    theta_max = min(float(exact.max_angle), math.pi) * (1 - 1e-6)
+    th = (torch.arange(1, n_theta + 1, dtype=torch.float64) / n_theta) * theta_max
+    az = torch.arange(n_az, dtype=torch.float64) * (2 * math.pi / n_az)
+    tt, aa = torch.meshgrid(th, az, indexing="ij")
+    dirs = torch.stack([torch.sin(tt) * torch.cos(aa), torch.sin(tt) * torch.sin(aa), torch.cos(tt)], -1).reshape(-1, 3)
+    px, valid = exact.project(dirs)
+    valid &= (px[:, 0] >= 0) & (px[:, 0] <= exact.width) & (px[:, 1] >= 0) & (px[:, 1] <= exact.height)
+    theta = tt.reshape(-1)
+    max_deg = float(torch.rad2deg(theta[valid].max())) if bool(valid.any()) else 0.0
+    if fisheye:
+        keep = valid
+        rho = torch.linalg.norm(dirs[:, :2], dim=-1).clamp_min(1e-12)
+        q = dirs[:, :2] * (theta / rho).unsqueeze(-1)
+    else:
+        keep = valid & (theta < math.radians(_PERSPECTIVE_LIMIT_DEG))
+        q = dirs[:, :2] / dirs[:, 2:3].clamp_min(1e-12)
+    if int(keep.sum()) < 8:
+        return fx, fy, (0.0,) * 6, max_deg, math.inf
+    q, p = q[keep].numpy(), px[keep].numpy()
+    d = np.stack([(p[:, 0] - cx) / fx, (p[:, 1] - cy) / fy], -1)
+    x, y = q[:, 0], q[:, 1]
+    r2 = x * x + y * y
+    # Columns: c0, c0 k1..k4, c0 p1, c0 p2 (x rows then y rows).
+    cols_x = [x, x * r2, x * r2**2, x * r2**3, x * r2**4, 2 * x * y, r2 + 2 * x * x]
+    cols_y = [y, y * r2, y * r2**2, y * r2**3, y * r2**4, r2 + 2 * y * y, 2 * x * y]
+    b = np.concatenate([d[:, 0], d[:, 1]])
+    best = (fx, fy, (0.0,) * 6, math.inf)
+    for n_radial in range(5):
+        use = [0, *range(1, 1 + n_radial), 5, 6]
+        a = np.stack([np.concatenate([cols_x[j], cols_y[j]]) for j in use], -1)
+        scale = np.linalg.norm(a, axis=0)
+        scale[scale == 0] = 1.0
+        sol, *_ = np.linalg.lstsq(a / scale, b, rcond=None)
+        sol = sol / scale
+        full = np.zeros(7)
+        full[use] = sol
+        c0 = full[0]
+        if not (np.all(np.isfinite(full)) and c0 > 0):
+            continue
+        coef = tuple(float(c) for c in full[1:] / c0)
+        fx_ns, fy_ns = fx * c0, fy * c0
+        dn = torch.from_numpy(np.stack([(p[:, 0] - cx) / fx_ns, (p[:, 1] - cy) / fy_ns], -1)).float()
+        coef_t = torch.tensor(coef, dtype=torch.float32).expand(len(dn), 6)
+        und = camera_utils.radial_and_tangential_undistort(dn, coef_t)
+        err = float(np.abs(und.double().numpy() - q).max()) * max(fx_ns, fy_ns)
+        if np.isfinite(err) and err < best[3] - 1e-6:
+            best = (float(fx_ns), float(fy_ns), coef, err)
+    return best[0], best[1], best[2], max_deg, best[3]
+
+
+def nerfstudio_intrinsics(
+    model: str, width: int, height: int, params: Sequence[float], allow_fisheye624: bool = True
+) -> NerfstudioIntrinsics:
+    """The closest nerfstudio camera for a COLMAP camera (see the module docstring's table).
+
+    ``allow_fisheye624=False`` gives a fitted FISHEYE camera for RAD_TAN_THIN_PRISM_FISHEYE.
+    Raises ValueError for models geer does not support (via :func:`geer_ns.cameras.from_pycolmap`).
+    Cached: nerfstudio parses the same dataset once per split.
+    """
+    return _nerfstudio_intrinsics(
+        str(model), int(width), int(height), tuple(float(v) for v in params), bool(allow_fisheye624)
+    )
+
+
+@functools.lru_cache(maxsize=256)
+def _nerfstudio_intrinsics(
+    model: str, width: int, height: int, params: Tuple[float, ...], allow_fisheye624: bool
+) -> NerfstudioIntrinsics:
+    exact_model = from_pycolmap(_pycolmap_camera(model, width, height, params))
+    p = dict(zip(_param_names(model), (float(v) for v in params)))
+    persp, fish = CameraType.PERSPECTIVE, CameraType.FISHEYE
+
+    def dist(k1=0.0, k2=0.0, k3=0.0, k4=0.0, p1=0.0, p2=0.0):
+        return (k1, k2, k3, k4, p1, p2)
+
+    if model == "EQUIRECTANGULAR":
+        return NerfstudioIntrinsics(
+            CameraType.EQUIRECTANGULAR, width / 2, float(height), width / 2, height / 2, dist(), True
+        )
+    if "f" in p:
+        fx = fy = p["f"]
+    else:
+        fx, fy = p["fx"], p["fy"]
+    cx, cy = p["cx"], p["cy"]
+    if model in ("SIMPLE_PINHOLE", "PINHOLE"):
+        return NerfstudioIntrinsics(persp, fx, fy, cx, cy, dist(), True)
+    if model == "SIMPLE_RADIAL":
+        return NerfstudioIntrinsics(persp, fx, fy, cx, cy, dist(k1=p["k"]), True)
+    if model == "RADIAL":
+        return NerfstudioIntrinsics(persp, fx, fy, cx, cy, dist(k1=p["k1"], k2=p["k2"]), True)
+    if model == "OPENCV":
+        return NerfstudioIntrinsics(persp, fx, fy, cx, cy, dist(p["k1"], p["k2"], 0, 0, p["p1"], p["p2"]), True)
+    if model == "FULL_OPENCV" and p["k4"] == 0 and p["k5"] == 0 and p["k6"] == 0:
+        return NerfstudioIntrinsics(
+            persp, fx, fy, cx, cy, dist(p["k1"], p["k2"], p["k3"], 0, p["p1"], p["p2"]), True
+        )
+    if model == "OPENCV_FISHEYE":
+        return NerfstudioIntrinsics(fish, fx, fy, cx, cy, dist(p["k1"], p["k2"], p["k3"], p["k4"]), True)
+    if model == "SIMPLE_RADIAL_FISHEYE":
+        return NerfstudioIntrinsics(fish, fx, fy, cx, cy, dist(k1=p["k"]), True)
+    if model == "RADIAL_FISHEYE":
+        return NerfstudioIntrinsics(fish, fx, fy, cx, cy, dist(k1=p["k1"], k2=p["k2"]), True)
+    if model in ("SIMPLE_FISHEYE", "FISHEYE"):
+        return NerfstudioIntrinsics(fish, fx, fy, cx, cy, dist(), True)
+    if model == "THIN_PRISM_FISHEYE" and p["sx1"] == 0 and p["sy1"] == 0:
+        return NerfstudioIntrinsics(
+            fish, fx, fy, cx, cy, dist(p["k1"], p["k2"], p["k3"], p["k4"], p["p1"], p["p2"]), True
+        )
+    if model == "RAD_TAN_THIN_PRISM_FISHEYE" and allow_fisheye624:
+        names = ("k0", "k1", "k2", "k3", "k4", "k5", "p0", "p1", "s0", "s1", "s2", "s3")
+        return NerfstudioIntrinsics(CameraType.FISHEYE624, fx, fy, cx, cy, tuple(p[n] for n in names), True)
+    if model == "FOV" and p["omega"] == 0:
+        return NerfstudioIntrinsics(persp, fx, fy, cx, cy, dist(), True)
+    # Not representable: fit. Fisheye family -> FISHEYE; others PERSPECTIVE unless the image is too wide.
+    if model in _FISHEYE_FAMILY or model == "RAD_TAN_THIN_PRISM_FISHEYE":
+        fx_ns, fy_ns, coef, _, _ = _fit_distortion(exact_model, fx, fy, cx, cy, fisheye=True)
+        return NerfstudioIntrinsics(fish, fx_ns, fy_ns, cx, cy, coef, False)
+    fx_ns, fy_ns, coef, max_deg, _ = _fit_distortion(exact_model, fx, fy, cx, cy, fisheye=False)
+    if max_deg >= _PERSPECTIVE_LIMIT_DEG:
+        fx_ns, fy_ns, coef, _, _ = _fit_distortion(exact_model, fx, fy, cx, cy, fisheye=True)
+        return NerfstudioIntrinsics(fish, fx_ns, fy_ns, cx, cy, coef, False)
+    return NerfstudioIntrinsics(persp, fx_ns, fy_ns, cx, cy, coef, False)
+
+
+# ==================================================================================================
+# Exact models for the renderer
+# ==================================================================================================
+
+
+def camera_model_for_image(dataparser_outputs: DataparserOutputs, index: int) -> CameraModel:
+    """Exact geer camera model of image ``index`` of ``dataparser_outputs``.
+
+    Uses the COLMAP camera stored by :class:`GeerColmapDataParser`; for outputs of other dataparsers (no
+    ``geer_colmap_cameras`` metadata) it falls back to :func:`geer_ns.cameras.from_nerfstudio`.
+    """
+    specs = (dataparser_outputs.metadata or {}).get(GEER_CAMERAS_KEY)
+    if specs is None:
+        return from_nerfstudio(dataparser_outputs.cameras, index)
+    spec = specs[int(index)]
+    return from_pycolmap(_pycolmap_camera(spec.model, spec.width, spec.height, spec.params, spec.camera_id))
+
+
+def camera_model_from_cameras(cameras: Cameras, index: int) -> CameraModel:
+    """Exact geer camera model of camera ``index`` of a (flattened) nerfstudio ``Cameras``.
+
+    Reads the COLMAP model this parser put into ``Cameras.metadata`` and follows later changes of resolution
+    (``rescale_output_resolution``): focal lengths, principal point and size are taken from ``cameras``.
+    Falls back to :func:`geer_ns.cameras.from_nerfstudio` when the metadata is absent, or when something
+    replaced the camera (camera type changed, or distortion zeroed, e.g. by nerfstudio's image undistortion in
+    ``FullImageDatamanager``): then the nerfstudio camera is what the images now show.
+    """
+    import pycolmap
+
+    cams = cameras.flatten() if len(cameras.shape) != 1 else cameras
+    cam = cams[int(index)]
+    meta = cam.metadata or {}
+    if MODEL_ID_KEY not in meta or PARAMS_KEY not in meta:
+        return from_nerfstudio(cams, index)
+    ns_type = int(cam.camera_type.reshape(-1)[0])
+    if NS_TYPE_KEY in meta and int(meta[NS_TYPE_KEY].reshape(-1)[0]) != ns_type:
+        return from_nerfstudio(cams, index)
+    model_id = pycolmap.CameraModelId(int(meta[MODEL_ID_KEY].reshape(-1)[0]))
+    model = model_id.name
+    n = len(_param_names(model))
+    params = [float(v) for v in meta[PARAMS_KEY].reshape(-1)[:n]]
+    if DISTORTED_KEY in meta and bool(meta[DISTORTED_KEY].reshape(-1)[0]):
+        if cam.distortion_params is None or not bool(cam.distortion_params.any()):
+            # The parser set distortion but it is gone: something (e.g. nerfstudio's FullImageDatamanager)
+            # undistorted the images and replaced the camera, so the nerfstudio camera is what they show.
+            return from_nerfstudio(cams, index)
+    width, height = int(cam.width.reshape(-1)[0]), int(cam.height.reshape(-1)[0])
+    if model == "EQUIRECTANGULAR":
+        return from_pycolmap(_pycolmap_camera(model, width, height, [width, height]))
+    pc = _pycolmap_camera(model, width, height, params)
+    now = [float(getattr(cam, k).reshape(-1)[0]) for k in ("fx", "fy", "cx", "cy")]
+    ref = [float(v) for v in meta[NS_INTRINSICS_KEY].reshape(-1)] if NS_INTRINSICS_KEY in meta else now
+    if all(abs(a - b) <= 1e-6 * max(1.0, abs(b)) for a, b in zip(now, ref)):
+        return from_pycolmap(pc)  # unchanged (up to float32 rounding): keep the float64 COLMAP values
+    # Rescaled (or otherwise changed) since parsing: scale COLMAP's focal lengths like nerfstudio's, and take
+    # the principal point from cameras (the parser copies COLMAP's cx, cy unchanged).
+    sx, sy = now[0] / ref[0], now[1] / ref[1]
+    f_idx, c_idx = list(pc.focal_length_idxs()), list(pc.principal_point_idxs())
+    if len(f_idx) == 1:
+        if abs(sx - sy) > 1e-4 * max(sx, sy):
+            raise ValueError(f"camera {index}: COLMAP {model} has one focal length but was rescaled by {sx} x {sy}")
+        params[f_idx[0]] *= 0.5 * (sx + sy)
+    else:
+        params[f_idx[0]] *= sx
+        params[f_idx[1]] *= sy
+    params[c_idx[0]], params[c_idx[1]] = now[2], now[3]
+    return from_pycolmap(_pycolmap_camera(model, width, height, params))
+
+
+# ==================================================================================================
+# Dataparser
+# ==================================================================================================
+
+
+@dataclass
+class GeerColmapDataParserConfig(DataParserConfig):
+    """COLMAP dataset (pycolmap reader) keeping the exact camera models; see geer_ns.data.colmap_parser."""
+
+    _target: Type = field(default_factory=lambda: GeerColmapDataParser)
+    data: Path = Path()
+    """Dataset root."""
+    colmap_path: Optional[Path] = None
+    """COLMAP model folder relative to data; default: the first of sparse/0, colmap/sparse/0, sparse."""
+    images_path: Path = Path("images")
+    """Image folder relative to data (downscaled copies in <images_path>_<N>)."""
+    masks_path: Optional[Path] = Path("masks")
+    """Mask folder relative to data (<name>.png per image, 0 = ignore); used when it exists. None: no masks."""
+    downscale_factor: Optional[int] = None
+    """Image downscale factor N (images_N/ must exist for N > 1). None: smallest power of two that brings
+    the larger image side to <= 1600 px (like nerfstudio)."""
+    downscale_rounding_mode: Literal["floor", "round", "ceil"] = "floor"
+    """Rounding of the downscaled image size (as nerfstudio's Cameras.rescale_output_resolution)."""
+    scale_factor: float = 1.0
+    """Extra scale applied to the camera origins (after auto scaling)."""
+    scene_scale: float = 1.0
+    """Half size of the scene box."""
+    orientation_method: Literal["pca", "up", "vertical", "none"] = "up"
+    center_method: Literal["poses", "focus", "none"] = "poses"
+    auto_scale_poses: bool = True
+    """Scale the poses to fit in [-1, 1]."""
+    assume_colmap_world_coordinate_convention: bool = True
+    """Map COLMAP's usual world (-y is up) to nerfstudio's z-up before orienting, as nerfstudio does."""
+    eval_mode: Literal["fraction", "filename", "interval", "all"] = "interval"
+    """Split when no train_list.txt / test_list.txt / val_list.txt exists (nerfstudio's modes)."""
+    train_split_fraction: float = 0.9
+    eval_interval: int = 8
+    load_3D_points: bool = True
+    """Seed points from points3D (metadata points3D_xyz / points3D_rgb)."""
+    check_image_sizes: bool = True
+    """Check every image (and mask) file's size against its COLMAP camera (reads only the file headers)."""
+
+
+class GeerColmapDataParser(DataParser):
+    """See the module docstring."""
+
+    config: GeerColmapDataParserConfig
+
+    def __init__(self, config: GeerColmapDataParserConfig):
+        super().__init__(config=config)
+        self.config = config
+
+    # --- locating files ---------------------------------------------------------------------------
+    def _model_dir(self) -> Path:
+        data = Path(self.config.data)
+        if not data.is_dir():
+            raise FileNotFoundError(f"dataset directory {data} does not exist")
+        if self.config.colmap_path is not None:
+            model_dir = data / self.config.colmap_path
+            if not model_dir.is_dir():
+                raise FileNotFoundError(f"COLMAP model directory {model_dir} (colmap_path) does not exist")
+            return model_dir
+        for candidate in _DEFAULT_MODEL_DIRS:
+            if (data / candidate).is_dir() and _model_format(data / candidate) is not None:
+                return data / candidate
+        tried = ", ".join(str(data / c) for c in _DEFAULT_MODEL_DIRS)
+        raise FileNotFoundError(
+            f"no COLMAP model directory (cameras + images .txt or .bin) found; tried {tried} (set colmap_path)"
+        )
+
+    def _downscale_factor(self, first_image: Path) -> int:
+        if self.config.downscale_factor is not None:
+            df = int(self.config.downscale_factor)
+            if df < 1:
+                raise ValueError(f"downscale_factor must be >= 1, got {self.config.downscale_factor}")
+            return df
+        with Image.open(first_image) as im:
+            max_res = max(im.size)
+        df = 1
+        while max_res / df > MAX_AUTO_RESOLUTION:
+            df *= 2
+        if df > 1:
+            CONSOLE.log(f"Using image downscale factor of {df} (images above {MAX_AUTO_RESOLUTION} px)")
+        return df
+
+    # --- split --------------------------------------------------------------------------------------
+    def _split_indices(self, names: List[str], split: str) -> np.ndarray:
+        data = Path(self.config.data)
+        lists = {"train": data / "train_list.txt", "test": data / "test_list.txt", "val": data / "val_list.txt"}
+        present = {k: p for k, p in lists.items() if p.is_file()}
+        if present:
+            index = {n: i for i, n in enumerate(names)}
+
+            def read(path: Path) -> List[int]:
+                wanted = [ln.strip() for ln in path.read_text(encoding="utf8").splitlines() if ln.strip()]
+                unknown = [w for w in wanted if w not in index]
+                if unknown:
+                    raise ValueError(f"{path}: image names not in the COLMAP model: {unknown[:5]}")
+                return sorted(index[w] for w in wanted)
+
+            if split == "train":
+                if "train" in present:
+                    return np.array(read(present["train"]), dtype=np.int64)
+                held = set().union(*(read(p) for k, p in present.items() if k != "train"))
+                return np.array([i for i in range(len(names)) if i not in held], dtype=np.int64)
+            if split not in ("val", "test"):
+                raise ValueError(f"unknown dataparser split {split!r}")
+            other = "test" if split == "val" else "val"
+            eval_file = present.get(split) or present.get(other)
+            if eval_file is not None:
+                return np.array(read(eval_file), dtype=np.int64)
+            train = set(read(present["train"]))
+            return np.array([i for i in range(len(names)) if i not in train], dtype=np.int64)
+        mode = self.config.eval_mode
+        if mode == "fraction":
+            i_train, i_eval = get_train_eval_split_fraction(names, self.config.train_split_fraction)
+        elif mode == "filename":
+            i_train, i_eval = get_train_eval_split_filename(names)
+        elif mode == "interval":
+            i_train, i_eval = get_train_eval_split_interval(names, self.config.eval_interval)
+        elif mode == "all":
+            i_train, i_eval = get_train_eval_split_all(names)
+        else:
+            raise ValueError(f"unknown eval_mode {mode!r}")
+        if split == "train":
+            return np.asarray(i_train, dtype=np.int64)
+        if split in ("val", "test"):
+            return np.asarray(i_eval, dtype=np.int64)
+        raise ValueError(f"unknown dataparser split {split!r}")
+
+    # --- main -----------------------------------------------------------------------------------------
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+        cfg = self.config
+        data = Path(cfg.data)
+        model_dir = self._model_dir()
+        recon = _read_reconstruction(model_dir)
+
+        images = [im for im in recon.images.values() if im.has_pose]
+        if not images:
+            raise ValueError(f"{model_dir}: the COLMAP model has no registered images (images with a pose)")
+        images.sort(key=lambda im: im.name)
+        names = [im.name for im in images]
+
+        # Cameras: validated once per COLMAP camera id.
+        cameras_file = _model_file(model_dir, "cameras")
+        cam_info: Dict[int, Tuple[ColmapCameraSpec, NerfstudioIntrinsics]] = {}
+        for im in images:
+            cid = int(im.camera_id)
+            if cid not in cam_info:
+                cam_info[cid] = _check_camera(recon.cameras[cid], cameras_file)
+        if len(cam_info) > 1:
+            # nerfstudio's FISHEYE624 ray generation handles only one 624 camera and no mixing (see docstring).
+            for cid, (spec, ns_cam) in list(cam_info.items()):
+                if ns_cam.camera_type == CameraType.FISHEYE624:
+                    ns_cam = nerfstudio_intrinsics(
+                        spec.model, spec.width, spec.height, spec.params, allow_fisheye624=False
+                    )
+                    cam_info[cid] = (spec._replace(nerfstudio_exact=False), ns_cam)
+
+        image_dir = data / cfg.images_path
+        full_res = [image_dir / n for n in names]
+        for path, im in zip(full_res, images):
+            if not path.is_file():
+                raise FileNotFoundError(f"image file {path} (COLMAP image {im.image_id} '{im.name}') does not exist")
+        df = self._downscale_factor(full_res[0])
+        image_files = full_res if df == 1 else [_downscaled(image_dir, df) / n for n in names]
+        if df > 1 and not _downscaled(image_dir, df).is_dir():
+            raise FileNotFoundError(
+                f"downscaled image directory {_downscaled(image_dir, df)} (downscale_factor={df}) does not exist; "
+                "create it (e.g. with ffmpeg or nerfstudio's colmap dataparser) or set downscale_factor 1"
+            )
+        mask_files: Optional[List[Path]] = None
+        if cfg.masks_path is not None and (data / cfg.masks_path).is_dir():
+            mask_dir = data / cfg.masks_path
+            mask_dir = mask_dir if df == 1 else _downscaled(mask_dir, df)
+            mask_files = [(mask_dir / n).with_suffix(".png") for n in names]
+
+        # nerfstudio cameras at full resolution, then rescaled like nerfstudio does.
+        ns = [cam_info[int(im.camera_id)][1] for im in images]
+        n_dist = 12 if any(c.camera_type == CameraType.FISHEYE624 for c in ns) else 6
+        dist = torch.zeros(len(ns), n_dist, dtype=torch.float32)
+        for i, c in enumerate(ns):
+            dist[i, : len(c.distortion)] = torch.tensor(c.distortion, dtype=torch.float32)
+        c2w, transform, scale = self._poses(images)
+        cams = Cameras(
+            camera_to_worlds=c2w.float(),
+            fx=torch.tensor([[c.fx] for c in ns], dtype=torch.float32),
+            fy=torch.tensor([[c.fy] for c in ns], dtype=torch.float32),
+            cx=torch.tensor([[c.cx] for c in ns], dtype=torch.float32),
+            cy=torch.tensor([[c.cy] for c in ns], dtype=torch.float32),
+            width=torch.tensor([[cam_info[int(im.camera_id)][0].width] for im in images], dtype=torch.int64),
+            height=torch.tensor([[cam_info[int(im.camera_id)][0].height] for im in images], dtype=torch.int64),
+            distortion_params=dist,
+            camera_type=torch.tensor([[c.camera_type.value] for c in ns], dtype=torch.int64),
+        )
+        if df > 1:
+            cams.rescale_output_resolution(1.0 / df, scale_rounding_mode=cfg.downscale_rounding_mode)
+
+        specs: List[ColmapCameraSpec] = []
+        for i, im in enumerate(images):
+            spec = cam_info[int(im.camera_id)][0]
+            w, h = int(cams.width[i, 0]), int(cams.height[i, 0])
+            if df > 1:
+                spec = _rescaled(spec, 1.0 / df, w, h)
+            specs.append(spec)
+
+        if cfg.check_image_sizes:
+            for i, path in enumerate(image_files):
+                if not path.is_file():
+                    raise FileNotFoundError(f"image file {path} (COLMAP image '{names[i]}') does not exist")
+                want = (specs[i].width, specs[i].height)
+                got = _image_size(path)
+                if got != want:
+                    raise ValueError(
+                        f"image file {path}: size {got[0]}x{got[1]} differs from the COLMAP camera "
+                        f"{specs[i].camera_id} size {want[0]}x{want[1]}"
+                        + (f" (downscaled by {df})" if df > 1 else "")
+                    )
+            for i, path in enumerate(mask_files or []):
+                if not path.is_file():
+                    raise FileNotFoundError(f"mask file {path} (for image '{names[i]}') does not exist")
+                want = (specs[i].width, specs[i].height)
+                got = _image_size(path)
+                if got != want:
+                    raise ValueError(
+                        f"mask file {path}: size {got[0]}x{got[1]} differs from its image size {want[0]}x{want[1]}"
+                    )
+
+        model_ids = torch.tensor([[_model_id(s.model)] for s in specs], dtype=torch.int64)
+        params = torch.zeros(len(specs), MAX_PARAMS, dtype=torch.float64)
+        for i, s in enumerate(specs):
+            params[i, : len(s.params)] = torch.tensor(s.params, dtype=torch.float64)
+        distorted = torch.tensor([[any(v != 0 for v in c.distortion)] for c in ns], dtype=torch.bool)
+        cams.metadata = {
+            MODEL_ID_KEY: model_ids,
+            PARAMS_KEY: params,
+            NS_TYPE_KEY: cams.camera_type.clone(),
+            DISTORTED_KEY: distorted,
+            NS_INTRINSICS_KEY: torch.stack([getattr(cams, k)[:, 0].double() for k in ("fx", "fy", "cx", "cy")], -1),
+        }
+
+        # Split (after orienting / scaling with all images, like nerfstudio).
+        idx = self._split_indices(names, split)
+        idx_t = torch.as_tensor(idx, dtype=torch.long)
+        cams = cams[idx_t]
+
+        metadata: Dict = {GEER_CAMERAS_KEY: [specs[i] for i in idx]}
+        if cfg.load_3D_points:
+            metadata.update(_points(recon, transform, scale, model_dir))
+
+        n_inexact = sum(not specs[i].nerfstudio_exact for i in idx)
+        if n_inexact:
+            CONSOLE.log(
+                f"[yellow]{n_inexact} image(s) use a COLMAP camera model nerfstudio cannot represent; the "
+                "nerfstudio cameras hold a fitted approximation, geer renders the exact model"
+            )
+        aabb = cfg.scene_scale
+        return DataparserOutputs(
+            image_filenames=[image_files[i] for i in idx],
+            cameras=cams,
+            scene_box=SceneBox(aabb=torch.tensor([[-aabb] * 3, [aabb] * 3], dtype=torch.float32)),
+            mask_filenames=[mask_files[i] for i in idx] if mask_files is not None else None,
+            dataparser_transform=transform.float(),
+            dataparser_scale=float(scale),
+            metadata=metadata,
+        )
+
+    def _poses(self, images) -> Tuple[torch.Tensor, torch.Tensor, float]:
+        """c2w [N,3,4] (OpenGL camera axes, float64), the 3x4 COLMAP-world -> output transform and the scale."""
+        poses = []
+        for im in images:
+            w2c = np.eye(4)
+            w2c[:3, :4] = np.asarray(im.cam_from_world().matrix(), dtype=np.float64)
+            c2w = np.linalg.inv(w2c)
+            c2w[0:3, 1:3] *= -1  # OpenCV camera axes -> OpenGL
+            poses.append(c2w)
+        poses_t = torch.from_numpy(np.stack(poses))
+        applied = torch.eye(4, dtype=torch.float64)
+        if self.config.assume_colmap_world_coordinate_convention:
+            # nerfstudio's convention: COLMAP's gravity guess (-y) -> +z: (x, y, z) -> (x, z, -y).
+            applied = applied[[0, 2, 1, 3]]
+            applied[2] *= -1
+        poses_t = applied @ poses_t
+        # nerfstudio's orientation / centring (float32 only); apply its transform in float64.
+        _, orient = camera_utils.auto_orient_and_center_poses(
+            poses_t.float(), method=self.config.orientation_method, center_method=self.config.center_method
+        )
+        orient4 = torch.eye(4, dtype=torch.float64)
+        orient4[:3] = orient.double()
+        poses_t = orient4 @ poses_t
+        scale = 1.0
+        if self.config.auto_scale_poses:
+            m = float(torch.max(torch.abs(poses_t[:, :3, 3])))
+            scale = 1.0 / m if m > 0 else 1.0
+        scale *= self.config.scale_factor
+        poses_t[:, :3, 3] *= scale
+        transform = (orient4 @ applied)[:3]
+        return poses_t[:, :3, :4], transform, scale
+
+
+geer_colmap_dataparser = DataParserSpecification(
+    config=GeerColmapDataParserConfig(),
+    description="COLMAP (pycolmap) dataset keeping the exact camera model (fisheye k4, FULL_OPENCV, FOV, thin prism)",
+)
+
+
+# ==================================================================================================
+# helpers
+# ==================================================================================================
+
+
+def _model_format(model_dir: Path) -> Optional[str]:
+    if (model_dir / "cameras.bin").is_file() and (model_dir / "images.bin").is_file():
+        return "bin"
+    if (model_dir / "cameras.txt").is_file() and (model_dir / "images.txt").is_file():
+        return "txt"
+    return None
+
+
+def _model_file(model_dir: Path, stem: str) -> Path:
+    fmt = _model_format(model_dir) or "txt"
+    return model_dir / f"{stem}.{fmt}"
+
+
+def _read_reconstruction(model_dir: Path):
+    """pycolmap.Reconstruction of model_dir; a missing points3D file counts as no points."""
+    import pycolmap
+
+    fmt = _model_format(model_dir)
+    if fmt is None:
+        raise FileNotFoundError(
+            f"COLMAP model directory {model_dir} has no cameras.bin + images.bin or cameras.txt + images.txt"
+        )
+    if fmt == "txt":
+        _precheck_cameras_txt(model_dir / "cameras.txt")
+    points = model_dir / f"points3D.{fmt}"
+    with tempfile.TemporaryDirectory(prefix="geer_colmap_") as tmp:
+        src = model_dir
+        if not points.is_file():
+            CONSOLE.log(f"[yellow]{points} does not exist: no seed points")
+            src = Path(tmp)
+            for f in model_dir.iterdir():
+                if f.is_file() and f.suffix == f".{fmt}":
+                    shutil.copy(f, src / f.name)
+            if fmt == "txt":
+                (src / "points3D.txt").write_text("")
+            else:
+                (src / "points3D.bin").write_bytes(struct.pack("<Q", 0))
+        recon = pycolmap.Reconstruction()
+        try:
+            if fmt == "txt":
+                recon.read_text(str(src))
+            else:
+                recon.read_binary(str(src))
+        except Exception as e:  # pycolmap raises ValueError / RuntimeError with a C++ check message
+            raise ValueError(f"pycolmap could not read the COLMAP model in {model_dir}: {e}") from e
+    return recon
+
+
+def _precheck_cameras_txt(path: Path) -> None:
+    """Clear errors for what pycolmap's text reader rejects with a bare check message."""
+    import pycolmap
+
+    known = set(pycolmap.CameraModelId.__members__) - {"INVALID"}
+    for lineno, line in enumerate(path.read_text(encoding="utf8").splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        tok = line.replace(",", " ").split()
+        if len(tok) < 4:
+            raise ValueError(f"{path}:{lineno}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..., got {line!r}")
+        cid, model = tok[0], tok[1]
+        if model not in known:
+            raise ValueError(f"{path}: camera {cid}: unknown COLMAP camera model {model}")
+        names = _param_names(model)
+        values = tok[4:]
+        if len(values) != len(names):
+            raise ValueError(
+                f"{path}: camera {cid}: {model} expects {len(names)} params ({', '.join(names)}), got {len(values)}"
+            )
+        for name, text in zip(names, values):
+            try:
+                value = float(text)
+            except ValueError:
+                raise ValueError(f"{path}: camera {cid}: {model} parameter {name} = {text!r} is not a number") from None
+            if not math.isfinite(value):
+                raise ValueError(f"{path}: camera {cid}: {model} parameter {name} = {text} is not finite")
+
+
+def _check_camera(camera, cameras_file: Path) -> Tuple[ColmapCameraSpec, NerfstudioIntrinsics]:
+    model = camera.model.name
+    cid = int(camera.camera_id)
+    width, height = int(camera.width), int(camera.height)
+    if width <= 0 or height <= 0:
+        raise ValueError(f"{cameras_file}: camera {cid}: size {width}x{height} is not positive")
+    params = [float(v) for v in camera.params]
+    try:
+        names = _param_names(model)
+    except Exception:
+        names = [f"params[{i}]" for i in range(len(params))]
+    for name, value in zip(names, params):
+        if not math.isfinite(value):
+            raise ValueError(f"{cameras_file}: camera {cid}: {model} parameter {name} = {value} is not finite")
+    try:
+        ns = nerfstudio_intrinsics(model, width, height, params)
+    except ValueError as e:
+        raise ValueError(f"{cameras_file}: camera {cid}: unsupported or invalid camera ({model}): {e}") from e
+    spec = ColmapCameraSpec(model, width, height, tuple(params), cid, ns.exact)
+    return spec, ns
+
+
+def _rescaled(spec: ColmapCameraSpec, factor: float, width: int, height: int) -> ColmapCameraSpec:
+    """Scale focal lengths and principal point by factor (as nerfstudio's rescale_output_resolution)."""
+    if spec.model == "EQUIRECTANGULAR":
+        return spec._replace(width=width, height=height, params=(float(width), float(height)))
+    pc = _pycolmap_camera(spec.model, spec.width, spec.height, spec.params)
+    params = list(spec.params)
+    for i in list(pc.focal_length_idxs()) + list(pc.principal_point_idxs()):
+        params[i] *= factor
+    return spec._replace(width=width, height=height, params=tuple(params))
+
+
+def _model_id(model: str) -> int:
+    import pycolmap
+
+    return int(pycolmap.CameraModelId.__members__[model].value)
+
+
+def _downscaled(folder: Path, df: int) -> Path:
+    return folder.parent / f"{folder.name}_{df}"
+
+
+def _image_size(path: Path) -> Tuple[int, int]:
+    """(width, height) from the file header only (PIL opens lazily)."""
+    try:
+        with Image.open(path) as im:
+            return tuple(im.size)  # type: ignore[return-value]
+    except Exception as e:
+        raise ValueError(f"cannot read the image header of {path}: {e}") from e
+
+
+def _points(recon, transform: torch.Tensor, scale: float, model_dir: Path) -> Dict[str, torch.Tensor]:
+    pts = [p for _, p in sorted(recon.points3D.items(), key=lambda kv: kv[0])]  # by point id, like nerfstudio
+    if not pts:
+        CONSOLE.log(f"[yellow]{model_dir}: no 3D points; models will not get seed points")
+        return {}
+    xyz = torch.from_numpy(np.stack([np.asarray(p.xyz, dtype=np.float64) for p in pts]))
+    xyz = (xyz @ transform[:, :3].T + transform[:, 3]) * scale
+    rgb = torch.from_numpy(np.stack([np.asarray(p.color, dtype=np.uint8) for p in pts]))
+    return {
+        "points3D_xyz": xyz.float(),
+        "points3D_rgb": rgb,
+        "points3D_error": torch.tensor([float(p.error) for p in pts], dtype=torch.float32),
+        "points3D_num_points2D": torch.tensor([int(p.track.length()) for p in pts], dtype=torch.int64),
+    }

@@ -1,0 +1,199 @@
+"""Full-image datamanager for geer: no undistortion, training views cached as BEAP images.
+
+nerfstudio's FullImageDatamanager undistorts fisheye images (cv2.fisheye, balance 0: the periphery is
+cropped) and then treats every camera as a pinhole. geer renders any camera exactly, so here:
+
+* every image keeps its camera type, distortion and size;
+* training views (``supervision="beap"``) are resampled once into the camera's BEAP grid
+  (geer_ns.data.views, the same grid object the model renders) and cached with their validity mask;
+* eval views stay in native pixels with a validity mask (camera-valid, ``mask_path`` mask, fisheye
+  crop circle), so metrics are computed where the camera really saw something;
+* images are cached as uint8 and masks as bool, on the GPU when there is one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Tuple, Type
+
+import cv2
+import numpy as np
+import torch
+
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.configs.dataparser_configs import AnnotatedDataParserUnion
+from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+from nerfstudio.utils.io import load_from_json
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from geer_ns.cameras import CameraModel
+from geer_ns.data.beap import resample_to_beap
+from geer_ns.data.views import beap_view, camera_model, native_view
+from geer_ns.host_fixes import pin_if_possible, read_ply_points
+
+Supervision = Literal["beap", "native"]
+# Key of Cameras.metadata telling the model in which view a training batch is supervised.
+VIEW_KEY = "geer_view"
+
+
+@dataclass
+class GeerDataManagerConfig(FullImageDatamanagerConfig):
+    _target: Type = field(default_factory=lambda: GeerDataManager)
+    dataparser: AnnotatedDataParserUnion = field(default_factory=lambda: NerfstudioDataParserConfig(load_3D_points=False))
+    """Dataset parser. nerfstudio-data's load_3D_points stays off (it needs open3d); the seed points are read
+    by this datamanager instead (load_seed_points)."""
+    cache_images_type: Literal["uint8", "float32"] = "uint8"
+    supervision: Supervision = "beap"
+    """Train on BEAP images ("beap", the paper's setting) or on the native pixel rays ("native")."""
+    load_seed_points: bool = True
+    """Seed Gaussians from the dataset's point cloud (nerfstudio-data `ply_file_path`)."""
+    mask_edge_fill: int = 2
+    """Pixel rings extrapolated beyond the validity mask before BEAP resampling, so that BEAP cells at the
+    edge of the image circle (whose bilinear footprint touches the first invalid pixel) stay supervised."""
+
+
+def check_data_path(config: GeerDataManagerConfig) -> None:
+    """Fail early, naming the path, instead of deep inside a dataparser."""
+    data = config.data if config.data is not None else config.dataparser.data
+    path = Path(data).expanduser()
+    if not path.exists():
+        raise FileNotFoundError(f"geer: --data {path} does not exist")
+    if isinstance(config.dataparser, NerfstudioDataParserConfig) and path.is_dir():
+        if not (path / "transforms.json").is_file():
+            raise FileNotFoundError(
+                f"geer: --data {path} has no transforms.json (nerfstudio-data format expected; "
+                "for a COLMAP reconstruction choose the colmap dataparser)"
+            )
+
+
+def native_valid_mask(camera: CameraModel, mask: Optional[torch.Tensor], crop_radius: Optional[float]) -> torch.Tensor:
+    """[H, W] bool: pixels the camera model can unproject, inside `mask` and inside the fisheye crop circle."""
+    valid = native_view(camera).rays.valid.reshape(camera.height, camera.width).cpu()  # cached per intrinsics
+    if mask is not None:
+        valid = valid & mask.reshape(valid.shape).bool().cpu()
+    if crop_radius is not None and hasattr(camera, "cx"):
+        uv = camera.pixel_centers(torch.float64)
+        r2 = (uv[..., 0] - camera.cx) ** 2 + (uv[..., 1] - camera.cy) ** 2
+        valid = valid & (r2 <= crop_radius**2)
+    return valid
+
+
+def extend_beyond_mask(image: np.ndarray, valid: np.ndarray, rings: int) -> Tuple[np.ndarray, np.ndarray]:
+    """Grow `valid` by `rings` pixels, filling each new pixel with the mean of its valid 8-neighbours.
+
+    BEAP resampling is bilinear and only keeps cells whose whole footprint is valid; without this the
+    outermost cells of a fisheye circle would be dropped although their centres lie inside it.
+    """
+    img = image.astype(np.float32).copy()
+    ok = valid.copy()
+    kernel = np.ones((3, 3), np.uint8)
+    for _ in range(rings):
+        grown = cv2.dilate(ok.astype(np.uint8), kernel).astype(bool)
+        ring = grown & ~ok
+        if not ring.any():
+            break
+        count = cv2.boxFilter(ok.astype(np.float32), -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        weighted = img * ok[..., None]
+        total = np.stack(
+            [cv2.boxFilter(weighted[..., c], -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+             for c in range(img.shape[-1])], -1)
+        img[ring] = total[ring] / count[ring][:, None]
+        ok = grown
+    return img, ok
+
+
+def to_beap(image: torch.Tensor, camera: CameraModel, valid: torch.Tensor, rings: int) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Native image [H,W,C] (uint8 or float) -> (BEAP image float [h,w,C] in [0,1], valid [h,w])."""
+    img = image.float().numpy() / (255.0 if image.dtype == torch.uint8 else 1.0)
+    img, ok = extend_beyond_mask(img, valid.numpy(), rings)
+    return resample_to_beap(torch.from_numpy(img), camera, beap_view(camera).grid, torch.from_numpy(ok))
+
+
+def as_cache_type(image: torch.Tensor, cache_type: str) -> torch.Tensor:
+    if cache_type == "uint8":
+        return image if image.dtype == torch.uint8 else (image.clamp(0, 1) * 255.0).round().to(torch.uint8)
+    return image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
+
+
+class GeerDataManager(FullImageDatamanager):
+    config: GeerDataManagerConfig
+
+    def __init__(self, config: GeerDataManagerConfig, *args, **kwargs):
+        check_data_path(config)
+        if isinstance(config.dataparser, NerfstudioDataParserConfig) and config.dataparser.load_3D_points:
+            # nerfstudio would import open3d (broken on hosts without libusb); we read the PLY ourselves.
+            config.dataparser.load_3D_points = False
+            config.load_seed_points = True
+        super().__init__(config, *args, **kwargs)
+        if config.load_seed_points:
+            self._add_seed_points()
+
+    # ---------------------------------------------------------------------------------- seed points
+    def _ply_path(self) -> Optional[Path]:
+        data = Path(self.config.dataparser.data)
+        meta_path = data if data.suffix == ".json" else data / "transforms.json"
+        if not meta_path.is_file():
+            return None
+        rel = load_from_json(meta_path).get("ply_file_path")
+        return None if rel is None else meta_path.parent / rel
+
+    def _add_seed_points(self) -> None:
+        metadata = self.train_dataparser_outputs.metadata
+        if "points3D_xyz" in metadata:
+            return
+        ply = self._ply_path()
+        if ply is None or not ply.is_file():
+            CONSOLE.print("[yellow]geer: no seed point cloud found; splatfacto's random initialisation is used")
+            return
+        xyz, rgb = read_ply_points(ply)
+        outputs = self.train_dataparser_outputs
+        pts = torch.from_numpy(xyz)
+        pts = torch.cat([pts, torch.ones_like(pts[:, :1])], -1) @ outputs.dataparser_transform.T.float()
+        metadata["points3D_xyz"] = pts * float(outputs.dataparser_scale)
+        metadata["points3D_rgb"] = torch.from_numpy(rgb)
+        CONSOLE.log(f"geer: {len(xyz)} seed points from {ply}")
+
+    # ---------------------------------------------------------------------------------- image cache
+    def _load_view(self, dataset, idx: int, as_beap: bool) -> Dict[str, torch.Tensor]:
+        data = dataset.get_data(idx, image_type=self.config.cache_images_type)
+        camera = camera_model(dataset.cameras, idx)
+        image = data["image"]
+        if tuple(image.shape[:2]) != (camera.height, camera.width):
+            raise ValueError(
+                f"image {idx} of {dataset.image_filenames[idx]} is {tuple(image.shape[:2])}, "
+                f"its camera says ({camera.height}, {camera.width})"
+            )
+        valid = native_valid_mask(camera, data.get("mask"), _crop_radius(dataset.cameras))
+        if as_beap:
+            image, valid = to_beap(image, camera, valid, self.config.mask_edge_fill)
+        data["image"] = as_cache_type(image, self.config.cache_images_type)
+        data["mask"] = valid[..., None]
+        return data
+
+    def _load_images(self, split: Literal["train", "eval"], cache_images_device: Literal["cpu", "gpu"]) -> List[Dict[str, torch.Tensor]]:
+        dataset = self.train_dataset if split == "train" else self.eval_dataset
+        as_beap = split == "train" and self.config.supervision == "beap"
+        kind = "BEAP" if as_beap else "native"
+        CONSOLE.log(f"geer: caching {len(dataset)} {split} images as {kind} views (no undistortion)")
+        views = [self._load_view(dataset, i, as_beap) for i in range(len(dataset))]
+        on_gpu = cache_images_device == "gpu" and torch.device(self.device).type == "cuda"
+        for view in views:
+            for key in ("image", "mask", "depth_image"):
+                if key in view:
+                    view[key] = view[key].to(self.device) if on_gpu else pin_if_possible(view[key])
+        self.train_cameras = self.train_dataset.cameras.to(self.device) if on_gpu else self.train_dataset.cameras
+        return views
+
+    def next_train(self, step: int) -> Tuple[Cameras, Dict]:
+        camera, data = super().next_train(step)
+        camera.metadata = dict(camera.metadata or {})
+        camera.metadata[VIEW_KEY] = self.config.supervision
+        return camera, data
+
+
+def _crop_radius(cameras: Cameras) -> Optional[float]:
+    meta = cameras.metadata or {}
+    radius = meta.get("fisheye_crop_radius")
+    return float(radius) if radius is not None else None

@@ -1,0 +1,121 @@
+"""Per-camera ray grids, cached per intrinsics and shared by the datamanager and the model.
+
+Camera models are frozen dataclasses (hashable, equal when their intrinsics are equal), so the
+datamanager that resamples a training image into BEAP and the model that renders that view get the
+very same `BeapView` object: one BEAP grid definition, no chance of the two drifting apart.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import torch
+from torch import Tensor
+
+from nerfstudio.cameras.cameras import Cameras
+
+from geer_ns.cameras import CameraModel
+from geer_ns.data.colmap_parser import camera_model_from_cameras
+from geer_ns.data.beap import BeapGrid, beap_grid_for_camera, camera_center_step
+from geer_ns.render import RayGrid
+
+TILE_SIZE = 16
+# Distinct intrinsics seen in one run are few (one per physical camera and viewer size).
+_CACHE_SIZE = 64
+
+
+@dataclass(frozen=True, eq=False)
+class BeapView:
+    """The BEAP image a training camera is supervised in, at one downscale factor."""
+
+    camera: CameraModel
+    grid: BeapGrid
+    rays: RayGrid  # valid = cells whose ray the camera can see
+    downscale: int
+
+    @property
+    def steps(self) -> tuple[float, float]:
+        """Angular size of one BEAP cell in theta and phi (radians per pixel): the units of means2d."""
+        return self.grid.step_theta, self.grid.step_phi
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.grid.height, self.grid.width
+
+
+@dataclass(frozen=True, eq=False)
+class NativeView:
+    """A camera's own pixel rays (no undistortion), for eval, the viewer and native supervision."""
+
+    camera: CameraModel
+    rays: RayGrid
+    step: float  # angular size of a pixel at the principal point (radians per pixel)
+
+    @property
+    def steps(self) -> tuple[float, float]:
+        return self.step, self.step
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.camera.height, self.camera.width
+
+
+def camera_model(cameras: Cameras, index: int = 0) -> CameraModel:
+    """The exact model of camera `index`: the COLMAP model when geer's COLMAP parser stored one (FOV,
+    thin-prism, ... which nerfstudio cannot represent), else the model nerfstudio's camera describes."""
+    return camera_model_from_cameras(cameras, index)
+
+
+@lru_cache(maxsize=_CACHE_SIZE)
+def full_beap_grid(camera: CameraModel) -> BeapGrid:
+    """The full-resolution BEAP grid of a camera (square cells: one angular step in theta and phi)."""
+    return beap_grid_for_camera(camera, tile_size=TILE_SIZE)
+
+
+def downscaled_grid(grid: BeapGrid, factor: int) -> BeapGrid:
+    """Same angular range, `factor` x fewer cells per axis (each cell = a factor x factor block)."""
+    if grid.width % factor or grid.height % factor:
+        raise ValueError(f"BEAP grid {grid.width}x{grid.height} is not divisible by downscale {factor}")
+    return BeapGrid(grid.width // factor, grid.height // factor, grid.theta_min, grid.theta_max,
+                    grid.phi_min, grid.phi_max)
+
+
+def _camera_sees(camera: CameraModel, dirs: Tensor) -> Tensor:
+    """[h, w] bool: the ray projects camera-validly inside the image rectangle."""
+    px, ok = camera.project(dirs.to(torch.float64))
+    inside = (px[..., 0] >= 0) & (px[..., 0] <= camera.width) & (px[..., 1] >= 0) & (px[..., 1] <= camera.height)
+    return ok & inside
+
+
+def beap_view(camera: CameraModel, downscale: int = 1) -> BeapView:
+    """The (cached) BEAP view of a camera; `downscale` follows splatfacto's resolution schedule."""
+    return _beap_view(camera, int(downscale))  # one cache key however the factor is passed
+
+
+@lru_cache(maxsize=_CACHE_SIZE)
+def _beap_view(camera: CameraModel, downscale: int) -> BeapView:
+    grid = downscaled_grid(full_beap_grid(camera), downscale)
+    dirs = grid.directions(torch.float32)
+    rays = RayGrid.from_rays(dirs, _camera_sees(camera, dirs), TILE_SIZE)
+    return BeapView(camera, grid, rays, downscale)
+
+
+@lru_cache(maxsize=_CACHE_SIZE)
+def native_view(camera: CameraModel) -> NativeView:
+    """The (cached) per-pixel ray grid of a camera."""
+    dirs, valid = camera.pixel_rays(torch.float32)
+    return NativeView(camera, RayGrid.from_rays(dirs, valid, TILE_SIZE), _pixel_step(camera))
+
+
+def _pixel_step(camera: CameraModel) -> float:
+    try:
+        return camera_center_step(camera)
+    except ValueError:  # no invertible principal point: fall back to the mean angular pitch
+        return camera.max_angle / max(camera.width, camera.height) if math.isfinite(camera.max_angle) else 1e-3
+
+
+def clear_caches() -> None:
+    for cached in (full_beap_grid, _beap_view, native_view):
+        cached.cache_clear()

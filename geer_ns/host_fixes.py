@@ -1,0 +1,127 @@
+"""Narrow work-arounds for bugs of the host stack (nerfstudio 1.1.5, torch >= 2.6, torchmetrics, open3d).
+
+Each fix names the host issue it is for and is covered by tests/test_nerfstudio_host_fixes.py.
+Nothing here changes behaviour that works: each fix only takes effect where the host would fail.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+
+_LOG = logging.getLogger("geer_ns")
+
+# --------------------------------------------------------------------------------------------------
+# nerfstudio issue 3683: torch >= 2.6 loads with weights_only=True by default, and nerfstudio's
+# checkpoint loaders (ns-eval, ns-viewer, ns-render, ns-train --load-dir) call torch.load without
+# weights_only. A nerfstudio checkpoint is dicts of tensors, numbers and strings plus the few
+# non-tensor globals below; allow-listing exactly those keeps the safe loader for everything else.
+# --------------------------------------------------------------------------------------------------
+
+
+def _checkpoint_globals() -> list:
+    """numpy scalars (pickled as multiarray.scalar + dtype) in the optimizer/scheduler state."""
+    try:
+        from numpy._core import multiarray as np_multiarray  # numpy >= 2
+    except ImportError:  # pragma: no cover - numpy 1.x
+        from numpy.core import multiarray as np_multiarray
+
+    found = [np_multiarray.scalar, np.dtype]
+    for name in ("Float64DType", "Float32DType", "Int64DType", "Int32DType", "BoolDType"):
+        dtype_class = getattr(np.dtypes, name, None)
+        if dtype_class is not None:
+            found.append(dtype_class)
+    return found
+
+
+def allow_nerfstudio_checkpoints() -> bool:
+    """Allow-list the globals nerfstudio checkpoints contain for torch's weights_only loader.
+
+    Returns False (and does nothing) on a torch without `add_safe_globals` (< 2.4), which does not
+    default to weights_only either.
+    """
+    add = getattr(torch.serialization, "add_safe_globals", None)
+    if add is None:
+        return False
+    add(_checkpoint_globals())
+    return True
+
+
+# --------------------------------------------------------------------------------------------------
+# splatfacto builds torchmetrics' LPIPS in populate_modules, which downloads AlexNet through
+# torch.hub: with no network the model constructor fails. geer builds it lazily, only from weights
+# already in the torch hub cache; otherwise LPIPS is reported as missing (logged once).
+# --------------------------------------------------------------------------------------------------
+
+_lpips_warned = False
+
+
+def alexnet_weights_path() -> Path:
+    import torchvision
+
+    url = torchvision.models.AlexNet_Weights.DEFAULT.url
+    return Path(torch.hub.get_dir()) / "checkpoints" / os.path.basename(url)
+
+
+def build_lpips_if_cached() -> Optional[torch.nn.Module]:
+    """torchmetrics LPIPS (AlexNet) when its weights are cached locally, else None (logged once)."""
+    global _lpips_warned
+    path = alexnet_weights_path()
+    if path.is_file():
+        from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
+
+        return LearnedPerceptualImagePatchSimilarity(normalize=True)
+    if not _lpips_warned:
+        _lpips_warned = True
+        message = f"LPIPS unavailable: AlexNet weights not found at {path} (no download attempted); lpips is omitted"
+        _LOG.warning(message)
+        _console_print(f"[yellow]{message}")
+    return None
+
+
+def _console_print(message: str) -> None:
+    try:
+        from nerfstudio.utils.rich_utils import CONSOLE
+
+        CONSOLE.print(message)
+    except Exception:  # pragma: no cover - logging already happened
+        pass
+
+
+# --------------------------------------------------------------------------------------------------
+# FullImageDatamanager(cache_images="cpu") calls pin_memory(), which raises "Found no NVIDIA driver"
+# with a CUDA build of torch on a machine without a GPU.
+# --------------------------------------------------------------------------------------------------
+
+
+def pin_if_possible(tensor: torch.Tensor) -> torch.Tensor:
+    """Pinned copy for fast host-to-GPU transfers when a GPU exists, the tensor itself otherwise."""
+    if torch.cuda.is_available() and tensor.device.type == "cpu":
+        return tensor.pin_memory()
+    return tensor
+
+
+# --------------------------------------------------------------------------------------------------
+# nerfstudio-data reads `ply_file_path` with open3d, whose import fails here without Debian's
+# libusb-1.0-0. The seed point cloud is read with plyfile instead.
+# --------------------------------------------------------------------------------------------------
+
+
+def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(xyz float32 [N,3], rgb uint8 [N,3]) from a PLY point cloud (white where it has no colour)."""
+    from plyfile import PlyData
+
+    vertex = PlyData.read(str(path))["vertex"]
+    xyz = np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=-1).astype(np.float32)
+    names = vertex.data.dtype.names
+    if all(c in names for c in ("red", "green", "blue")):
+        rgb = np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=-1)
+        rgb = rgb if rgb.dtype == np.uint8 else np.clip(np.round(rgb * 255.0), 0, 255)
+    else:
+        rgb = np.full_like(xyz, 255.0)
+    return xyz, rgb.astype(np.uint8)

@@ -1,0 +1,494 @@
+"""geer: splatfacto's Gaussians, schedule and densification, rendered exactly with 3DGEER.
+
+The model keeps splatfacto's `gauss_params` (means, scales, quats, features_dc, features_rest,
+opacities), so ns-export gaussian-splat and the viewer work unchanged. What differs:
+
+* get_outputs renders through geer_ns.render for any camera: training batches in the BEAP view the
+  datamanager cached them in (or native pixels), eval/viewer cameras from their own pixel rays;
+* losses and metrics use the validity mask (BEAP cells / pixels the camera really saw);
+* densification: gsplat's DefaultStrategy is fed a `means2d` whose gradient is the loss gradient
+  w.r.t. each Gaussian's image position in BEAP pixels (see `lateral_displacement`), and `radii`
+  from the Particle Bounding Frustum; `strategy="mcmc"` uses gsplat's MCMCStrategy instead;
+* no hard-coded CUDA device: it trains on the CPU as well.
+"""
+
+from __future__ import annotations
+
+import math
+from copy import deepcopy
+from dataclasses import dataclass, field
+from typing import Dict, List, Literal, Optional, Tuple, Type, Union
+
+import torch
+import torch.nn.functional as F
+from gsplat.strategy import DefaultStrategy, MCMCStrategy
+from pytorch_msssim import SSIM
+from torch import Tensor
+from torchmetrics.image import PeakSignalNoiseRatio
+
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.model_components.lib_bilagrid import BilateralGrid
+from nerfstudio.models.splatfacto import (
+    RGB2SH,
+    SplatfactoModel,
+    SplatfactoModelConfig,
+    num_sh_bases,
+    random_quat_tensor,
+)
+from nerfstudio.utils.colors import get_color
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from geer_ns import host_fixes
+from geer_ns.cameras import CameraModel
+from geer_ns.data.datamanager import VIEW_KEY
+from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, native_view
+from geer_ns.render import render
+from geer_ns.render.pbf import LambdaMode
+
+host_fixes.allow_nerfstudio_checkpoints()
+
+View = Union[BeapView, NativeView]
+
+
+@dataclass
+class GeerModelConfig(SplatfactoModelConfig):
+    _target: Type = field(default_factory=lambda: GeerModel)
+    densify_grad_thresh: float = 0.0002
+    """means2d gradient threshold (BEAP pixels, after gsplat's width/2, height/2 scaling), as gsplat's default."""
+    use_absgrad: bool = False
+    """geer's means2d carries the summed gradient; per-pixel absolute gradients (AbsGS) are not available."""
+    strategy: Literal["default", "mcmc"] = "default"
+    """Densification: gsplat's DefaultStrategy (3DGS heuristics) or MCMCStrategy."""
+    mcmc_cap_max: int = 1_000_000
+    mcmc_noise_lr: float = 5e5
+    mcmc_min_opacity: float = 0.005
+    mcmc_opacity_reg: float = 0.01
+    mcmc_scale_reg: float = 0.01
+    lambda_mode: LambdaMode = "opacity"
+    """PBF extent rule of the renderer (geer_ns.render.pbf)."""
+    max_pairs: int = 1 << 22
+    """Renderer memory cap: (ray, Gaussian) pairs evaluated at once."""
+    central_half_angles_deg: Optional[Tuple[float, float]] = None
+    """Half-extents (theta, phi) of the 'central' eval region in degrees; None = the paper's App. G rule
+    (theta in +-w/(2 fx), phi in +-h/(2 fy))."""
+
+
+# ==================================================================================================
+# Geometry helpers
+# ==================================================================================================
+
+
+def world_to_camera_opencv(camera_to_world: Tensor) -> Tensor:
+    """nerfstudio c2w [3,4] (OpenGL axes) -> world-to-camera [4,4] with OpenCV axes (x right, y down, z fwd)."""
+    rot = camera_to_world[:3, :3] * camera_to_world.new_tensor([1.0, -1.0, -1.0])
+    viewmat = torch.eye(4, dtype=camera_to_world.dtype, device=camera_to_world.device)
+    viewmat[:3, :3] = rot.T
+    viewmat[:3, 3] = -rot.T @ camera_to_world[:3, 3]
+    return viewmat
+
+
+def angle_jacobian_pinv(means_c: Tensor) -> Tensor:
+    """[N,3,2] pseudo-inverse of d(theta, phi)/d(mean_c), theta = atan2(x, z), phi = atan2(y, z).
+
+    Its columns are the smallest view-space moves that shift a mean's BEAP angles by one radian in theta
+    (resp. phi) and leave the other angle unchanged; they are orthogonal to the viewing ray (the
+    Jacobian's null space), so the distance to the camera is kept. Zero where the angles are undefined.
+    """
+    p = means_c.detach().double()
+    x, y, z = p.unbind(-1)
+    a, b = x * x + z * z, y * y + z * z
+    zero = torch.zeros_like(x)
+    jac = torch.stack(
+        [torch.stack([z / a, zero, -x / a], -1), torch.stack([zero, z / b, -y / b], -1)], -2
+    )  # [N, 2, 3]
+    gram = jac @ jac.transpose(-1, -2)
+    det = gram[:, 0, 0] * gram[:, 1, 1] - gram[:, 0, 1] * gram[:, 1, 0]
+    ok = (a > 1e-12) & (b > 1e-12) & torch.isfinite(det) & (det > 1e-30)
+    safe_gram = torch.where(ok[:, None, None], gram, torch.eye(2, dtype=p.dtype, device=p.device))
+    pinv = jac.transpose(-1, -2) @ torch.linalg.inv(safe_gram)
+    pinv = torch.where(ok[:, None, None] & torch.isfinite(pinv), pinv, torch.zeros_like(pinv))
+    return pinv.to(means_c.dtype)
+
+
+def lateral_displacement(means_c: Tensor, means2d: Tensor, steps: Tuple[float, float]) -> Tensor:
+    """View-space move [N,3] that shifts each mean's BEAP position by means2d [N,2] pixels (to first order).
+
+    Adding it to the means (zero when means2d = 0) makes means2d.grad = dL/d(image position in pixels),
+    the quantity gsplat's DefaultStrategy thresholds.
+    """
+    angles = means2d * means2d.new_tensor(steps)
+    return torch.einsum("nij,nj->ni", angle_jacobian_pinv(means_c), angles)
+
+
+def pbf_radii(pbf, visible: Tensor, steps: Tuple[float, float]) -> Tensor:
+    """[N] image half-extent in pixels from the PBF's angular bounds; 0 when not rendered."""
+    half_theta = (pbf.theta_hi - pbf.theta_lo) / (2.0 * steps[0])
+    half_phi = (pbf.phi_hi - pbf.phi_lo) / (2.0 * steps[1])
+    radii = torch.maximum(half_theta, half_phi)
+    return torch.where(visible, radii, torch.zeros_like(radii)).detach()
+
+
+def central_region(camera: CameraModel, dirs: Tensor, half_angles: Optional[Tuple[float, float]]) -> Optional[Tensor]:
+    """[H,W] bool: rays whose (theta, phi) lie inside the central rectangle (paper App. G), None if undefined."""
+    if half_angles is None:
+        if not hasattr(camera, "fx"):
+            return None
+        half_angles = (camera.width / (2.0 * camera.fx), camera.height / (2.0 * camera.fy))
+    theta = torch.atan2(dirs[..., 0], dirs[..., 2])
+    phi = torch.atan2(dirs[..., 1], dirs[..., 2])
+    return (theta.abs() <= half_angles[0]) & (phi.abs() <= half_angles[1])
+
+
+def downscale_mask(mask: Tensor, factor: int) -> Tensor:
+    """[H,W,1] bool -> [H/f,W/f,1]: a coarse cell is valid only if its whole block is."""
+    if factor == 1:
+        return mask.bool()
+    pooled = F.avg_pool2d(mask.float().permute(2, 0, 1)[None], factor, stride=factor)
+    return (pooled[0].permute(1, 2, 0) > 1.0 - 1e-6)
+
+
+def masked_psnr(pred: Tensor, gt: Tensor, mask: Tensor) -> Optional[float]:
+    """PSNR over the pixels where mask [H,W] is set (None when there are none)."""
+    n = int(mask.sum())
+    if n == 0:
+        return None
+    mse = ((pred - gt) ** 2)[mask].mean().clamp_min(1e-10)
+    return float(-10.0 * torch.log10(mse))
+
+
+# ==================================================================================================
+# MCMC glue: gsplat's relocation and covariance ops are CUDA-only; the CPU path uses torch versions.
+# ==================================================================================================
+
+
+def relocation_torch(opacities: Tensor, scales: Tensor, ratios: Tensor, binoms: Tensor) -> Tuple[Tensor, Tensor]:
+    """MCMC relocation (Kheradmand et al. 2024, Eq. 9): N copies of a Gaussian that together render like it."""
+    shape = opacities.shape  # [N] or [N, 1]; the result keeps it
+    opacities = opacities.reshape(-1)
+    n_max = binoms.shape[0]
+    n = ratios.reshape(-1).clamp(1, n_max).long()
+    new_opacities = 1.0 - (1.0 - opacities) ** (1.0 / n.to(opacities.dtype))
+    i = torch.arange(1, n_max + 1, device=opacities.device)  # [I]
+    k = torch.arange(n_max, device=opacities.device)  # [K]
+    coeff = binoms[(i - 1)[:, None], k[None, :]] * (-1.0) ** k / torch.sqrt(k + 1.0)  # [I, K]
+    coeff = torch.where(k[None, :] <= (i - 1)[:, None], coeff, torch.zeros_like(coeff))
+    powers = new_opacities[:, None] ** (k[None, :] + 1.0)  # [N, K]
+    terms = powers @ coeff.T.to(powers.dtype)  # [N, I]: inner sums over k
+    used = i[None, :] <= n[:, None]
+    denom = torch.where(used, terms, torch.zeros_like(terms)).sum(-1)
+    new_scales = (opacities / denom)[:, None] * scales
+    return new_opacities.reshape(shape), new_scales
+
+
+def install_mcmc_cpu_ops() -> None:
+    """Route gsplat.strategy.ops' CUDA-only calls to torch implementations for CPU tensors."""
+    import gsplat.strategy.ops as ops
+    from gsplat.cuda._torch_impl import _quat_scale_to_covar_preci
+
+    if getattr(ops, "_geer_cpu_ops", False):
+        return
+    cuda_relocation, cuda_covar = ops.compute_relocation, ops.quat_scale_to_covar_preci
+
+    def compute_relocation(opacities, scales, ratios, binoms):
+        if opacities.is_cuda:
+            return cuda_relocation(opacities, scales, ratios, binoms)
+        return relocation_torch(opacities, scales, ratios, binoms)
+
+    def quat_scale_to_covar_preci(quats, scales, compute_covar=True, compute_preci=True, triu=False):
+        fn = cuda_covar if quats.is_cuda else _quat_scale_to_covar_preci
+        return fn(F.normalize(quats, dim=-1), scales, compute_covar=compute_covar, compute_preci=compute_preci, triu=triu)
+
+    ops.compute_relocation = compute_relocation
+    ops.quat_scale_to_covar_preci = quat_scale_to_covar_preci
+    ops._geer_cpu_ops = True
+
+
+# ==================================================================================================
+# The model
+# ==================================================================================================
+
+
+class GeerModel(SplatfactoModel):
+    config: GeerModelConfig
+
+    # ------------------------------------------------------------------------------------- set-up
+    def populate_modules(self):
+        means = self._initial_means()
+        distances, _ = self.k_nearest_sklearn(means.data, 3)
+        avg_dist = torch.from_numpy(distances).mean(dim=-1, keepdim=True).clamp_min(1e-7)
+        n = means.shape[0]
+        features_dc, features_rest = self._initial_features(n)
+        self.gauss_params = torch.nn.ParameterDict(
+            {
+                "means": means,
+                "scales": torch.nn.Parameter(torch.log(avg_dist.repeat(1, 3))),
+                "quats": torch.nn.Parameter(random_quat_tensor(n)),
+                "features_dc": torch.nn.Parameter(features_dc),
+                "features_rest": torch.nn.Parameter(features_rest),
+                "opacities": torch.nn.Parameter(torch.logit(0.1 * torch.ones(n, 1))),
+            }
+        )
+        self.camera_optimizer = self.config.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
+        self.psnr = PeakSignalNoiseRatio(data_range=1.0)
+        self.ssim = SSIM(data_range=1.0, size_average=True, channel=3)
+        self._perceptual: Dict[str, object] = {}  # LPIPS, built on first use (not a submodule: no state)
+        self.step = 0
+        self.crop_box = None
+        if self.config.background_color == "random":
+            self.background_color = torch.tensor([0.1490, 0.1647, 0.2157])  # viser's default background
+        else:
+            self.background_color = get_color(self.config.background_color)
+        if self.config.use_bilateral_grid:
+            shape = self.config.grid_shape
+            self.bil_grids = BilateralGrid(num=self.num_train_data, grid_X=shape[0], grid_Y=shape[1], grid_W=shape[2])
+        self.strategy, self.strategy_state = self._build_strategy()
+        self.info: Dict[str, object] = {}
+
+    def _initial_means(self) -> torch.nn.Parameter:
+        if self.seed_points is not None and not self.config.random_init:
+            return torch.nn.Parameter(self.seed_points[0].float().clone())
+        return torch.nn.Parameter((torch.rand((self.config.num_random, 3)) - 0.5) * self.config.random_scale)
+
+    def _initial_features(self, n: int) -> Tuple[Tensor, Tensor]:
+        dim_sh = num_sh_bases(self.config.sh_degree)
+        seeded = self.seed_points is not None and not self.config.random_init and self.seed_points[1].shape[0] > 0
+        if not seeded:
+            return torch.rand(n, 3), torch.zeros(n, dim_sh - 1, 3)
+        rgb = self.seed_points[1].float() / 255.0
+        dc = RGB2SH(rgb) if self.config.sh_degree > 0 else torch.logit(rgb, eps=1e-10)
+        return dc, torch.zeros(n, dim_sh - 1, 3)
+
+    def _build_strategy(self):
+        cfg = self.config
+        if cfg.use_absgrad:
+            CONSOLE.print("[yellow]geer: use_absgrad is not supported by the 3DGEER renderer; using plain gradients")
+            cfg.use_absgrad = False
+        if cfg.strategy == "mcmc":
+            install_mcmc_cpu_ops()
+            strategy = MCMCStrategy(
+                cap_max=cfg.mcmc_cap_max,
+                noise_lr=cfg.mcmc_noise_lr,
+                refine_start_iter=cfg.warmup_length,
+                refine_stop_iter=cfg.stop_split_at,
+                refine_every=cfg.refine_every,
+                min_opacity=cfg.mcmc_min_opacity,
+                verbose=True,
+            )
+            return strategy, strategy.initialize_state()
+        strategy = DefaultStrategy(
+            prune_opa=cfg.cull_alpha_thresh,
+            grow_grad2d=cfg.densify_grad_thresh,
+            grow_scale3d=cfg.densify_size_thresh,
+            grow_scale2d=cfg.split_screen_size,
+            prune_scale3d=cfg.cull_scale_thresh,
+            prune_scale2d=cfg.cull_screen_size,
+            refine_scale2d_stop_iter=cfg.stop_screen_size_at,
+            refine_start_iter=cfg.warmup_length,
+            refine_stop_iter=cfg.stop_split_at,
+            reset_every=cfg.reset_alpha_every * cfg.refine_every,
+            refine_every=cfg.refine_every,
+            pause_refine_after_reset=self.num_train_data + cfg.refine_every,
+            absgrad=False,
+            revised_opacity=False,
+            verbose=True,
+        )
+        return strategy, strategy.initialize_state(scene_scale=1.0)
+
+    # ---------------------------------------------------------------------------------- rendering
+    def _view_for(self, camera: Cameras) -> View:
+        """The ray grid a camera is rendered on: its cached BEAP view for BEAP-supervised training batches,
+        else its own pixel rays (downscaled by splatfacto's resolution schedule while training)."""
+        kind = (camera.metadata or {}).get(VIEW_KEY, "native") if self.training else "native"
+        factor = self._get_downscale_factor()
+        if kind == "beap":
+            return beap_view(camera_model(camera, 0), factor)
+        if factor > 1:
+            camera = deepcopy(camera)
+            camera.rescale_output_resolution(1.0 / factor)
+        return native_view(camera_model(camera, 0))
+
+    def _gaussians(self) -> Optional[Dict[str, Tensor]]:
+        """Parameters to render (cropped to the viewer's box when one is set); None if nothing is left."""
+        names = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
+        params = {name: self.gauss_params[name] for name in names}
+        if self.crop_box is not None and not self.training:
+            keep = self.crop_box.within(self.means).squeeze()
+            if keep.sum() == 0:
+                return None
+            params = {name: p[keep] for name, p in params.items()}
+        return params
+
+    def _colors(self, params: Dict[str, Tensor]) -> Tuple[Tensor, Optional[int]]:
+        if self.config.sh_degree > 0:
+            colors = torch.cat([params["features_dc"][:, None, :], params["features_rest"]], dim=1)
+            return colors, min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+        return torch.sigmoid(params["features_dc"]), None
+
+    def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, List]]:
+        if not isinstance(camera, Cameras):
+            return {}
+        view = self._view_for(camera)
+        height, width = view.size
+        params = self._gaussians()
+        if params is None:
+            return self.get_empty_outputs(width, height, self.background_color)
+        means = params["means"]
+        background = self._get_background_color().to(means)
+        c2w = self.camera_optimizer.apply_to_camera(camera)[0] if self.training else camera.camera_to_worlds[0]
+        viewmat = world_to_camera_opencv(c2w.to(means))
+        means2d = None
+        record = self.training and torch.is_grad_enabled()  # not for viewer renders during training
+        if record:
+            means2d = torch.zeros(1, means.shape[0], 2, dtype=means.dtype, device=means.device, requires_grad=True)
+            means = self._displaced_means(means, means2d[0], viewmat, view.steps)
+        colors, sh_degree = self._colors(params)
+        out = render(
+            means, params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]).squeeze(-1),
+            colors, viewmat, view.rays, sh_degree=sh_degree, background=background,
+            lambda_mode=self.config.lambda_mode, max_pairs=self.config.max_pairs,
+        )
+        if record:
+            self._record_info(means2d, out, view)
+        self.last_size = (height, width)
+        outputs = self._outputs(out, view, background)
+        cam_idx = (camera.metadata or {}).get("cam_idx")
+        if self.config.use_bilateral_grid and self.training and cam_idx is not None:
+            outputs["rgb"] = self._apply_bilateral_grid(outputs["rgb"][None], cam_idx, height, width)[0]
+        return outputs
+
+    def _displaced_means(self, means: Tensor, means2d: Tensor, viewmat: Tensor, steps) -> Tensor:
+        """means + R^T lateral(means2d): the render depends on means2d only through the image position."""
+        rot = viewmat[:3, :3]
+        means_c = means.detach() @ rot.T + viewmat[:3, 3]
+        return means + lateral_displacement(means_c, means2d, steps) @ rot
+
+    def _record_info(self, means2d: Tensor, out, view: View) -> None:
+        height, width = view.size
+        self.info = {
+            "means2d": means2d,
+            "radii": pbf_radii(out.pbf, out.visible, view.steps)[None],
+            "width": width,
+            "height": height,
+            "n_cameras": 1,
+            "gaussian_ids": None,
+        }
+        if isinstance(self.strategy, DefaultStrategy):
+            self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info)
+
+    def _outputs(self, out, view: View, background: Tensor) -> Dict[str, Tensor]:
+        height, width = view.size
+        acc = out.accumulation
+        depth = torch.where(acc > 0, out.depth, out.depth.detach().max())
+        outputs = {
+            "rgb": out.rgb.clamp(0.0, 1.0),
+            "depth": depth,
+            "accumulation": acc,
+            "background": background if self.training else background.expand(height, width, 3),
+            "valid_rays": view.rays.valid.reshape(height, width, 1),
+        }
+        if not self.training and isinstance(view, NativeView):
+            dirs = view.rays.dirs.reshape(height, width, 3)
+            half = self.config.central_half_angles_deg
+            central = central_region(view.camera, dirs, None if half is None else tuple(math.radians(a) for a in half))
+            if central is not None:
+                outputs["central_region"] = central[..., None]
+        return outputs
+
+    @torch.no_grad()
+    def get_outputs_for_camera(self, camera: Cameras, obb_box=None) -> Dict[str, Tensor]:
+        """Render any nerfstudio camera (PERSPECTIVE, FISHEYE, FISHEYE624, EQUIRECTANGULAR) from its own rays."""
+        assert camera is not None, "must provide camera to gaussian model"
+        self.set_crop(obb_box)
+        return self.get_outputs(camera.to(self.device))
+
+    # ------------------------------------------------------------------------------- densification
+    def step_post_backward(self, step):
+        assert step == self.step
+        if isinstance(self.strategy, MCMCStrategy):
+            lr = self.optimizers["means"].param_groups[0]["lr"]
+            self.strategy.step_post_backward(self.gauss_params, self.optimizers, self.strategy_state, step, self.info, lr=lr)
+            return
+        self.strategy.step_post_backward(self.gauss_params, self.optimizers, self.strategy_state, step, self.info, packed=False)
+
+    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        return [
+            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self.step_cb,
+                             args=[training_callback_attributes.optimizers]),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.step_post_backward),
+        ]
+
+    # ------------------------------------------------------------------------------------- losses
+    def _batch_mask(self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]) -> Tensor:
+        """[H,W,1] bool: supervised pixels (the datamanager's validity mask and the rendered rays)."""
+        valid = outputs["valid_rays"].to(self.device)
+        if "mask" in batch:
+            mask = downscale_mask(batch["mask"].to(self.device), self._get_downscale_factor())
+            valid = valid & mask
+        return valid
+
+    def get_metrics_dict(self, outputs, batch) -> Dict[str, Tensor]:
+        gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
+        valid = self._batch_mask(outputs, batch)[..., 0]
+        mse = ((outputs["rgb"].detach() - gt) ** 2)[valid].mean().clamp_min(1e-10)
+        metrics = {"psnr": -10.0 * torch.log10(mse), "gaussian_count": self.num_points}
+        self.camera_optimizer.get_metrics_dict(metrics)
+        return metrics
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
+        gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
+        valid = self._batch_mask(outputs, batch)
+        pred = torch.where(valid, outputs["rgb"], gt)  # invalid pixels equal: no loss, no SSIM edge
+        l1 = (pred - gt).abs().sum() / (valid.sum() * gt.shape[-1]).clamp_min(1)
+        ssim = self.ssim(gt.permute(2, 0, 1)[None], pred.permute(2, 0, 1)[None])
+        losses = {"main_loss": (1 - self.config.ssim_lambda) * l1 + self.config.ssim_lambda * (1 - ssim)}
+        losses["scale_reg"] = self._scale_regularisation()
+        if isinstance(self.strategy, MCMCStrategy):
+            losses["opacity_reg"] = self.config.mcmc_opacity_reg * torch.sigmoid(self.opacities).mean()
+            losses["mcmc_scale_reg"] = self.config.mcmc_scale_reg * torch.exp(self.scales).mean()
+        if self.training:
+            self.camera_optimizer.get_loss_dict(losses)
+        return losses
+
+    def _scale_regularisation(self) -> Tensor:
+        if not (self.config.use_scale_regularization and self.step % 10 == 0):
+            return torch.tensor(0.0, device=self.device)
+        scale = torch.exp(self.scales)
+        ratio = scale.amax(dim=-1) / scale.amin(dim=-1)
+        return 0.1 * (torch.clamp_min(ratio, self.config.max_gauss_ratio) - self.config.max_gauss_ratio).mean()
+
+    # ------------------------------------------------------------------------------------ metrics
+    def _lpips(self):
+        if "lpips" not in self._perceptual:
+            metric = host_fixes.build_lpips_if_cached()
+            self._perceptual["lpips"] = metric.to(self.device) if metric is not None else None
+        return self._perceptual["lpips"]
+
+    def get_image_metrics_and_images(self, outputs, batch) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
+        """Native-image metrics over valid pixels: PSNR, SSIM, LPIPS (when its weights are cached) and the
+        central / peripheral PSNR of the paper's App. G."""
+        gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
+        valid = self._batch_mask(outputs, batch)
+        pred = torch.where(valid, outputs["rgb"], gt)
+        psnr = masked_psnr(pred, gt, valid[..., 0])
+        metrics: Dict[str, float] = {"psnr": float("nan") if psnr is None else psnr}
+        gt_b, pred_b = gt.permute(2, 0, 1)[None], pred.permute(2, 0, 1)[None]
+        metrics["ssim"] = float(self.ssim(gt_b, pred_b))
+        lpips = self._lpips()
+        if lpips is not None:
+            metrics["lpips"] = float(lpips(gt_b.clamp(0, 1), pred_b.clamp(0, 1)))
+        metrics.update(self._region_psnr(pred, gt, valid[..., 0], outputs.get("central_region")))
+        metrics["valid_fraction"] = float(valid.float().mean())
+        return metrics, {"img": torch.cat([gt, outputs["rgb"] * valid], dim=1)}
+
+    def _region_psnr(self, pred: Tensor, gt: Tensor, valid: Tensor, central: Optional[Tensor]) -> Dict[str, float]:
+        """central_psnr / peripheral_psnr, each omitted when its region has no valid pixel in this view."""
+        if central is None:
+            return {}
+        central = central[..., 0].to(valid.device)
+        found = {}
+        for name, region in (("central_psnr", valid & central), ("peripheral_psnr", valid & ~central)):
+            value = masked_psnr(pred, gt, region)
+            if value is not None:
+                found[name] = value
+        return found

@@ -1,0 +1,98 @@
+"""GeerDataManager on the embedded synthetic room: no undistortion, BEAP training views, masks, seed points."""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from nerfstudio.cameras.cameras import CameraType
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+from geer_ns.data.beap import DEFAULT_MAX_HALF_ANGLE, directions_to_angles
+from geer_ns.data.datamanager import GeerDataManagerConfig, camera_model, native_valid_mask
+from geer_ns.data.synthetic_room import default_scene_dir
+from geer_ns.data.views import beap_view
+from geer_ns.host_fixes import read_ply_points
+
+
+@pytest.fixture(scope="module")
+def manager():
+    """Built like ns-train builds it, with cache_images="cpu" (pin_memory crashes without a GPU) and
+    load_3D_points=True (nerfstudio would import open3d)."""
+    config = GeerDataManagerConfig(
+        data=default_scene_dir(),
+        dataparser=NerfstudioDataParserConfig(load_3D_points=True),
+        cache_images="cpu",
+    )
+    return config.setup(device="cpu", test_mode="val")
+
+
+def test_cpu_image_cache_does_not_pin_without_a_gpu(manager):
+    views = manager.cached_train
+    assert len(views) == len(manager.train_dataset) == 21
+    assert all(v["image"].dtype == torch.uint8 and v["mask"].dtype == torch.bool for v in views)
+
+
+def test_fisheye_cameras_are_kept_not_undistorted(manager):
+    cams = manager.train_cameras
+    assert (cams.camera_type == CameraType.FISHEYE.value).all()
+    assert torch.allclose(cams.fx, torch.full_like(cams.fx, 96 / math.pi))
+    assert (cams.width == 96).all() and (cams.height == 96).all()
+    eval_view = manager.cached_eval[0]
+    assert eval_view["image"].shape == (96, 96, 3)  # native pixels for eval
+
+
+def test_training_views_are_beap_images_of_the_shared_grid(manager):
+    view = beap_view(camera_model(manager.train_cameras, 0))
+    cached = manager.cached_train[0]
+    assert tuple(cached["image"].shape[:2]) == view.size == tuple(cached["mask"].shape[:2])
+    camera, batch = manager.next_train(0)
+    assert camera.metadata["geer_view"] == "beap"
+
+
+def test_no_pixel_inside_the_fisheye_circle_is_dropped(manager):
+    """Every native pixel centre inside the circle (and inside BEAP's +-89.5 deg) lands in a valid BEAP cell."""
+    dataset = manager.train_dataset
+    cam = camera_model(dataset.cameras, 0)
+    grid = beap_view(cam).grid
+    native_mask = dataset.get_data(0, image_type="uint8")["mask"]
+    inside = native_valid_mask(cam, native_mask, 48.0)
+    dirs, _ = cam.pixel_rays(torch.float64)
+    theta, phi = directions_to_angles(dirs)
+    lim = DEFAULT_MAX_HALF_ANGLE
+    sel = inside & (theta.abs() <= lim) & (phi.abs() <= lim)
+    assert int(sel.sum()) > 7000
+    cells = grid.angles_to_cells(theta[sel], phi[sel])
+    col = cells[:, 0].floor().long().clamp(0, grid.width - 1)
+    row = cells[:, 1].floor().long().clamp(0, grid.height - 1)
+    for view in manager.cached_train:
+        valid = view["mask"][..., 0]
+        assert bool(valid[row, col].all()), f"{int((~valid[row, col]).sum())} in-circle pixels dropped"
+
+
+def test_seed_points_read_without_open3d(manager):
+    meta = manager.train_dataparser_outputs.metadata
+    xyz, rgb = read_ply_points(default_scene_dir() / "points3d.ply")
+    outputs = manager.train_dataparser_outputs
+    expected = (np.c_[xyz, np.ones(len(xyz))] @ outputs.dataparser_transform.numpy().T) * outputs.dataparser_scale
+    assert np.allclose(meta["points3D_xyz"].numpy(), expected, atol=1e-5)
+    assert torch.equal(meta["points3D_rgb"], torch.from_numpy(rgb))
+    assert sys.modules.get("open3d") is None
+
+
+def test_native_supervision_keeps_pixels(manager):
+    config = GeerDataManagerConfig(data=default_scene_dir(), cache_images="cpu", supervision="native")
+    native = config.setup(device="cpu", test_mode="val")
+    camera, batch = native.next_train(0)
+    assert camera.metadata["geer_view"] == "native"
+    assert batch["image"].shape == (96, 96, 3) and batch["mask"].shape == (96, 96, 1)
+    assert batch["mask"].sum() < 96 * 96  # outside the image circle is not supervised
+
+
+def test_missing_transforms_json_names_the_path(tmp_path):
+    with pytest.raises(FileNotFoundError, match=str(tmp_path).replace("\\", "\\\\") + ".*transforms.json"):
+        GeerDataManagerConfig(data=tmp_path).setup(device="cpu")
