@@ -11,14 +11,16 @@ if [ ! -x .venv/bin/python ]; then
   "$PYTHON" -m venv .venv
 fi
 PIP=(.venv/bin/python -m pip --disable-pip-version-check -q)
+# Some machines' pip config lists local package folders that do not exist; drop those warnings only.
+quiet() { "$@" 2>&1 | { grep -v "is ignored: it is neither a file nor a directory" || true; }; }
 stamp=.venv/.geer_ns_installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   echo "[setup] installing geer-ns and its dependencies (torch 2.14.1, nerfstudio 1.1.5, gsplat 1.4.0, ...)"
-  "${PIP[@]}" install -e '.[test]'
+  quiet "${PIP[@]}" install -e '.[test]'
   # nerfstudio pins opencv-python-headless and nuscenes-devkit pulls opencv-python: all three wheels
   # write the same cv2/ package and whichever pip installed last wins. Put the contrib build back on top
   # so cv2.omnidir and cv2.fisheye exist whatever pip's install order was.
-  "${PIP[@]}" install --force-reinstall --no-deps opencv-contrib-python-headless==4.10.0.84
+  quiet "${PIP[@]}" install --force-reinstall --no-deps opencv-contrib-python-headless==4.10.0.84
   touch "$stamp"
 fi
 .venv/bin/python -c "import cv2; cv2.omnidir; cv2.fisheye; import geer_ns, nerfstudio, gsplat" \

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 
@@ -13,10 +14,12 @@ from nerfstudio.cameras.cameras import CameraType
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
 from geer_ns.data.beap import DEFAULT_MAX_HALF_ANGLE, directions_to_angles
-from geer_ns.data.datamanager import GeerDataManagerConfig, camera_model, native_valid_mask
+from geer_ns.data.datamanager import GeerDataManagerConfig, native_valid_mask
 from geer_ns.data.synthetic_room import default_scene_dir
-from geer_ns.data.views import beap_view
+from geer_ns.data.views import beap_view, camera_model
 from geer_ns.host_fixes import read_ply_points
+
+from conftest import shared_data
 
 
 @pytest.fixture(scope="module")
@@ -54,24 +57,41 @@ def test_training_views_are_beap_images_of_the_shared_grid(manager):
     assert camera.metadata["geer_view"] == "beap"
 
 
-def test_no_pixel_inside_the_fisheye_circle_is_dropped(manager):
+def _assert_no_pixel_dropped(manager, crop_radius: float, min_pixels: int) -> None:
     """Every native pixel centre inside the circle (and inside BEAP's +-89.5 deg) lands in a valid BEAP cell."""
     dataset = manager.train_dataset
     cam = camera_model(dataset.cameras, 0)
     grid = beap_view(cam).grid
     native_mask = dataset.get_data(0, image_type="uint8")["mask"]
-    inside = native_valid_mask(cam, native_mask, 48.0)
+    inside = native_valid_mask(cam, native_mask, crop_radius)
     dirs, _ = cam.pixel_rays(torch.float64)
     theta, phi = directions_to_angles(dirs)
     lim = DEFAULT_MAX_HALF_ANGLE
     sel = inside & (theta.abs() <= lim) & (phi.abs() <= lim)
-    assert int(sel.sum()) > 7000
+    assert int(sel.sum()) > min_pixels
     cells = grid.angles_to_cells(theta[sel], phi[sel])
     col = cells[:, 0].floor().long().clamp(0, grid.width - 1)
     row = cells[:, 1].floor().long().clamp(0, grid.height - 1)
     for view in manager.cached_train:
         valid = view["mask"][..., 0]
         assert bool(valid[row, col].all()), f"{int((~valid[row, col]).sum())} in-circle pixels dropped"
+
+
+def test_no_pixel_inside_the_fisheye_circle_is_dropped(manager):
+    _assert_no_pixel_dropped(manager, 48.0, 7000)
+
+
+def test_dev_fisheye_room_trains_on_full_fov_beap_views():
+    """The Blender-rendered 180-degree room in ../shared/data: full-FoV BEAP views, no in-circle pixel lost."""
+    json_path = shared_data("fisheye_room_dev", "transforms_fisheye.json")
+    meta = json.loads(json_path.read_text())
+    manager = GeerDataManagerConfig(
+        data=json_path, dataparser=NerfstudioDataParserConfig(load_3D_points=True), cache_images="cpu"
+    ).setup(device="cpu", test_mode="val")
+    grid = beap_view(camera_model(manager.train_dataset.cameras, 0)).grid
+    assert math.degrees(grid.theta_max - grid.theta_min) >= 179.0
+    assert math.degrees(grid.phi_max - grid.phi_min) >= 179.0
+    _assert_no_pixel_dropped(manager, meta["fisheye_crop_radius"], 100_000)
 
 
 def test_seed_points_read_without_open3d(manager):
