@@ -19,6 +19,16 @@ def shared_data(*parts: str) -> Path:
     return path
 
 
+@pytest.fixture(scope="module")
+def single_thread():
+    """Element-wise torch ops on a shared 2-core machine are far faster single-threaded (no spin-waiting
+    on oversubscribed cores); restored afterwards so other test modules are unaffected."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 def random_quats(n: int, gen: torch.Generator, dtype=torch.float64) -> torch.Tensor:
     return torch.randn(n, 4, generator=gen, dtype=dtype)
 

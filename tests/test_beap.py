@@ -29,14 +29,7 @@ T265 = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "t265_fi
 LIM = DEFAULT_MAX_HALF_ANGLE
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """Element-wise torch ops on a shared 2-core machine are far faster single-threaded (no spin-waiting
-    on oversubscribed cores); restored afterwards so other test modules are unaffected."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def equidistant_180(radius: int = 200) -> EquidistantCamera:

@@ -36,14 +36,7 @@ T265 = DATA / "t265_fisheye"
 W, H = 640, 480
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """Element-wise torch ops on a shared 2-core machine are far faster single-threaded (no spin-waiting
-    on oversubscribed cores); restored afterwards so other test modules are unaffected."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 # --------------------------------------------------------------------------------------------------
