@@ -634,3 +634,21 @@ def test_geer_renders_with_the_exact_colmap_model(tmp_path):
 
 def _rel(path, root: Path) -> str:
     return Path(path).relative_to(root / "images").as_posix()
+
+
+def test_geer_datamanager_caches_beap_views_of_colmap_cameras(tmp_path):
+    """geer-colmap feeds GeerDataManager end to end: every training view becomes a BEAP image + mask on the
+    grid of its exact COLMAP camera (FOV, thin-prism and k4 fisheye included)."""
+    from geer_ns.data.datamanager import GeerDataManagerConfig
+    from geer_ns.data.views import beap_view, camera_model
+
+    root = write_dataset(tmp_path, build_recon())
+    manager = GeerDataManagerConfig(
+        data=root, dataparser=GeerColmapDataParserConfig(eval_mode="interval", eval_interval=3), cache_images="cpu"
+    ).setup(device="cpu", test_mode="val")
+    cameras = manager.train_dataset.cameras
+    assert len(manager.cached_train) == len(cameras) >= 3
+    for i, view in enumerate(manager.cached_train):
+        grid = beap_view(camera_model(cameras[i : i + 1], 0)).grid
+        assert view["image"].shape == (grid.height, grid.width, 3)
+        assert 0.3 < float(view["mask"].float().mean()) <= 1.0
