@@ -162,8 +162,8 @@ class GeerDataManager(FullImageDatamanager):
         image = data["image"]
         if tuple(image.shape[:2]) != (camera.height, camera.width):
             raise ValueError(
-                f"image {idx} of {dataset.image_filenames[idx]} is {tuple(image.shape[:2])}, "
-                f"its camera says ({camera.height}, {camera.width})"
+                f"{dataset.image_filenames[idx]}: image size (h, w) {tuple(image.shape[:2])} does not match "
+                f"its camera's height/width ({camera.height}, {camera.width})"
             )
         valid = native_valid_mask(camera, data.get("mask"), _crop_radius(dataset.cameras))
         if as_beap:
