@@ -1,6 +1,6 @@
 // Torch glue for the 3DGEER CUDA stages: checks tensors, allocates outputs, fills the launcher
 // structs of geer_launchers.h and runs them on the current stream. The same operation names and
-// signatures are implemented on the CPU by cpu_math_test.cpp; geer_ns/render/cuda_backend.py drives
+// signatures are implemented on the CPU by cpu_ops.cpp; geer_ns/render/cuda_backend.py drives
 // either one.
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>

@@ -1,6 +1,6 @@
 """The CUDA kernels' math (csrc/geer_math.h), compiled for the CPU, against the PyTorch twin.
 
-csrc/cpu_math_test.cpp runs geer_math.h's per-Gaussian, per-pair and per-ray functions in plain loops
+csrc/cpu_ops.cpp runs geer_math.h's per-Gaussian, per-pair and per-ray functions in plain loops
 behind the CUDA extension's operation names, so `cuda_backend.render_cuda(..., ops=cpu_ops)` drives the
 whole CUDA-backend pipeline (autograd Functions, association with keys and ranges, front-to-back blending,
 back-to-front analytic backward, preprocess backward) on the CPU. What remains for a GPU session: shared-
@@ -47,7 +47,7 @@ FIELDS = ("means", "quats", "scales", "opacities", "colors")
 @pytest.fixture(scope="module")
 def ops():
     if shutil.which("c++") is None and shutil.which("g++") is None:
-        pytest.skip("no C++ compiler: cannot build csrc/cpu_math_test.cpp")
+        pytest.skip("no C++ compiler: cannot build csrc/cpu_ops.cpp")
     return cuda_backend.load_cpu_ops()
 
 

@@ -14,7 +14,7 @@ The extension is built on first use with torch.utils.cpp_extension.load (JIT, ca
 repository or $GEER_EXT_DIR; TORCH_CUDA_ARCH_LIST defaults to "9.0"). Importing this module never builds
 anything and works without a GPU.
 
-Every operation also exists on the CPU (csrc/cpu_math_test.cpp, same names and signatures, built by
+Every operation also exists on the CPU (csrc/cpu_ops.cpp, same names and signatures, built by
 `load_cpu_ops`), which runs the kernels' math in plain loops: `render_cuda(..., ops=load_cpu_ops())` drives
 this whole module on the CPU, which is how tests/test_csrc_math.py checks it against the twin.
 
@@ -48,7 +48,7 @@ CUDA_VERIFIED = False
 
 _CSRC = Path(__file__).resolve().parents[2] / "csrc"
 _CUDA_SOURCES = ("bindings.cpp", "preprocess.cu", "associate.cu", "render.cu", "preprocess_backward.cu")
-_CPU_SOURCES = ("cpu_math_test.cpp",)
+_CPU_SOURCES = ("cpu_ops.cpp",)
 # Absolute tolerance (mirror-tangent domain) for treating a grid as separable, see module docstring.
 _SEPARABLE_TOL = 1e-6
 
@@ -102,8 +102,9 @@ def load_extension(verbose: bool = False) -> ModuleType:
 
 
 def load_cpu_ops(verbose: bool = False) -> ModuleType:
-    """geer_math.h compiled for the CPU with the CUDA extension's operations (tests and debugging)."""
-    return _load("geer_cpu_math_test", _CPU_SOURCES, cuda=False, verbose=verbose)
+    """geer_math.h compiled for the CPU with the CUDA extension's operations: the kernels' math checked
+    without a GPU, and the opt-in `backend="cpu"` (single-threaded C++, analytic backward)."""
+    return _load("geer_cpu_ops", _CPU_SOURCES, cuda=False, verbose=verbose)
 
 
 def extension_available() -> bool:

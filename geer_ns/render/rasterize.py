@@ -174,11 +174,13 @@ def render(
     `max_pairs` caps the (ray, Gaussian) pairs held in memory at once.
     """
     _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background)
-    if resolve_backend(backend, means.device) == "cuda":  # pragma: no cover - needs a GPU
-        from .cuda_backend import render_cuda
+    chosen = resolve_backend(backend, means.device)
+    if chosen != "torch":  # the kernels (CUDA), or their math compiled for the CPU
+        from .cuda_backend import load_cpu_ops, render_cuda
 
         return render_cuda(means, quats, scales, opacities, colors, viewmat, grid, sh_degree=sh_degree,
-                           background=background, lambda_mode=lambda_mode)
+                           background=background, lambda_mode=lambda_mode,
+                           ops=load_cpu_ops() if chosen == "cpu" else None)
     grid = grid.to(means.device)
     dirs = grid.dirs.to(means.dtype)
     viewmat = viewmat.to(means.dtype)

@@ -27,7 +27,7 @@ at::Tensor cpu(const at::Tensor& t) { return t.contiguous().cpu(); }
 
 void check_dtype(const at::Tensor& t) {
     TORCH_CHECK(t.scalar_type() == at::kFloat || t.scalar_type() == at::kDouble,
-                "geer cpu_math_test: float32 or float64 expected");
+                "geer cpu_ops: float32 or float64 expected");
 }
 
 template <typename T, typename F> auto dispatch(const at::Tensor& t, F&& f) {
