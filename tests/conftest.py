@@ -90,3 +90,20 @@ def equirect_rays(width: int, height: int, dtype=torch.float64):
     lat = ((torch.arange(height, dtype=dtype) + 0.5) / height - 0.5) * math.pi
     la, lo = torch.meshgrid(lat, lon, indexing="ij")
     return torch.stack([torch.cos(la) * torch.sin(lo), torch.sin(la), torch.cos(la) * torch.cos(lo)], -1)
+
+
+# Which of the reference grids look in every direction (test scenes then surround the camera).
+WIDE_GRIDS = ("fisheye180", "equirect360")
+
+
+def reference_grids(dtype=torch.float64) -> dict:
+    """The three ray grids the renderer tests share: a 120x90 degree BEAP grid, a 180 degree equidistant
+    fisheye (corner tiles inactive) and a full 360 degree equirectangular camera."""
+    from geer_ns.render import RayGrid
+
+    fish_dirs, fish_valid = equidistant_fisheye_rays(64, 180.0, dtype=dtype)
+    return {
+        "beap": RayGrid.beap(80, 48, math.radians(120), math.radians(90), tile_size=16, dtype=dtype),
+        "fisheye180": RayGrid.from_rays(fish_dirs, fish_valid, tile_size=16),
+        "equirect360": RayGrid.from_rays(equirect_rays(96, 48, dtype=dtype), None, tile_size=16),
+    }

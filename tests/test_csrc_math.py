@@ -24,6 +24,8 @@ from conftest import (
     equirect_rays,
     random_scene,
     random_viewmat,
+    reference_grids,
+    WIDE_GRIDS,
 )
 
 from geer_ns.render import (
@@ -355,12 +357,8 @@ def test_separable_beap_association(ops, case, dtype):
 
 # ------------------------------------------------------------------------------------------ pipeline
 def _pipeline_grids(dtype):
-    fish_dirs, fish_valid = equidistant_fisheye_rays(64, 180.0, dtype=dtype)
-    return {
-        "beap": (RayGrid.beap(80, 48, math.radians(120), math.radians(90), tile_size=16, dtype=dtype), False),
-        "fisheye180": (RayGrid.from_rays(fish_dirs, fish_valid, tile_size=16), True),
-        "equirect360": (RayGrid.from_rays(equirect_rays(96, 48, dtype=dtype), None, tile_size=16), True),
-    }
+    """{name: (grid, whether the scene should surround the camera)}."""
+    return {name: (grid, name in WIDE_GRIDS) for name, grid in reference_grids(dtype).items()}
 
 
 def _image_close(ours, ref, dtype, name):

@@ -14,10 +14,10 @@ import time
 import pytest
 import torch
 from conftest import (
-    equidistant_fisheye_rays,
-    equirect_rays,
     random_scene,
     random_viewmat,
+    reference_grids,
+    WIDE_GRIDS,
 )
 
 from geer_ns.render import RayGrid, cuda_backend, render
@@ -38,12 +38,8 @@ def cuda_ops():
 
 
 def _grids(dtype):
-    fd, fv = equidistant_fisheye_rays(64, 180.0, dtype=dtype)
-    return {
-        "beap": (RayGrid.beap(80, 48, math.radians(120), math.radians(90), tile_size=16, dtype=dtype), False),
-        "fisheye180": (RayGrid.from_rays(fd, fv, tile_size=16), True),
-        "equirect360": (RayGrid.from_rays(equirect_rays(96, 48, dtype=dtype), None, tile_size=16), True),
-    }
+    """{name: (grid, whether the scene should surround the camera)}."""
+    return {name: (grid, name in WIDE_GRIDS) for name, grid in reference_grids(dtype).items()}
 
 
 def _scene(n, seed, around, dtype, **kw):

@@ -7,25 +7,16 @@ import math
 import pytest
 import torch
 
-from conftest import equidistant_fisheye_rays, equirect_rays, random_scene, random_viewmat
+from conftest import equidistant_fisheye_rays, equirect_rays, random_scene, random_viewmat, reference_grids
 from geer_ns.render import RayGrid, render, render_brute_force, sh_to_color
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
 
 
-def _grids():
-    fish_dirs, fish_valid = equidistant_fisheye_rays(64, 180.0)
-    return {
-        "beap": RayGrid.beap(80, 48, math.radians(120), math.radians(90), tile_size=16, dtype=torch.float64),
-        "fisheye180": RayGrid.from_rays(fish_dirs, fish_valid, tile_size=16),
-        "equirect360": RayGrid.from_rays(equirect_rays(96, 48), None, tile_size=16),
-    }
-
-
 @pytest.mark.parametrize("grid_name", ["beap", "fisheye180", "equirect360"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_tiled_equals_brute_force(grid_name, dtype):
-    grid = _grids()[grid_name]
+    grid = reference_grids()[grid_name]
     around = grid_name != "beap"
     scene = [t.to(dtype) for t in random_scene(300, 11, around=around)]
     viewmat = random_viewmat(3, dtype=dtype, translation_scale=0.2) if around else torch.eye(4, dtype=dtype)
@@ -211,7 +202,7 @@ def test_view_with_nothing_visible_still_backpropagates():
 def test_cpu_backend_matches_the_pytorch_twin(grid_name):
     """backend="cpu" (csrc/cpu_ops.cpp: the kernels' math, analytic backward) through the same render() API."""
     pytest.importorskip("ninja")
-    grid = _grids()[grid_name]
+    grid = reference_grids()[grid_name]
     scene = random_scene(200, 12, around=grid_name != "beap")
     sh = torch.randn(200, 4, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 0.3
     results = {}
@@ -234,3 +225,15 @@ def test_cpu_backend_rejects_cuda_tensors_and_unknown_names():
     grid = RayGrid.beap(16, 16, 1.0, 1.0, tile_size=8)
     with pytest.raises(ValueError, match="backend must be"):
         render(*scene, torch.eye(4), grid, backend="gpu")
+
+
+def test_auto_backend_says_so_when_cuda_tensors_fall_back_to_pytorch():
+    """Until the kernels are verified on a GPU, auto renders CUDA tensors with the PyTorch twin, loudly."""
+    from geer_ns.render import cuda_backend
+    from geer_ns.render.backend import _warned, resolve_backend
+
+    assert cuda_backend.CUDA_VERIFIED is False
+    _warned.clear()
+    with pytest.warns(RuntimeWarning, match="not yet verified"):
+        assert resolve_backend("auto", torch.device("cuda")) == "torch"
+    assert resolve_backend("auto", torch.device("cpu")) == "torch"
