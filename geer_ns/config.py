@@ -14,13 +14,8 @@ from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from geer_ns import host_fixes
 from geer_ns.data.datamanager import GeerDataManagerConfig
 from geer_ns.model import GeerModelConfig
-
-# ns-eval / ns-viewer / ns-render import the method registry (and so this module) before loading a
-# checkpoint: allow-list its globals for torch's weights_only loader (nerfstudio issue 3683).
-host_fixes.allow_nerfstudio_checkpoints()
 
 MAX_STEPS = 30000
 

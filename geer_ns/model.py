@@ -47,6 +47,9 @@ from geer_ns.render import render
 from geer_ns.render.backend import Backend
 from geer_ns.render.pbf import LambdaMode
 
+# Every geer checkpoint load (ns-eval, ns-viewer, ns-render, --load-dir) imports this module first, through
+# the method registry or config.yml: allow-list the checkpoint's globals for torch's weights_only loader
+# (nerfstudio issue 3683).
 host_fixes.allow_nerfstudio_checkpoints()
 
 View = Union[BeapView, NativeView]
