@@ -9,6 +9,7 @@ the PyTorch twin for training on a CPU.
 
 from __future__ import annotations
 
+import warnings
 from typing import Literal
 
 import torch
@@ -23,15 +24,14 @@ def cuda_extension_available() -> bool:
     return extension_available()
 
 
-def cpu_ops_available() -> bool:
-    """Whether csrc/cpu_ops.cpp builds and loads here (needs a C++ compiler; cached after the first build)."""
-    from .cuda_backend import load_cpu_ops
+_warned: set[str] = set()
 
-    try:
-        load_cpu_ops()
-    except Exception:
-        return False
-    return True
+
+def _warn_once(message: str) -> None:
+    """auto's fallbacks are loud, once per process: slow silently is a bug report waiting to happen."""
+    if message not in _warned:
+        _warned.add(message)
+        warnings.warn(message, RuntimeWarning, stacklevel=3)
 
 
 def resolve_backend(backend: Backend, device: torch.device) -> Literal["torch", "cuda", "cpu"]:
@@ -40,8 +40,12 @@ def resolve_backend(backend: Backend, device: torch.device) -> Literal["torch", 
     if backend == "cpu":
         if device.type != "cpu":
             raise RuntimeError(f"backend='cpu' requested but the inputs live on {device}")
-        if not cpu_ops_available():
-            raise RuntimeError("backend='cpu' requested but csrc/cpu_ops.cpp could not be built or loaded")
+        from .cuda_backend import load_cpu_ops
+
+        try:
+            load_cpu_ops()  # built once, cached
+        except Exception as exc:
+            raise RuntimeError("backend='cpu' requested but csrc/cpu_ops.cpp could not be built or loaded") from exc
         return "cpu"
     if backend == "cuda":
         if device.type != "cuda":
@@ -53,5 +57,14 @@ def resolve_backend(backend: Backend, device: torch.device) -> Literal["torch", 
         from .cuda_backend import CUDA_VERIFIED
 
         # Kernels not yet verified on a GPU are opt-in (backend="cuda"); auto never triggers a build for them.
-        return "cuda" if device.type == "cuda" and CUDA_VERIFIED and cuda_extension_available() else "torch"
+        if device.type != "cuda":
+            return "torch"
+        if not CUDA_VERIFIED:
+            _warn_once("geer: CUDA tensors are rendered by the PyTorch renderer: the CUDA kernels are not yet "
+                       "verified on a GPU (pass backend='cuda' to use them anyway)")
+            return "torch"
+        if not cuda_extension_available():
+            _warn_once("geer: the CUDA extension could not be built or loaded; rendering with the PyTorch renderer")
+            return "torch"
+        return "cuda"
     raise ValueError(f"backend must be 'auto', 'torch', 'cuda' or 'cpu', got {backend!r}")
