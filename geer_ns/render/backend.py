@@ -4,7 +4,7 @@
 (`cuda_backend.CUDA_VERIFIED`) and an extension that builds. An explicit `cuda` request that cannot be
 honoured is an error, never a silent fallback. `cpu` (opt-in) runs the kernels' shared math compiled for
 the CPU (csrc/cpu_ops.cpp, JIT-built on first use): single-threaded, analytic backward, ~3x faster than
-the PyTorch twin for training on a CPU.
+the PyTorch twin for training on a CPU (benchmarks/cpu_training.md).
 """
 
 from __future__ import annotations
