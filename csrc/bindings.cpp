@@ -170,14 +170,13 @@ std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tenso
 // ------------------------------------------------------------------------------------ stage 3
 template <typename T>
 geer::RenderArgs<T> render_args(const at::Tensor& whiten, const at::Tensor& o_u, const at::Tensor& rgb,
-                                const at::Tensor& opacities, const at::Tensor& inside, const at::Tensor& dirs,
+                                const at::Tensor& opacities, const at::Tensor& dirs,
                                 const at::Tensor& valid, const at::Tensor& ids, const at::Tensor& ranges,
                                 int64_t height, int64_t width, int64_t tile_size) {
     check_float(whiten, whiten, "whiten");
     check_float(o_u, whiten, "o_u");
     check_float(rgb, whiten, "rgb");
     check_float(opacities, whiten, "opacities");
-    check_kind(inside, at::kBool, "inside");
     check_float(dirs, whiten, "dirs");
     check_kind(valid, at::kBool, "valid");
     check_kind(ids, at::kInt, "ids");
@@ -192,7 +191,6 @@ geer::RenderArgs<T> render_args(const at::Tensor& whiten, const at::Tensor& o_u,
     a.o_u = cptr<T>(o_u);
     a.rgb = cptr<T>(rgb);
     a.opacities = cptr<T>(opacities);
-    a.inside = bptr(inside);
     a.dirs = cptr<T>(dirs);
     a.valid = bptr(valid);
     a.ids = cptr<int32_t>(ids);
@@ -204,7 +202,7 @@ geer::RenderArgs<T> render_args(const at::Tensor& whiten, const at::Tensor& o_u,
 }
 
 std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
-                                       at::Tensor inside, at::Tensor dirs, at::Tensor valid, at::Tensor ids,
+                                       at::Tensor dirs, at::Tensor valid, at::Tensor ids,
                                        at::Tensor ranges, int64_t height, int64_t width, int64_t tile_size) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(whiten));
     const int64_t r = height * width;
@@ -214,7 +212,7 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     auto n_contrib = at::empty({r}, opts.dtype(at::kInt));
     dispatch(whiten, [&](auto tag) {
         using T = decltype(tag);
-        auto a = render_args<T>(whiten, o_u, rgb, opacities, inside, dirs, valid, ids, ranges, height, width,
+        auto a = render_args<T>(whiten, o_u, rgb, opacities, dirs, valid, ids, ranges, height, width,
                                 tile_size);
         geer::RenderOutputs<T> out{mptr<T>(out_rgb), mptr<T>(depth), mptr<T>(acc), mptr<T>(t_final),
                                    mptr<int32_t>(n_contrib)};
@@ -224,7 +222,7 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
 }
 
 std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
-                                        at::Tensor inside, at::Tensor dirs, at::Tensor valid, at::Tensor ids,
+                                        at::Tensor dirs, at::Tensor valid, at::Tensor ids,
                                         at::Tensor ranges, int64_t height, int64_t width, int64_t tile_size,
                                         at::Tensor t_final, at::Tensor n_contrib, at::Tensor g_rgb,
                                         at::Tensor g_depth, at::Tensor g_acc) {
@@ -235,7 +233,7 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
     auto gs = at::zeros({n}, opts);
     dispatch(whiten, [&](auto tag) {
         using T = decltype(tag);
-        auto a = render_args<T>(whiten, o_u, rgb, opacities, inside, dirs, valid, ids, ranges, height, width,
+        auto a = render_args<T>(whiten, o_u, rgb, opacities, dirs, valid, ids, ranges, height, width,
                                 tile_size);
         check_float(t_final, whiten, "t_final");
         check_kind(n_contrib, at::kInt, "n_contrib");

@@ -122,12 +122,11 @@ std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tenso
 // ------------------------------------------------------------------------------------ stage 3
 template <typename T>
 std::vector<GaussFrame<T>> frames(const at::Tensor& whiten, const at::Tensor& o_u, const at::Tensor& rgb,
-                                  const at::Tensor& opac, const at::Tensor& inside) {
+                                  const at::Tensor& opac) {
     const int64_t n = whiten.size(0);
     std::vector<GaussFrame<T>> f(n);
     for (int64_t i = 0; i < n; ++i)
-        geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, ptr<T>(rgb) + 3 * i, ptr<T>(opac)[i],
-                         bptr(inside)[i] != 0, f[i]);
+        geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, ptr<T>(rgb) + 3 * i, ptr<T>(opac)[i], f[i]);
     return f;
 }
 
@@ -142,10 +141,9 @@ template <typename F> void for_each_tile_ray(int64_t height, int64_t width, int6
 }
 
 std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb,
-                                          at::Tensor opacities, at::Tensor inside, at::Tensor dirs,
-                                          at::Tensor valid, at::Tensor ids, at::Tensor ranges, int64_t height,
-                                          int64_t width, int64_t tile_size) {
-    whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities); inside = cpu(inside);
+                                          at::Tensor opacities, at::Tensor dirs, at::Tensor valid, at::Tensor ids,
+                                          at::Tensor ranges, int64_t height, int64_t width, int64_t tile_size) {
+    whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities);
     dirs = cpu(dirs); valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges);
     const int64_t r = height * width;
     auto opts = whiten.options();
@@ -154,7 +152,7 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     auto n_contrib = at::zeros({r}, at::kInt);
     dispatch<int>(whiten, [&](auto tag) {
         using T = decltype(tag);
-        const auto f = frames<T>(whiten, o_u, rgb, opacities, inside);
+        const auto f = frames<T>(whiten, o_u, rgb, opacities);
         for_each_tile_ray(height, width, tile_size, [&](int64_t tile, int64_t ray) {
             const int start = ranges.data_ptr<int32_t>()[2 * tile], end = ranges.data_ptr<int32_t>()[2 * tile + 1];
             geer::RayForward<T> st;
@@ -174,12 +172,12 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
 }
 
 std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb,
-                                           at::Tensor opacities, at::Tensor inside, at::Tensor dirs,
-                                           at::Tensor valid, at::Tensor ids, at::Tensor ranges,
+                                           at::Tensor opacities, at::Tensor dirs, at::Tensor valid,
+                                           at::Tensor ids, at::Tensor ranges,
                                            int64_t height, int64_t width, int64_t tile_size, at::Tensor t_final,
                                            at::Tensor n_contrib, at::Tensor g_rgb, at::Tensor g_depth,
                                            at::Tensor g_acc) {
-    whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities); inside = cpu(inside);
+    whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities);
     dirs = cpu(dirs); valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges); t_final = cpu(t_final);
     n_contrib = cpu(n_contrib); g_rgb = cpu(g_rgb); g_depth = cpu(g_depth); g_acc = cpu(g_acc);
     const int64_t n = whiten.size(0);
@@ -188,7 +186,7 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
     auto gs = at::zeros({n}, opts);
     dispatch<int>(whiten, [&](auto tag) {
         using T = decltype(tag);
-        const auto f = frames<T>(whiten, o_u, rgb, opacities, inside);
+        const auto f = frames<T>(whiten, o_u, rgb, opacities);
         for_each_tile_ray(height, width, tile_size, [&](int64_t tile, int64_t ray) {
             if (!bptr(valid)[ray]) return;
             const int start = ranges.data_ptr<int32_t>()[2 * tile];
@@ -253,27 +251,27 @@ std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats
 }
 
 // ------------------------------------------------------------------------------------ primitives
-// Per-pair response of K pairs (Gaussian k with ray k): D^2, t*, alpha (0 where not kept).
-std::vector<at::Tensor> pair_eval(at::Tensor whiten, at::Tensor o_u, at::Tensor opac,
-                                     at::Tensor inside, at::Tensor dirs) {
-    whiten = cpu(whiten); o_u = cpu(o_u); opac = cpu(opac); inside = cpu(inside); dirs = cpu(dirs);
+// Per-pair response of K pairs (Gaussian k with ray k): D^2, t*, q (half-line), alpha (0 where not kept).
+std::vector<at::Tensor> pair_eval(at::Tensor whiten, at::Tensor o_u, at::Tensor opac, at::Tensor dirs) {
+    whiten = cpu(whiten); o_u = cpu(o_u); opac = cpu(opac); dirs = cpu(dirs);
     const int64_t k = whiten.size(0);
     auto d2 = at::empty({k}, whiten.options()), ts = at::empty({k}, whiten.options());
-    auto al = at::empty({k}, whiten.options());
+    auto q = at::empty({k}, whiten.options()), al = at::empty({k}, whiten.options());
     dispatch<int>(whiten, [&](auto tag) {
         using T = decltype(tag);
         const T zero[3] = {T(0), T(0), T(0)};
         for (int64_t i = 0; i < k; ++i) {
             GaussFrame<T> f;
-            geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, zero, ptr<T>(opac)[i], bptr(inside)[i] != 0, f);
+            geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, zero, ptr<T>(opac)[i], f);
             auto e = geer::eval_pair(f, geer::load3(ptr<T>(dirs) + 3 * i));
             mptr<T>(d2)[i] = e.dist_sq;
             mptr<T>(ts)[i] = e.t_star;
+            mptr<T>(q)[i] = e.q;
             mptr<T>(al)[i] = e.alpha;
         }
         return 0;
     });
-    return {d2, ts, al};
+    return {d2, ts, q, al};
 }
 
 // dL/dD^2, dL/dt* of K pairs -> dL/do_u [K,3], dL/dW [K,3,3].
@@ -287,7 +285,7 @@ std::vector<at::Tensor> pair_backward(at::Tensor whiten, at::Tensor o_u, at::Ten
         const T zero[3] = {T(0), T(0), T(0)};
         for (int64_t i = 0; i < k; ++i) {
             GaussFrame<T> f;
-            geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, zero, T(1), true, f);
+            geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, zero, T(1), f);
             const Vec3<T> d = geer::load3(ptr<T>(dirs) + 3 * i);
             auto e = geer::eval_pair(f, d);
             Vec3<T> g;

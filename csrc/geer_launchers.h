@@ -68,7 +68,6 @@ template <typename T> struct RenderArgs {
     const T* o_u;            // [N,3]
     const T* rgb;            // [N,3]
     const T* opacities;      // [N]
-    const uint8_t* inside;   // [N]
     const T* dirs;           // [R,3] unit ray directions (camera frame)
     const uint8_t* valid;    // [R]
     const int32_t* ids;      // [M] Gaussian ids sorted by (tile, rank)

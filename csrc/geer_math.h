@@ -5,7 +5,8 @@
 //   transforms.py  quat_to_rotmat, whitening (W = S^-1 R_v^T, MIN_SCALE clamp), o_u = -W mu_c
 //   pbf.py         lambda^2 rule, _plane_bounds (rotated-frame tangent solve), mirror_tangent
 //   associate.py   interval pieces at the +-pi seam, tile overlap in the mirror-tangent domain
-//   transmittance  ray frame, D^2 = |m_u / |d_u||^2, t*, alpha = min(0.99, sigma exp(-D^2/2)), gate
+//   transmittance  ray frame, D^2 = |m_u / |d_u||^2, t*, the half-line rule q(max(t*, 0)), alpha =
+//                  min(0.99, sigma exp(-q/2)) kept where q <= 2 ln(255 sigma), one gradient at every clamp
 //   composite.py   front-to-back blending, stop before T < 1e-4
 //   sh.py          real SH up to degree 3, +0.5, clamp at 0
 // and the analytic backward of each (paper App. C, two-stage layout: the per-pair part runs in the
@@ -57,6 +58,40 @@ GEER_HD float g_exp(float x) { return expf(x); }
 GEER_HD double g_exp(double x) { return exp(x); }
 GEER_HD float g_log(float x) { return logf(x); }
 GEER_HD double g_log(double x) { return log(x); }
+// Per-pair intrinsics. float32 on the GPU: rsqrtf (2 ulp) and __expf (2 + 1.2 |x| ulp, |x| <= 5.6 where a
+// pair is kept: < 1e-6 relative), within the 1e-5 float32 forward tolerance; float64 stays IEEE, and the
+// CPU build (what the tests run) uses the IEEE functions in both precisions.
+GEER_HD float g_rsqrt(float x) {
+#if defined(__CUDA_ARCH__)
+    return rsqrtf(x);
+#else
+    return 1.0f / sqrtf(x);
+#endif
+}
+GEER_HD double g_rsqrt(double x) { return 1.0 / sqrt(x); }
+GEER_HD float g_exp_pair(float x) {
+#if defined(__CUDA_ARCH__)
+    return __expf(x);
+#else
+    return expf(x);
+#endif
+}
+GEER_HD double g_exp_pair(double x) { return exp(x); }
+// Products and sums that are never contracted into FMAs. nvcc contracts a * b + c by default, and after
+// inlining into the forward and the backward kernel it may do so differently, so that the two would take
+// different pair decisions; the _rn intrinsics are never contracted (the CPU build: -ffp-contract=off).
+#if defined(__CUDA_ARCH__)
+GEER_HD float x_mul(float a, float b) { return __fmul_rn(a, b); }
+GEER_HD double x_mul(double a, double b) { return __dmul_rn(a, b); }
+GEER_HD float x_add(float a, float b) { return __fadd_rn(a, b); }
+GEER_HD double x_add(double a, double b) { return __dadd_rn(a, b); }
+GEER_HD float x_sub(float a, float b) { return __fsub_rn(a, b); }
+GEER_HD double x_sub(double a, double b) { return __dsub_rn(a, b); }
+#else
+template <typename T> GEER_HD T x_mul(T a, T b) { return a * b; }
+template <typename T> GEER_HD T x_add(T a, T b) { return a + b; }
+template <typename T> GEER_HD T x_sub(T a, T b) { return a - b; }
+#endif
 template <typename T> GEER_HD T g_abs(T x) { return x < T(0) ? -x : x; }
 // torch.maximum / clamp semantics for ordinary numbers (inputs here are never NaN).
 template <typename T> GEER_HD T g_max(T a, T b) { return a > b ? a : b; }
@@ -80,6 +115,14 @@ template <typename T> GEER_HD Vec3<T> operator*(T s, const Vec3<T>& a) { return 
 template <typename T> GEER_HD T dot(const Vec3<T>& a, const Vec3<T>& b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
 template <typename T> GEER_HD Vec3<T> cross(const Vec3<T>& a, const Vec3<T>& b) {
     return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+}
+// The same, never contracted (x_mul / x_add): for the pair decisions.
+template <typename T> GEER_HD T x_dot(const Vec3<T>& a, const Vec3<T>& b) {
+    return x_add(x_add(x_mul(a.x, b.x), x_mul(a.y, b.y)), x_mul(a.z, b.z));
+}
+template <typename T> GEER_HD Vec3<T> x_cross(const Vec3<T>& a, const Vec3<T>& b) {
+    return {x_sub(x_mul(a.y, b.z), x_mul(a.z, b.y)), x_sub(x_mul(a.z, b.x), x_mul(a.x, b.z)),
+            x_sub(x_mul(a.x, b.y), x_mul(a.y, b.x))};
 }
 template <typename T> GEER_HD Vec3<T> matvec(const Mat3<T>& a, const Vec3<T>& v) {
     return {a.m[0] * v.x + a.m[1] * v.y + a.m[2] * v.z, a.m[3] * v.x + a.m[4] * v.y + a.m[5] * v.z,
@@ -445,30 +488,34 @@ GEER_HD int for_each_overlapping_tile(const T* pbf_bounds, bool alive, const Til
 GEER_HD constexpr uint64_t pair_key(int tile, int rank) { return (uint64_t(uint32_t(tile)) << 32) | uint64_t(uint32_t(rank)); }
 
 // ================================================================================ forward: pair
-// One Gaussian as the render stage sees it (transmittance.ray_frame, plus what blending needs).
-template <typename T> struct GaussFrame {
+// One Gaussian as the render stage sees it (transmittance.ray_frame, plus what blending needs): 32 values,
+// 16-byte aligned (128 bytes in float32), so that the kernels' shared-memory reads vectorise.
+template <typename T> struct alignas(16) GaussFrame {
     T w[9];       // rows 0-2: d_u = W d
     T mom[9];     // rows 3-5: m_u = ([o_u]_x W) d (columns o_u x W e_j)
     T along[3];   // row 6: o_u . d_u = (W^T o_u) . d
     T o[3];       // o_u (for the backward)
+    T o_sq;       // |o_u|^2: q of every ray whose line peaks behind the camera (t* <= 0)
+    T q_max;      // 2 ln(255 sigma): alpha >= 1/255 exactly when q <= q_max (-inf for sigma = 0)
     T rgb[3];
     T opacity;
-    int inside;   // camera inside the PBF ellipsoid: the t* > 0 gate does not apply
+    T pad[2];
 };
 
-template <typename T>
-GEER_HD void make_frame(const T* w, const T* o_u, const T* rgb, T opacity, bool inside, GaussFrame<T>& f) {
+template <typename T> GEER_HD void make_frame(const T* w, const T* o_u, const T* rgb, T opacity, GaussFrame<T>& f) {
+    const Vec3<T> o = load3(o_u);
     for (int i = 0; i < 9; ++i) f.w[i] = w[i];
     for (int j = 0; j < 3; ++j) {
         const Vec3<T> col{w[j], w[3 + j], w[6 + j]};
-        const Vec3<T> o = load3(o_u);
-        const Vec3<T> c = cross(o, col);
+        const Vec3<T> c = x_cross(o, col);
         f.mom[j] = c.x; f.mom[3 + j] = c.y; f.mom[6 + j] = c.z;
-        f.along[j] = o_u[0] * w[j] + o_u[1] * w[3 + j] + o_u[2] * w[6 + j];
+        f.along[j] = x_dot(o, col);
     }
     for (int i = 0; i < 3; ++i) { f.o[i] = o_u[i]; f.rgb[i] = rgb[i]; }
+    f.o_sq = x_dot(o, o);
+    f.q_max = T(2.0) * g_log(T(255.0) * opacity);  // transmittance.alpha_level_sq
     f.opacity = opacity;
-    f.inside = inside ? 1 : 0;
+    f.pad[0] = f.pad[1] = T(0);
 }
 
 template <typename T> struct PairEval {
@@ -476,32 +523,37 @@ template <typename T> struct PairEval {
     Vec3<T> m_hat; // m_u / |d_u|
     T inv_norm;    // 1 / |d_u| (|d_u|^2 clamped at tiny)
     bool clamped;  // |d_u|^2 < tiny: inv_norm does not depend on d_u
-    T dist_sq;     // D^2
-    T t_star;      // distance along the unit ray to the maximum response
-    T gauss;       // exp(-D^2 / 2)
-    T raw;         // sigma exp(-D^2 / 2)
-    T alpha;       // min(0.99, raw), 0 where the pair does not contribute
+    T dist_sq;     // D^2: q on the whole line, at t*
+    T t_star;      // distance along the unit ray to the line's maximum response
+    bool front;    // t* > 0: the line's maximum lies on the half-line t >= 0, q = D^2; else q = |o_u|^2
+    T q;           // q(max(t*, 0)): squared canonical distance of the half-line's closest point
+    bool keep;     // q <= q_max (alpha >= 1/255): decided before the exponential
+    T gauss;       // exp(-q / 2)        (0 where not kept)
+    T raw;         // sigma exp(-q / 2)  (0 where not kept)
+    T alpha;       // min(0.99, raw)     (0 where not kept)
 };
 
-// transmittance.canonical_ray_response + pair_alpha for one (ray, Gaussian) pair.
+// transmittance.canonical_ray_response + half_line_sq + pair_alpha for one (ray, Gaussian) pair: the
+// half-line rule, the peak response on the ray as travelled (t >= 0), sigma exp(-q(max(t*, 0)) / 2).
+// The forward and the backward kernel both decide `front` and `keep` here, on values computed with
+// x_* arithmetic (never contracted into FMAs), so the two decisions are the same bits.
 template <typename T> GEER_HD PairEval<T> eval_pair(const GaussFrame<T>& g, const Vec3<T>& d) {
     PairEval<T> e;
-    e.d_u = Vec3<T>{g.w[0] * d.x + g.w[1] * d.y + g.w[2] * d.z, g.w[3] * d.x + g.w[4] * d.y + g.w[5] * d.z,
-                    g.w[6] * d.x + g.w[7] * d.y + g.w[8] * d.z};
-    const Vec3<T> m{g.mom[0] * d.x + g.mom[1] * d.y + g.mom[2] * d.z, g.mom[3] * d.x + g.mom[4] * d.y + g.mom[5] * d.z,
-                    g.mom[6] * d.x + g.mom[7] * d.y + g.mom[8] * d.z};
-    const T a = g.along[0] * d.x + g.along[1] * d.y + g.along[2] * d.z;
-    const T nsq = dot(e.d_u, e.d_u);
+    e.d_u = Vec3<T>{x_dot(load3(g.w), d), x_dot(load3(g.w + 3), d), x_dot(load3(g.w + 6), d)};
+    const Vec3<T> m{x_dot(load3(g.mom), d), x_dot(load3(g.mom + 3), d), x_dot(load3(g.mom + 6), d)};
+    const T a = x_dot(load3(g.along), d);
+    const T nsq = x_dot(e.d_u, e.d_u);
     e.clamped = nsq < Limits<T>::tiny();
-    e.inv_norm = T(1) / g_sqrt(g_max(nsq, Limits<T>::tiny()));
-    e.m_hat = e.inv_norm * m;  // normalise before squaring: no overflow for 1e-8 scales
-    e.dist_sq = dot(e.m_hat, e.m_hat);
-    e.t_star = -a * e.inv_norm * e.inv_norm;
-    e.gauss = g_exp(T(-0.5) * e.dist_sq);
+    e.inv_norm = g_rsqrt(g_max(nsq, Limits<T>::tiny()));
+    e.m_hat = Vec3<T>{x_mul(e.inv_norm, m.x), x_mul(e.inv_norm, m.y), x_mul(e.inv_norm, m.z)};  // no overflow
+    e.dist_sq = x_dot(e.m_hat, e.m_hat);
+    e.t_star = x_mul(x_mul(-a, e.inv_norm), e.inv_norm);
+    e.front = e.t_star > T(0);
+    e.q = e.front ? e.dist_sq : g.o_sq;
+    e.keep = e.q <= g.q_max;
+    e.gauss = e.keep ? g_exp_pair(T(-0.5) * e.q) : T(0);
     e.raw = g.opacity * e.gauss;
-    const T alpha = g_min(e.raw, T(kAlphaMax));
-    const bool keep = alpha >= T(kAlphaMin) && (e.t_star > T(0) || g.inside);
-    e.alpha = keep ? alpha : T(0);
+    e.alpha = g_min(e.raw, T(kAlphaMax));
     return e;
 }
 
@@ -528,7 +580,7 @@ template <typename T>
 GEER_HD void ray_forward_step(RayForward<T>& s, const GaussFrame<T>& g, const Vec3<T>& d, int pos) {
     if (s.done) return;
     const PairEval<T> e = eval_pair(g, d);
-    if (e.alpha == T(0)) return;
+    if (!e.keep) return;
     const T t_after = s.trans * (T(1) - e.alpha);
     if (t_after < T(kTMin)) {
         s.done = true;
@@ -536,7 +588,7 @@ GEER_HD void ray_forward_step(RayForward<T>& s, const GaussFrame<T>& g, const Ve
     }
     const T w = e.alpha * s.trans;
     for (int c = 0; c < 3; ++c) s.rgb[c] += w * g.rgb[c];
-    s.depth += w * g_max(e.t_star, T(0));
+    s.depth += w * (e.front ? e.t_star : T(0));  // depth at the same clamped t as the response
     s.acc += w;
     s.trans = t_after;
     s.n_contrib = pos + 1;
@@ -563,6 +615,22 @@ GEER_HD void pair_response_backward(const PairEval<T>& e, const Vec3<T>& o_u, co
     const T dv[3] = {d.x, d.y, d.z};
     for (int i = 0; i < 3; ++i)
         for (int j = 0; j < 3; ++j) g_w[3 * i + j] += gd[i] * dv[j];
+}
+
+// dL/dq, dL/d(depth position) of one kept pair -> dL/d(o_u), dL/dW through the half-line rule.
+// One gradient at every clamp, defined here and followed by the twin's autograd (transmittance.py):
+//   max(t*, 0)   the t* branch where t* > 0, the camera-centre branch q = |o_u|^2 (no W, no depth
+//                gradient) where t* <= 0. q is C^1 across t* = 0 (both branches: value |o_u|^2,
+//                gradient 2 o_u), so only depth has a kink there, and it takes the derivative 0.
+//   min(raw, 0.99), the 1/255 skip, the 1e-4 stop: see ray_backward_step.
+template <typename T>
+GEER_HD void half_line_backward(const PairEval<T>& e, const Vec3<T>& o_u, const Vec3<T>& d, T g_q, T g_depth_t,
+                                Vec3<T>& g_o, T* g_w /* 9, accumulated */) {
+    if (e.front) {
+        pair_response_backward(e, o_u, d, g_q, g_depth_t, g_o, g_w);
+    } else {
+        g_o = (T(2) * g_q) * o_u;
+    }
 }
 
 // ================================================================================ backward: ray
@@ -592,15 +660,19 @@ template <typename T> GEER_HD void pair_grad_zero(PairGrad<T>& p) {
 }
 
 // One Gaussian of the ray's blended prefix, back to front. Returns false (p untouched) when the pair
-// did not contribute (alpha = 0), which is what the forward skipped too.
+// was skipped (q > q_max), which is what the forward skipped too. Subgradients at the clamps:
+//   alpha = min(raw, 0.99)  the derivative of raw where raw <= 0.99, none where raw > 0.99;
+//   skip (q <= q_max) and stop (T_after >= 1e-4)  piecewise constant: a blended pair gets its ordinary
+//                           derivative (also exactly on a threshold, where it is blended), others none;
+//   max(t*, 0)              half_line_backward.
 template <typename T>
 GEER_HD bool ray_backward_step(RayBackward<T>& s, const GaussFrame<T>& g, const Vec3<T>& d, PairGrad<T>& p) {
     const PairEval<T> e = eval_pair(g, d);
-    if (e.alpha == T(0)) return false;
+    if (!e.keep) return false;
     const T one_minus = T(1) - e.alpha;
     const T t_before = s.trans / one_minus;
     const T w = e.alpha * t_before;
-    const T z = g_max(e.t_star, T(0));
+    const T z = e.front ? e.t_star : T(0);
     const T v = s.g_rgb[0] * g.rgb[0] + s.g_rgb[1] * g.rgb[1] + s.g_rgb[2] * g.rgb[2] + s.g_depth * z + s.g_acc;
     const T g_alpha = t_before * (v - s.rec);
     s.rec = e.alpha * v + one_minus * s.rec;
@@ -608,16 +680,13 @@ GEER_HD bool ray_backward_step(RayBackward<T>& s, const GaussFrame<T>& g, const 
 
     pair_grad_zero(p);
     for (int c = 0; c < 3; ++c) p.rgb[c] = w * s.g_rgb[c];
-    // depth uses max(t*, 0); torch's clamp_min passes the gradient where t* >= 0.
-    const T g_t = e.t_star >= T(0) ? w * s.g_depth : T(0);
-    // alpha = min(0.99, sigma G): no gradient through the clamp (torch passes it where raw <= 0.99).
-    T g_d2 = T(0);
+    T g_q = T(0);
     if (e.raw <= T(kAlphaMax)) {
         p.opacity = g_alpha * e.gauss;
-        g_d2 = T(-0.5) * g_alpha * e.raw;
+        g_q = T(-0.5) * g_alpha * e.raw;
     }
     Vec3<T> g_o;
-    pair_response_backward(e, load3(g.o), d, g_d2, g_t, g_o, p.w);
+    half_line_backward(e, load3(g.o), d, g_q, e.front ? w * s.g_depth : T(0), g_o, p.w);
     p.o[0] = g_o.x; p.o[1] = g_o.y; p.o[2] = g_o.z;
     return true;
 }

@@ -36,7 +36,7 @@ template <typename T> __device__ __forceinline__ RaySlot ray_slot(const RenderAr
 }
 
 template <typename T> __device__ __forceinline__ void load_frame(const RenderArgs<T>& a, int g, GaussFrame<T>& f) {
-    make_frame(a.whiten + 9 * g, a.o_u + 3 * g, a.rgb + 3 * g, a.opacities[g], a.inside[g] != 0, f);
+    make_frame(a.whiten + 9 * g, a.o_u + 3 * g, a.rgb + 3 * g, a.opacities[g], f);
 }
 
 template <typename T>

@@ -1,8 +1,8 @@
 """Association completeness: every (ray, Gaussian) pair with alpha >= 1/255 is in that ray's tile list.
 
 Reference pairs come from float64 Mahalanobis geometry computed directly from Sigma^-1 (no whitening,
-no PBF): min over the ray's line of (p - mu)^T Sigma^-1 (p - mu), its argmin, and whether the camera lies
-inside the Gaussian's lambda-ellipsoid. Ray sets: pinhole-like BEAP, a 180 degree fisheye and a full 360
+no PBF): min over the ray's half-line t >= 0 of (p - mu)^T Sigma^-1 (p - mu) (the half-line rule: the line's
+minimum where its argmin t* > 0, the camera centre's value otherwise). Ray sets: pinhole-like BEAP, a 180 degree fisheye and a full 360
 degree equirectangular camera; scenes with Gaussians in front, behind and around the camera.
 """
 
@@ -17,8 +17,8 @@ from conftest import equidistant_fisheye_rays, equirect_rays, random_scene
 from geer_ns.render import RayGrid, associate, preprocess, quat_to_rotmat
 
 
-def _reference_pairs(means_c, rot_v, scales, opac, dirs):
-    """[R, N] bool: alpha >= 1/255 and (max response in front of the camera or camera inside)."""
+def _reference_geometry(means_c, rot_v, scales, opac, dirs):
+    """([R, N] alpha of the half-line rule, [R, N] t*, [N] camera inside the alpha = 1/255 ellipsoid)."""
     sigma_inv = rot_v @ torch.diag_embed(scales**-2.0) @ rot_v.transpose(-1, -2)
     a = -means_c  # camera centre minus mean
     aa = torch.einsum("ni,nij,nj->n", a, sigma_inv, a)
@@ -26,10 +26,19 @@ def _reference_pairs(means_c, rot_v, scales, opac, dirs):
     dd = torch.einsum("ri,nij,rj->rn", dirs, sigma_inv, dirs)
     d2 = (aa[None] - ad * ad / dd).clamp_min(0.0)
     t_star = -ad / dd
-    alpha = (opac[None] * torch.exp(-0.5 * d2)).clamp_max(0.99)
-    lam2 = 2 * torch.log((255 * opac).clamp_min(1.0))
-    inside = aa <= lam2
-    return (alpha >= 1 / 255) & ((t_star > 0) | inside[None])
+    q = torch.where(t_star > 0, d2, aa[None].expand_as(d2))
+    alpha = (opac[None] * torch.exp(-0.5 * q)).clamp_max(0.99)
+    inside = opac * torch.exp(-0.5 * aa) >= 1 / 255
+    return alpha, t_star, inside
+
+
+def _reference_pairs(means_c, rot_v, scales, opac, dirs):
+    """[R, N] bool: alpha >= 1/255 under the half-line rule."""
+    alpha, t_star, inside = _reference_geometry(means_c, rot_v, scales, opac, dirs)
+    # What makes the PBF (bounds of the half-lines that meet the ellipsoid) complete: with the camera
+    # outside the alpha = 1/255 ellipsoid, no ray whose line peaks behind the camera (t* <= 0) is visible.
+    assert not bool(((alpha >= 1 / 255) & (t_star <= 0) & ~inside[None]).any())
+    return alpha >= 1 / 255
 
 
 def _check_complete(grid, scene, lambda_mode="opacity"):
@@ -107,3 +116,22 @@ def test_tile_lists_sorted_front_to_back():
         ids = row[row >= 0]
         d = means[ids].norm(dim=-1)
         assert (d[1:] >= d[:-1]).all()
+
+
+def test_complete_with_the_camera_inside_gaussians():
+    """The camera inside or just outside many Gaussians' alpha = 1/255 ellipsoids, on a 360 degree camera:
+    inside, the PBF is the full range and every direction sees the Gaussian (at least the camera centre's
+    response); outside, rays with t* <= 0 stay below 1/255 (asserted in _reference_pairs), so the bounds of
+    the half-lines through the ellipsoid are complete."""
+    means, quats, scales, opac, colors = random_scene(300, 8, around=True, scale_range=(0.05, 0.8))
+    means = means * 0.3  # crowd the camera
+    grid = RayGrid.from_rays(equirect_rays(96, 48), None, tile_size=16)
+    n_pairs, missed, _ = _check_complete(grid, (means, quats, scales, opac, colors))
+    pre = preprocess(means, quats, scales, opac, colors, torch.eye(4, dtype=torch.float64))
+    alpha, t_star, inside = _reference_geometry(means, quat_to_rotmat(quats), scales, opac, grid.dirs)
+    assert missed == 0 and n_pairs > 1000
+    assert int(inside.sum()) >= 5 and bool(((t_star <= 0) & ~inside[None] & (alpha > 0)).any())
+    assert bool((alpha[:, inside] >= 1 / 255).all())  # inside: visible in every direction
+    full = (pre.pbf.theta_lo == -math.pi) & (pre.pbf.theta_hi == math.pi)
+    full &= (pre.pbf.phi_lo == -math.pi) & (pre.pbf.phi_hi == math.pi)
+    assert bool(full[inside].all()) and torch.equal(pre.pbf.camera_inside[inside], inside[inside])

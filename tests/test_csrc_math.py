@@ -40,7 +40,7 @@ from geer_ns.render.associate import _interval_pieces
 from geer_ns.render.pbf import ALPHA_MIN
 from geer_ns.render.sh import sh_to_color
 from geer_ns.render.transforms import quat_to_rotmat, whitening
-from geer_ns.render.transmittance import canonical_ray_response, pair_alpha
+from geer_ns.render.transmittance import canonical_ray_response, half_line_sq, pair_alpha
 
 F32, F64 = torch.float32, torch.float64
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
@@ -129,7 +129,7 @@ def test_preprocess_forward_matches_twin(ops, kind, dtype, lambda_mode):
     assert _rel(o_u, pre.o_u) <= tol
     _close(rgb, pre.colors, tol, "rgb")
     assert torch.equal(alive, pre.pbf.alive)
-    assert torch.equal(inside, pre.pbf.camera_inside)
+    assert torch.equal(inside, pre.pbf.camera_inside)  # the PBF's full range (the pair math needs no flag)
     ref = torch.stack([pre.pbf.theta_lo, pre.pbf.theta_hi, pre.pbf.phi_lo, pre.pbf.phi_hi], -1)
     _close(bounds, ref, 2e-5 if dtype == F32 else 1e-11, "PBF bounds")
     if kind in ("stress", "huge"):
@@ -194,13 +194,13 @@ def test_pair_response_matches_twin(ops, kind, dtype):
     # Twin values, one batched call as the renderer makes it: [R, N] -> per pair (Gaussian-major).
     d2_ref, t_ref = canonical_ray_response(pre.o_u, pre.whiten, d)
     d2_ref, t_ref = d2_ref.T.reshape(-1), t_ref.T.reshape(-1)
-    inside = pre.pbf.camera_inside[g]
-    alpha_ref = pair_alpha(d2_ref, t_ref, pre.opacities[g], inside, torch.ones_like(inside))
-    d2, t_star, alpha = ops.pair_eval(
-        pre.whiten[g].contiguous(), pre.o_u[g].contiguous(), pre.opacities[g].contiguous(), inside.contiguous(),
-        d[r].contiguous(),
+    q_ref = half_line_sq(d2_ref[:, None, None], t_ref[:, None, None], pre.o_u[g][:, None])[0].reshape(-1)  # K pairs
+    alpha_ref = pair_alpha(q_ref, pre.opacities[g], torch.ones_like(q_ref, dtype=torch.bool))
+    d2, t_star, q, alpha = ops.pair_eval(
+        pre.whiten[g].contiguous(), pre.o_u[g].contiguous(), pre.opacities[g].contiguous(), d[r].contiguous()
     )
     assert torch.isfinite(d2).all() and torch.isfinite(t_star).all() and torch.isfinite(alpha).all()
+    assert bool((t_ref < 0).any())  # the camera-centre branch of the half-line rule is exercised
     tol = 1e-5 if dtype == F32 else 1e-11
     near = d2_ref < 50  # D^2 of pairs that can matter (alpha >= 1/255 needs D^2 < 11.1), relative beyond
     assert _rel(d2[~near], d2_ref[~near]) <= tol
@@ -217,9 +217,12 @@ def test_pair_response_matches_twin(ops, kind, dtype):
             err = lambda x: float(((x.double() - truth).abs() / truth.abs().clamp_min(1.0)).max())  # noqa: B023
             assert err(ours) <= 1.5 * err(twin) + 1e-6, name
             _close(ours, twin, 5e-5, name)
-    # alpha: equal to rounding; a keep decision may differ only for pairs on a threshold.
-    raw = (pre.opacities[g] * torch.exp(-0.5 * d2_ref)).clamp_max(0.99)
-    flip = ((raw - ALPHA_MIN).abs() <= 10 * tol) | ((t_ref.abs() <= 10 * tol * t_ref.abs().clamp_min(1)) & ~inside)
+    # q is continuous across t* = 0 (no flip there); alpha equal to rounding, a keep decision may differ
+    # only for pairs on the 1/255 threshold.
+    near_q = q_ref < 50
+    _close(q[near_q], q_ref[near_q], tol if dtype == F64 else 5e-5, "q")
+    raw = (pre.opacities[g] * torch.exp(-0.5 * q_ref)).clamp_max(0.99)
+    flip = (raw - ALPHA_MIN).abs() <= 10 * tol
     _close(alpha[~flip], alpha_ref[~flip], tol, "alpha")
     assert int(flip.sum()) <= max(2, flip.numel() // 1000)
     assert bool((alpha > 0).any())
@@ -459,7 +462,7 @@ def test_early_termination_and_alpha_clamp(ops):
     # The stop really happened: some rays end with T just above 1e-4 well before their list ends.
     pre = preprocess(*scene, vm)
     with torch.no_grad():
-        w, o_u, _rgb, bounds, alive, inside = ops.preprocess_forward(
+        w, o_u, _rgb, bounds, alive, _inside = ops.preprocess_forward(
             pre.means_c, scene[1], scene[2], scene[3], scene[4][:, None], scene[0], vm[:3, 3], vm[:3, :3].contiguous(), -1, False)
         tm, pm = grid.tile_mirror_bounds()
         order = torch.sort(pre.depth, stable=True).indices
@@ -467,7 +470,7 @@ def test_early_termination_and_alpha_clamp(ops):
         rank[order] = torch.arange(order.numel(), dtype=torch.int32)
         ids, ranges = ops.associate(bounds, alive, rank, torch.cat([tm, pm], -1), grid.tile_active, tm[:0], tm[:0],
                                     grid.tiles_x, grid.tiles_y, False)
-        _, _, _acc, t_final, n_contrib = ops.render_forward(w, o_u, scene[4], scene[3], inside, grid.dirs, grid.valid,
+        _, _, _acc, t_final, n_contrib = ops.render_forward(w, o_u, scene[4], scene[3], grid.dirs, grid.valid,
                                                            ids, ranges, grid.height, grid.width, grid.tile_size)
     assert float(t_final.min()) >= 1e-4 and float(t_final.min()) < 1e-2
     assert bool((n_contrib < (ranges[:, 1] - ranges[:, 0]).max()).any())

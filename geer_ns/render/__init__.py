@@ -8,7 +8,7 @@ from .rasterize import RenderOutput, preprocess, render, render_brute_force
 from .raygrid import RayGrid, beap_directions
 from .sh import sh_to_color
 from .transforms import quat_to_rotmat, to_view_space, whitening
-from .transmittance import canonical_ray_response, pair_alpha
+from .transmittance import canonical_ray_response, half_line_sq, pair_alpha
 
 __all__ = [
     "PBF",
@@ -20,6 +20,7 @@ __all__ = [
     "canonical_ray_response",
     "composite",
     "compute_pbf",
+    "half_line_sq",
     "mirror_tangent",
     "pair_alpha",
     "pbf_lambda_sq",

@@ -1,5 +1,7 @@
 """Stage 5: front-to-back alpha compositing (paper Eq. B.3), with 3DGS's early termination: a ray
-stops before the Gaussian that would bring its transmittance below 1e-4."""
+stops before the Gaussian that would bring its transmittance below 1e-4 (a pair exactly at 1e-4 is
+still blended). The stop is piecewise constant: blended pairs get their ordinary derivative, the rest
+none, as in csrc/geer_math.h."""
 
 from __future__ import annotations
 
@@ -9,14 +11,21 @@ from torch import Tensor
 T_MIN = 1e-4
 
 
-def composite(alpha: Tensor, colors: Tensor, depths: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """alpha [..., P, K] (front to back, 0 = no contribution), colors [..., K, 3], depths [..., P, K].
+def composite(
+    alpha: Tensor, colors: Tensor, depths: Tensor, t_start: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """alpha [..., P, K] (front to back, 0 = no contribution), colors [..., K, 3], depths [..., P, K], and the
+    transmittance each ray enters with, t_start [..., P] (1 when None): a list may be blended in pieces.
 
-    Returns (rgb [..., P, 3] without background, accumulated depth [..., P], accumulation [..., P]).
+    Returns (rgb [..., P, 3] without background, accumulated depth [..., P], accumulation [..., P],
+    transmittance after the piece [..., P]). The running product starts from t_start, so blending a list
+    in pieces rounds exactly as blending it at once (and as the kernels' sequential product).
     """
     one_minus = 1.0 - alpha  # >= 0.01, so cumprod's backward never divides by zero
-    t_after = torch.cumprod(one_minus, dim=-1)
-    t_before = torch.cat([torch.ones_like(t_after[..., :1]), t_after[..., :-1]], dim=-1)
+    if t_start is None:
+        t_start = torch.ones_like(one_minus[..., 0])
+    t_after = torch.cumprod(torch.cat([t_start[..., None], one_minus], dim=-1), dim=-1)
+    t_before, t_after = t_after[..., :-1], t_after[..., 1:]
     weights = torch.where(t_after >= T_MIN, alpha * t_before, torch.zeros_like(alpha))
     rgb = torch.einsum("...pk,...kc->...pc", weights, colors)
-    return rgb, (weights * depths).sum(-1), weights.sum(-1)
+    return rgb, (weights * depths).sum(-1), weights.sum(-1), t_after[..., -1]

@@ -82,7 +82,7 @@ def _load(name: str, sources: tuple[str, ...], cuda: bool, verbose: bool) -> Mod
             module = cpp_extension.load(
                 name=name,
                 sources=[str(_CSRC / s) for s in sources],
-                extra_cflags=["-O2"],
+                extra_cflags=["-O2", "-ffp-contract=off"],  # geer_math.h: pair decisions without FMA drift
                 extra_include_paths=[str(_CSRC)],
                 build_directory=str(build_dir),
                 with_cuda=cuda,
@@ -153,11 +153,11 @@ class _Rasterize(torch.autograd.Function):
     """Per tile / ray: (W, o_u, colour, opacity) -> (rgb sum, depth sum, accumulation) per ray."""
 
     @staticmethod
-    def forward(ctx, whiten, o_u, rgb, opacities, inside, dirs, valid, ids, ranges, height, width, tile_size, ops):
+    def forward(ctx, whiten, o_u, rgb, opacities, dirs, valid, ids, ranges, height, width, tile_size, ops):
         out_rgb, depth, acc, t_final, n_contrib = ops.render_forward(
-            whiten, o_u, rgb, opacities, inside, dirs, valid, ids, ranges, height, width, tile_size
+            whiten, o_u, rgb, opacities, dirs, valid, ids, ranges, height, width, tile_size
         )
-        ctx.save_for_backward(whiten, o_u, rgb, opacities, inside, dirs, valid, ids, ranges, t_final, n_contrib)
+        ctx.save_for_backward(whiten, o_u, rgb, opacities, dirs, valid, ids, ranges, t_final, n_contrib)
         ctx.layout = (height, width, tile_size)
         ctx.ops = ops
         return out_rgb, depth, acc
@@ -165,16 +165,16 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_rgb, g_depth, g_acc):
-        whiten, o_u, rgb, opacities, inside, dirs, valid, ids, ranges, t_final, n_contrib = ctx.saved_tensors
+        whiten, o_u, rgb, opacities, dirs, valid, ids, ranges, t_final, n_contrib = ctx.saved_tensors
         r = dirs.shape[0]
         g_rgb = _zeros_if_none(g_rgb, (r, 3), whiten).contiguous()
         g_depth = _zeros_if_none(g_depth, (r,), whiten).contiguous()
         g_acc = _zeros_if_none(g_acc, (r,), whiten).contiguous()
         gw, go, gc, gs = ctx.ops.render_backward(
-            whiten, o_u, rgb, opacities, inside, dirs, valid, ids, ranges, *ctx.layout, t_final, n_contrib,
+            whiten, o_u, rgb, opacities, dirs, valid, ids, ranges, *ctx.layout, t_final, n_contrib,
             g_rgb, g_depth, g_acc,
         )
-        return (gw, go, gc, gs) + (None,) * 9
+        return (gw, go, gc, gs) + (None,) * 8
 
 
 def _zeros_if_none(g: Tensor | None, shape, like: Tensor) -> Tensor:
@@ -282,7 +282,7 @@ def render_cuda(
 
     # Stage 3. Per tile / ray.
     rgb_sum, depth_sum, acc = _Rasterize.apply(
-        whiten, o_u, rgb, opacities.contiguous(), inside, dirs, grid.valid.contiguous(), ids, ranges,
+        whiten, o_u, rgb, opacities.contiguous(), dirs, grid.valid.contiguous(), ids, ranges,
         grid.height, grid.width, grid.tile_size, ops,
     )
     out_rgb = rgb_sum

@@ -2,7 +2,7 @@
 
     preprocess (per Gaussian)  view transform, whitening, PBF, colour        transforms/pbf/sh
     associate (per tile)       PBF x CSF overlap, front-to-back lists        associate
-    render (per ray)           exact transmittance, front-to-back blending   transmittance/composite
+    render (per ray)           exact transmittance, front-to-back blending   transmittance/composite/blend
 
 Everything is differentiable with autograd w.r.t. means, quats, scales, opacities and colours; the
 discrete steps (association, skipping, early termination) are piecewise constant.
@@ -18,12 +18,11 @@ from torch import Tensor
 
 from .associate import TileLists, associate
 from .backend import Backend, resolve_backend
-from .composite import composite
+from .blend import blend_lists
 from .pbf import PBF, LambdaMode, compute_pbf, pbf_lambda_sq
 from .raygrid import RayGrid
 from .sh import sh_to_color
 from .transforms import covariance_factor, to_view_space, whitening
-from .transmittance import canonical_ray_response, pair_alpha
 from .validate import check_gaussians, check_tensor
 
 
@@ -78,68 +77,14 @@ def preprocess(
     return Preprocessed(means_c, w, o_u, rgb, opacities, means_c.detach().norm(dim=-1), pbf)
 
 
-def _render_lists(
-    pre: Preprocessed,
-    dirs: Tensor,
-    ray_valid: Tensor,
-    ray_index: Tensor,
-    lists: Tensor,
-    counts: Tensor,
-    max_pairs: int,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Blend each group of rays ray_index [G, P] (-1 padded) against its Gaussian list lists [G, K]
-    holding counts [G] entries. Groups are batched by similar counts so little work goes to padding, and
-    groups with no Gaussian (empty or inactive tiles) cost nothing: their rays keep the zero defaults.
-
-    Returns flat ray ids and their rgb, accumulated depth and accumulation.
-    """
-    p = ray_index.shape[1]
-    by_count = torch.sort(counts, descending=True, stable=True).indices
-    by_count = by_count[counts[by_count] > 0]
-    ids, rgbs, depths, accs = [], [], [], []
-    start = 0
-    while start < by_count.numel():
-        k = int(counts[by_count[start]])
-        chunk = max(1, max_pairs // (p * k))
-        sel = by_count[start : start + chunk]
-        start += chunk
-        r_idx = ray_index[sel]
-        g_idx = lists[sel, :k]
-        r_ok = (r_idx >= 0) & ray_valid[r_idx.clamp_min(0)]
-        g_ok = g_idx >= 0
-        g = g_idx.clamp_min(0)
-        dist_sq, t_star = canonical_ray_response(pre.o_u[g], pre.whiten[g], dirs[r_idx.clamp_min(0)])
-        alpha = pair_alpha(
-            dist_sq,
-            t_star,
-            pre.opacities[g][:, None, :],
-            pre.pbf.camera_inside[g][:, None, :],
-            r_ok[:, :, None] & g_ok[:, None, :],
-        )
-        rgb, depth, acc = composite(alpha, pre.colors[g], t_star.clamp_min(0.0))
-        keep = r_idx >= 0
-        ids.append(r_idx[keep])
-        rgbs.append(rgb[keep])
-        depths.append(depth[keep])
-        accs.append(acc[keep])
-    if not ids:  # nothing visible: empty outputs still attached to the graph, so backward() works
-        zero = sum(t.sum() * 0.0 for t in (pre.means_c, pre.whiten, pre.opacities, pre.colors))
-        return ray_index.new_zeros(0), zero.expand(0, 3), zero.expand(0), zero.expand(0)
-    return torch.cat(ids), torch.cat(rgbs), torch.cat(depths), torch.cat(accs)
-
-
 def _assemble(
-    grid: RayGrid, ids: Tensor, rgb: Tensor, depth: Tensor, acc: Tensor, background: Tensor | None
+    grid: RayGrid, rgb: Tensor, depth: Tensor, acc: Tensor, background: Tensor | None
 ) -> tuple[Tensor, Tensor, Tensor]:
-    n_rays = grid.num_rays
-    out_rgb = rgb.new_zeros(n_rays, 3).index_copy(0, ids, rgb)
-    out_depth = depth.new_zeros(n_rays).index_copy(0, ids, depth)
-    out_acc = acc.new_zeros(n_rays).index_copy(0, ids, acc)
     if background is not None:
-        out_rgb = out_rgb + (1.0 - out_acc)[:, None] * background
-    expected_depth = out_depth / out_acc.clamp_min(1e-10)
+        rgb = rgb + (1.0 - acc)[:, None] * background
+    expected_depth = depth / acc.clamp_min(1e-10)
     shape = (grid.height, grid.width)
-    return out_rgb.reshape(*shape, 3), expected_depth.reshape(*shape, 1), out_acc.reshape(*shape, 1)
+    return rgb.reshape(*shape, 3), expected_depth.reshape(*shape, 1), acc.reshape(*shape, 1)
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background) -> None:
@@ -171,7 +116,8 @@ def render(
     means [N,3], quats [N,4] (wxyz), scales [N,3] (> 0), opacities [N] in [0,1], colors [N,3] (RGB) or
     [N,K,3] (SH coefficients, degree `sh_degree`, default the largest K allows), viewmat [4,4]
     world-to-camera (OpenCV axes), grid: the view's rays. float32 or float64 (everything follows means).
-    `max_pairs` caps the (ray, Gaussian) pairs held in memory at once.
+    `max_pairs` caps the (ray, Gaussian) pairs the PyTorch renderer holds at once, forward and backward
+    (memory model: blend.py); the kernels need no such cap.
     """
     _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background)
     chosen = resolve_backend(backend, means.device)
@@ -186,10 +132,9 @@ def render(
     viewmat = viewmat.to(means.dtype)
     pre = preprocess(means, quats, scales, opacities, colors, viewmat, sh_degree, lambda_mode)
     tiles = associate(pre.pbf, grid, pre.depth)
-    ids, rgb, depth, acc = _render_lists(
-        pre, dirs, grid.valid, grid.tile_rays, tiles.gaussians, tiles.counts, max_pairs
-    )
-    out_rgb, out_depth, out_acc = _assemble(grid, ids, rgb, depth, acc, background)
+    rgb, depth, acc = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs, grid.valid, grid.tile_rays,
+                                  tiles.gaussians, tiles.counts, max_pairs)
+    out_rgb, out_depth, out_acc = _assemble(grid, rgb, depth, acc, background)
     visible = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
     listed = tiles.gaussians[grid.tile_active]
     visible[listed[listed >= 0]] = True
@@ -225,7 +170,8 @@ def render_brute_force(
     ray_index = ray_index.reshape(-1, rays_per_group)
     lists = order[None].expand(ray_index.shape[0], -1)
     counts = torch.full((ray_index.shape[0],), order.numel(), dtype=torch.long, device=means.device)
-    ids, rgb, depth, acc = _render_lists(pre, dirs, grid.valid, ray_index, lists, counts, max_pairs)
-    out_rgb, out_depth, out_acc = _assemble(grid, ids, rgb, depth, acc, background)
+    rgb, depth, acc = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs, grid.valid, ray_index,
+                                  lists, counts, max_pairs)
+    out_rgb, out_depth, out_acc = _assemble(grid, rgb, depth, acc, background)
     visible = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
     return RenderOutput(out_rgb, out_depth, out_acc, visible, means.new_zeros(0).long(), pre.means_c, pre.pbf, None)

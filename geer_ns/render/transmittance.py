@@ -1,19 +1,31 @@
-"""Stage 4: exact ray-Gaussian transmittance (paper Eq. B.7-B.9, Theorem 1).
+"""Stage 4: exact ray-Gaussian transmittance (paper Eq. B.7-B.9, Theorem 1), on the half-line a ray travels.
 
 In a Gaussian's canonical frame the ray is r_u(t) = o_u + t d_u with o_u = W (o - mu), d_u = W d, and the
-integral of the isotropic density along it (the Jacobian absorbed into the measure, Eq. B.5) is
-exp(-D^2 / 2) with D = |o_u x d_u| / |d_u| the distance from the centre to the ray. D is evaluated in
+integral of the isotropic density along the whole line (the Jacobian absorbed into the measure, Eq. B.5)
+is exp(-D^2 / 2) with D = |o_u x d_u| / |d_u| the distance from the centre to the line. D is evaluated in
 exactly that cross-product form, with d_u normalised first: the expanded |o|^2 |d|^2 - (o.d)^2 (Eq. C.16)
 cancels catastrophically for needles, disks and far-away Gaussians (paper App. C.7), and squaring
 |o_u x d_u| before normalising would overflow float32 for 1e-8 scales at 1e4 m.
+
+The half-line rule. A ray is the half-line t >= 0, and the paper's closed form is the response at the
+line's closest point t*, which lies behind the camera when t* < 0 (App. B.2 sidesteps this by culling
+Gaussians around the camera, a jump as the camera moves through one). Every pair here responds with the
+peak on the half-line, sigma exp(-q(max(t*, 0)) / 2), q(t) = |o_u + t d_u|^2: q = D^2 where t* > 0 (the
+paper's value, unchanged) and q = |o_u|^2, the response at the camera centre, otherwise. Why this and not
+the integral over t >= 0 (the closed form times an erfc factor): it equals the paper's value whenever the
+peak is in front of the camera (the erfc form departs from it for every t* > 0 too), it is continuous in
+the camera position and ray direction (q is even C^1 across t* = 0: both branches are |o_u|^2 with
+gradient 2 o_u there), it is bounded by the same lambda-ellipsoid as the PBF (complete with no new
+bounds), and it costs one comparison. Depth uses the same clamped t.
+
+Gradients at the clamps follow csrc/geer_math.h (half_line_backward, ray_backward_step) exactly; they are
+written out below with explicit masks rather than left to how torch differentiates clamp/max.
 """
 
 from __future__ import annotations
 
 import torch
 from torch import Tensor
-
-from .pbf import ALPHA_MIN
 
 ALPHA_MAX = 0.99
 
@@ -31,7 +43,7 @@ def ray_frame(o_u: Tensor, w: Tensor) -> Tensor:
 
 
 def canonical_ray_response(o_u: Tensor, w: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
-    """Squared canonical distance D^2 and the ray parameter of maximum response t*.
+    """Squared canonical distance D^2 of the whole line and the ray parameter of its maximum response t*.
 
     o_u [..., K, 3] camera centre in each Gaussian's canonical frame, w [..., K, 3, 3] whitening matrices,
     dirs [..., P, 3] unit ray directions (camera frame). Returns D^2 and t* of shape [..., P, K]; t* is the
@@ -48,16 +60,34 @@ def canonical_ray_response(o_u: Tensor, w: Tensor, dirs: Tensor) -> tuple[Tensor
     return dist_sq, t_star
 
 
-def pair_alpha(
-    dist_sq: Tensor, t_star: Tensor, opacity: Tensor, camera_inside: Tensor, mask: Tensor
-) -> Tensor:
-    """Compositing alpha of each (ray, Gaussian) pair, 0 for pairs that do not contribute.
+def half_line_sq(dist_sq: Tensor, t_star: Tensor, o_u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(q, depth, front) of the half-line rule, from canonical_ray_response's [..., P, K] and o_u [..., K, 3].
 
-    alpha = min(0.99, sigma exp(-D^2/2)), skipped below 1/255. A pair contributes only if its point
-    of maximum response is in front of the camera (t* > 0) or the camera is inside the Gaussian's
-    PBF ellipsoid: the PBF bounds half-lines, and with the camera outside the ellipsoid a half-line
-    with t* <= 0 has D above the bound, so the gate never cuts a visible response.
+    q = q(max(t*, 0)): D^2 where t* > 0 (`front`), |o_u|^2 (the camera centre's own q) otherwise; depth =
+    max(t*, 0). Where t* <= 0 neither depends on the ray: no gradient to W, and depth's derivative is 0
+    (also at t* = 0 exactly, the kink of max).
     """
-    alpha = (opacity * torch.exp(-0.5 * dist_sq)).clamp_max(ALPHA_MAX)
-    keep = mask & (alpha >= ALPHA_MIN) & ((t_star > 0) | camera_inside)
+    front = t_star > 0
+    o_sq = (o_u * o_u).sum(-1)[..., None, :]
+    q = torch.where(front, dist_sq, o_sq)
+    depth = torch.where(front, t_star, torch.zeros_like(t_star))
+    return q, depth, front
+
+
+def alpha_level_sq(opacity: Tensor) -> Tensor:
+    """q_max = 2 ln(255 sigma): alpha = sigma exp(-q/2) >= 1/255 exactly when q <= q_max (-inf for sigma = 0).
+    The pair is accepted or rejected on q, before the exponential (no gradient: a threshold)."""
+    return 2.0 * torch.log(255.0 * opacity.detach())
+
+
+def pair_alpha(q: Tensor, opacity: Tensor, mask: Tensor) -> Tensor:
+    """Compositing alpha of each (ray, Gaussian) pair: min(0.99, sigma exp(-q/2)) where q <= q_max and
+    `mask`, else 0 (q from half_line_sq; opacity broadcast to q's shape).
+
+    Subgradients: the cap passes the derivative where raw <= 0.99 and none above; the 1/255 skip is a
+    threshold on q (a kept pair, also one exactly on it, gets its ordinary derivative, a skipped one none).
+    """
+    keep = mask & (q <= alpha_level_sq(opacity))
+    raw = opacity * torch.exp(-0.5 * q)
+    alpha = torch.where(raw > ALPHA_MAX, torch.full_like(raw, ALPHA_MAX), raw)
     return torch.where(keep, alpha, torch.zeros_like(alpha))

@@ -1,0 +1,130 @@
+"""Stages 4-5 over the tile lists, in pieces of at most `max_pairs` (ray, Gaussian) pairs, forward and backward.
+
+Each group of rays (a tile) is blended against its front-to-back Gaussian list. Groups with similar list
+lengths are batched into one piece; a group whose rays x list exceeds `max_pairs` is blended in pieces
+along its list, each entering with the transmittance the previous piece left (composite's t_start).
+
+Memory model. The per-pair work never holds more than one piece: the forward runs under no_grad and
+keeps, besides its inputs and the three per-ray outputs, only the transmittance each piece starts from
+([rays of the piece], a few per ray); the backward recomputes one piece at a time with autograd (a custom
+Function, so nothing per pair is saved between forward and backward), walking each group's pieces back
+to front and passing dL/d(transmittance) from one piece to the previous. Peak memory is therefore
+
+    O(N) per-Gaussian inputs and gradients + O(tile lists) + O(rays) + c * max_pairs,
+
+with c the bytes one pair costs inside a piece, about 40 scalars with autograd (tests/test_render_memory.py
+measures it), independent of how many Gaussians each ray sees.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .composite import composite
+from .transmittance import canonical_ray_response, half_line_sq, pair_alpha
+
+
+def _plan(counts: Tensor, rays_per_group: int, max_pairs: int) -> list[tuple[Tensor, list[tuple[int, int]]]]:
+    """[(groups, [(k0, k1), ...])]: groups batched by similar list length (longest first), each batch with
+    the list ranges it is blended in. Groups without Gaussians (empty or inactive tiles) are left out."""
+    by_count = torch.sort(counts, descending=True, stable=True).indices
+    by_count = by_count[counts[by_count] > 0]
+    plan, start, p = [], 0, rays_per_group
+    while start < by_count.numel():
+        k = int(counts[by_count[start]])
+        if p * k <= max_pairs:
+            n_groups, pieces = max(1, max_pairs // (p * k)), [(0, k)]
+        else:  # one group alone exceeds the budget: blend its list in pieces
+            step = max(1, max_pairs // p)
+            n_groups, pieces = 1, [(k0, min(k0 + step, k)) for k0 in range(0, k, step)]
+        plan.append((by_count[start : start + n_groups], pieces))
+        start += n_groups
+    return plan
+
+
+def _blend_piece(o_u, whiten, opacities, colors, dirs, r_ok, g_ok, t_start):
+    """One piece: o_u [G,K,3], whiten [G,K,3,3], opacities [G,K], colors [G,K,3] of the listed Gaussians,
+    dirs [G,P,3]; r_ok [G,P] / g_ok [G,K] mask padding and invalid rays. Returns composite's four outputs."""
+    dist_sq, t_star = canonical_ray_response(o_u, whiten, dirs)
+    q, depth, _ = half_line_sq(dist_sq, t_star, o_u)
+    alpha = pair_alpha(q, opacities[:, None, :], r_ok[:, :, None] & g_ok[:, None, :])
+    return composite(alpha, colors, depth, t_start)
+
+
+class _BlendLists(torch.autograd.Function):
+    """(o_u, W, opacity, colour per Gaussian) -> (rgb [R,3], depth sum [R], accumulation [R]) per ray."""
+
+    @staticmethod
+    def forward(ctx, o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs):
+        n_rays, p = dirs.shape[0], ray_index.shape[1]
+        out = (o_u.new_zeros(n_rays, 3), o_u.new_zeros(n_rays), o_u.new_zeros(n_rays))
+        plan = _plan(counts, p, max_pairs)
+        starts = []
+        for sel, pieces in plan:
+            r_idx = ray_index[sel]
+            r_ok = (r_idx >= 0) & ray_valid[r_idx.clamp_min(0)]
+            d = dirs[r_idx.clamp_min(0)]
+            t = o_u.new_ones(r_idx.shape)
+            sums = [0.0, 0.0, 0.0]
+            for k0, k1 in pieces:
+                starts.append(t)
+                g_idx = lists[sel, k0:k1]
+                g = g_idx.clamp_min(0)
+                *piece, t = _blend_piece(o_u[g], whiten[g], opacities[g], colors[g], d, r_ok, g_idx >= 0, t)
+                sums = [s + x for s, x in zip(sums, piece)]
+            keep = r_idx >= 0
+            for o, s in zip(out, sums):
+                o[r_idx[keep]] = s[keep]
+        t_starts = torch.cat([s.reshape(-1) for s in starts]) if starts else o_u.new_zeros(0)
+        ctx.save_for_backward(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, t_starts)
+        ctx.max_pairs = max_pairs
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_rgb, g_depth, g_acc):
+        o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, t_starts = ctx.saved_tensors
+        params = (o_u, whiten, opacities, colors)
+        grads = [x.new_zeros(x.shape) for x in params]  # contiguous, whatever the inputs' strides
+        offset = 0
+        for sel, pieces in _plan(counts, ray_index.shape[1], ctx.max_pairs):
+            r_idx = ray_index[sel]
+            keep = r_idx >= 0
+            r_ok = keep & ray_valid[r_idx.clamp_min(0)]
+            d = dirs[r_idx.clamp_min(0)]
+            m = keep.to(o_u.dtype)
+            g_out = (g_rgb[r_idx.clamp_min(0)] * m[..., None], g_depth[r_idx.clamp_min(0)] * m,
+                     g_acc[r_idx.clamp_min(0)] * m)
+            size = r_idx.numel()
+            first = offset
+            offset += size * len(pieces)
+            g_t = torch.zeros_like(d[..., 0])  # dL/d(transmittance leaving the piece)
+            for i in reversed(range(len(pieces))):
+                k0, k1 = pieces[i]
+                t0 = t_starts[first + i * size : first + (i + 1) * size].reshape(r_idx.shape)
+                g_idx = lists[sel, k0:k1]
+                g = g_idx.clamp_min(0)
+                with torch.enable_grad():
+                    leaves = [x[g].detach().requires_grad_(True) for x in params]
+                    t0 = t0.detach().requires_grad_(True)
+                    *outs, t_end = _blend_piece(*leaves, d, r_ok, g_idx >= 0, t0)
+                    loss = sum((go * o).sum() for go, o in zip(g_out, outs)) + (g_t * t_end).sum()
+                    piece_grads = torch.autograd.grad(loss, leaves + [t0], allow_unused=True)
+                g_ok = (g_idx >= 0).reshape(-1)
+                for acc, pg in zip(grads, piece_grads[:-1]):
+                    if pg is not None:
+                        flat = pg.reshape(g.numel(), -1)[g_ok]
+                        acc.view(acc.shape[0], -1).index_add_(0, g.reshape(-1)[g_ok], flat)
+                g_t = piece_grads[-1] if piece_grads[-1] is not None else torch.zeros_like(g_t)
+        return (*grads, None, None, None, None, None, None)
+
+
+def blend_lists(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs):
+    """Blend each group of rays ray_index [G, P] (-1 padded) against its Gaussian list lists [G, K] (-1
+    padded, counts [G] entries), at most max_pairs pairs at a time (see the module's memory model).
+
+    Returns per-ray rgb [R, 3] (no background), depth sum [R] and accumulation [R]; rays in no group
+    (empty or inactive tiles) are 0. Differentiable w.r.t. o_u, whiten, opacities and colors.
+    """
+    return _BlendLists.apply(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs)
