@@ -129,24 +129,26 @@ call1() {
   fi
   note "commit: ${GEER_COMMIT:-unknown}"
   if ! have_cuda; then note "no CUDA device: smoke test only (no builds, no sanitizers; the GPU tests skip)"; fi
-  (setup && have_cuda && gsplat_build_start) &
-  local setup_pid=$!
-  if have_cuda; then build_geer $(( $(left) - 150 )); fi
+  (setup && have_cuda && gsplat_build_start) &  # a subshell: the detached build is no child to wait for
+  local setup_pid=$! built=1
+  if have_cuda; then build_geer $(( $(left) - 150 )) || built=0; fi
   wait "$setup_pid"
   note "pytest tests/test_cuda_gpu.py and the sanitizers, in parallel"
-  timeout $(( $(left) - 15 )) "$PY" -m pytest tests/test_cuda_gpu.py -s -q -rs -p no:cacheprovider \
+  timeout $(( $(left) - 15 )) "$PY" -m pytest tests/test_cuda_gpu.py -s -q -rfEs -p no:cacheprovider \
     >"$OUT/pytest_cuda.log" 2>&1 &
-  local pytest_pid=$!
-  if have_cuda && command -v compute-sanitizer >/dev/null; then
+  local pids=() pytest_pid=$!
+  if have_cuda && [ "$built" = 0 ]; then
+    note "no sanitizer runs: geer_cuda did not build (build_geer.log); pytest may finish a build cut short"
+  elif have_cuda && command -v compute-sanitizer >/dev/null; then
     local t=$(( $(left) - 20 ))
-    sanitize memcheck "$t" & sanitize racecheck "$t" & sanitize synccheck "$t" &
+    for tool in memcheck racecheck synccheck; do sanitize "$tool" "$t" & pids+=($!); done
   elif have_cuda; then
     note "compute-sanitizer not on PATH: no sanitizer runs"
   fi
   wait "$pytest_pid"
   note "pytest rc=$? ($(tail -n 1 "$OUT/pytest_cuda.log"))"
-  grep -E "^(PASSED|FAILED|ERROR|SKIPPED)|float64 backward|CUDA 512x384" "$OUT/pytest_cuda.log" | head -n 40 >>"$SUMMARY"
-  wait
+  grep -E "^(FAILED|ERROR|SKIPPED)|float64 backward|CUDA 512x384|built/loaded" "$OUT/pytest_cuda.log" | head -n 40 >>"$SUMMARY"
+  [ "${#pids[@]}" = 0 ] || wait "${pids[@]}"
   cp "$STATE/gsplat_build.log" "$OUT/" 2>/dev/null
   local gs="not started"
   [ -f "$STATE/gsplat.pid" ] && gs="still running, detached"
@@ -158,11 +160,11 @@ call2() {
   note "commit: ${GEER_COMMIT:-unknown}"
   if ! have_cuda; then note "no CUDA device: smoke test only, no benchmark; call2 done"; return 0; fi
   setup || note "setup failed: gsplat rows will fail"
-  gsplat_build_start  # no-op when call 1 started it on this (warm) machine
+  (gsplat_build_start)  # no-op when call 1 started it on this (warm) machine; a subshell, as in call 1
   build_geer 240 &  # a no-op load on a warm machine, unless the copied sources look newer to ninja
-  local gsplat_ok=1
+  local geer_pid=$! gsplat_ok=1
   gsplat_wait $(( LIMIT - 150 )) || gsplat_ok=0
-  wait
+  wait "$geer_pid"
   local extra=()
   [ "$gsplat_ok" = 1 ] || extra+=(--no-gsplat)  # never import gsplat's backend while its build runs
   local budget=$(( $(left) - 45 ))
