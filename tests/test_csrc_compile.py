@@ -223,6 +223,23 @@ def test_resource_check_rejects_mutated_kernels(build):
     assert any("<float32" in v and "spills" in v for v in capped), capped
 
 
+def test_every_launch_and_cub_call_is_checked():
+    """A launch that fails must raise at its own call (geer_launchers.h): the line after every <<<...>>> is
+    GEER_KERNEL_LAUNCH_CHECK, and every CUB call is wrapped in GEER_CUDA_CHECK."""
+    launches = 0
+    for src in CU_SOURCES:
+        lines = src.read_text().splitlines()
+        for i, line in enumerate(lines):
+            if "<<<" in line:
+                launches += 1
+                nxt = next((ln for ln in lines[i + 1 :] if ln.strip()), "")
+                assert "GEER_KERNEL_LAUNCH_CHECK(" in nxt, f"{src.name}:{i + 1}: launch without a check: {line.strip()}"
+            if re.search(r"\bcub::\w+::\w+\(", line):
+                context = " ".join(lines[max(0, i - 1) : i + 1])
+                assert "GEER_CUDA_CHECK(" in context, f"{src.name}:{i + 1}: unchecked CUB call: {line.strip()}"
+    assert launches >= 7
+
+
 def test_parse_resources_on_a_known_report():
     """The parser on a fixed ptxas/PTX pair (independent of the compiler at hand)."""
     ptx = (".visible .entry _ZN4geer1kIdLi1024EEEvv(\n)\n.maxntid 1024, 1, 1\n{\n}\n"
