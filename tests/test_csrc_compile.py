@@ -240,6 +240,16 @@ def test_every_launch_and_cub_call_is_checked():
     assert launches >= 7
 
 
+def test_missing_nvcc_fails_in_ci(monkeypatch):
+    monkeypatch.setattr(sys.modules[__name__], "_nvcc", lambda: None)
+    monkeypatch.setenv("CI", "true")
+    with pytest.raises(pytest.fail.Exception, match="CI must have the CUDA toolkit"):
+        _require_nvcc()
+    monkeypatch.delenv("CI")
+    with pytest.raises(pytest.skip.Exception, match="nvcc not found"):
+        _require_nvcc()
+
+
 def test_parse_resources_on_a_known_report():
     """The parser on a fixed ptxas/PTX pair (independent of the compiler at hand)."""
     ptx = (".visible .entry _ZN4geer1kIdLi1024EEEvv(\n)\n.maxntid 1024, 1, 1\n{\n}\n"
