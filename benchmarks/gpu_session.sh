@@ -25,7 +25,8 @@
 # call2 (~5 min)  waits for the gsplat build (builds it again on a fresh machine), then benchmarks/bench_gpu.py
 #                 with the time left: headline rows first (1M Gaussians, pinhole 1920x1080 and 180 degree fisheye,
 #                 geer-cuda vs gsplat `rasterization`; configs/bench_gpu.yaml `first`), each row written as it ends.
-#                 $OUT: summary.txt setup.log gsplat_build.log bench.log gpu_results.md gpu_results.json.
+#                 $OUT: summary.txt setup.log (fresh machine) build_geer.log gsplat_build.log bench.log
+#                 gpu_results.md gpu_results.json.
 # Builds and state live in /tmp (kept on a warm machine between calls, away from the copied tree).
 # Without a GPU the calls run as a smoke test (stages that need CUDA say so and skip).
 set -u

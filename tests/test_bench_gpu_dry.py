@@ -125,17 +125,19 @@ def test_missing_device_data_is_named(tmp_path):
 def test_session_script_parses_and_smoke_runs_without_cuda(tmp_path):
     """Both calls end cleanly on a machine without CUDA (no builds, GPU tests skipped, no benchmark)."""
     assert subprocess.run(["bash", "-n", str(SESSION)], capture_output=True, text=True).returncode == 0
-    env = dict(os.environ, PYTHON=sys.executable, OUT=str(tmp_path / "out"), GEER_SESSION_STATE=str(tmp_path / "state"),
-               CALL_LIMIT_S="120", CUDA_VISIBLE_DEVICES="")
     for call in ("call1", "call2"):
+        out = tmp_path / call
+        env = dict(os.environ, PYTHON=sys.executable, OUT=str(out), GEER_SESSION_STATE=str(tmp_path / "state"),
+                   CALL_LIMIT_S="120", CUDA_VISIBLE_DEVICES="")
         r = subprocess.run(["bash", str(SESSION), call], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
         text = r.stdout + r.stderr
         assert r.returncode == 0, text[-3000:]
         assert "unbound variable" not in text and "command not found" not in text, text
-        summary = (tmp_path / "out" / "summary.txt").read_text()
+        summary = (out / "summary.txt").read_text()
         assert "no CUDA device" in summary, summary
         assert f"{call} done" in summary, summary
-    log = (tmp_path / "out" / "pytest_cuda.log").read_text()
+        assert len(list(out.iterdir())) <= 8 and all(p.is_file() for p in out.iterdir())  # what comes back
+    log = (tmp_path / "call1" / "pytest_cuda.log").read_text()
     assert "skipped" in log and "failed" not in log and "error" not in log.lower(), log[-2000:]
 
 
