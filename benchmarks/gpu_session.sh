@@ -44,6 +44,7 @@ left() { echo $((LIMIT - SECONDS)); }
 export TORCH_EXTENSIONS_DIR=$STATE/torch_extensions GEER_EXT_DIR=$STATE/geer_ext
 export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} PYTHONUNBUFFERED=1
 export PYTHONPATH=$STATE/site:$PWD${PYTHONPATH:+:$PYTHONPATH}
+export PATH=$PATH:${CUDA_HOME:-/usr/local/cuda}/bin  # nvcc (JIT builds) and compute-sanitizer
 [ -f .device/COMMIT ] && export GEER_COMMIT="$(cat .device/COMMIT)"
 
 prep() {  # CPU side
