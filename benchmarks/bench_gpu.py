@@ -20,6 +20,10 @@ loss. Per row (scene, camera, contender):
     python benchmarks/bench_gpu.py [--config configs/bench_gpu.yaml] [--out benchmarks/gpu_results.md]
     python benchmarks/bench_gpu.py --dry-run --out /tmp/gpu_dry.md     # CPU, tiny sizes
 
+Data files are read from .device/data/ (`bash benchmarks/gpu_session.sh prep` copies them from ../shared/data;
+--data-root points elsewhere). Rows run in the order of the config's `first` pairs, then the rest; the GPU
+session passes --time-budget-s (and --no-gsplat while gsplat's build is not ready).
+
 Writes the markdown table to --out and everything (device, commit, command line, config, rows) to the
 same path with suffix .json; both are rewritten after every row, so a run cut short keeps its results.
 """
@@ -27,7 +31,6 @@ same path with suffix .json; both are rewritten after every row, so a run cut sh
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import platform
@@ -48,6 +51,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_cpu_renderer import load_3dgs_ply, look_at_viewmat
+from bench_gpu_report import write_outputs
 
 from geer_ns.cameras import OpenCVFisheyeCamera, PinholeCamera
 from geer_ns.render import RayGrid, render, render_brute_force
@@ -106,18 +110,27 @@ def _knn_rms(points: np.ndarray, k: int) -> np.ndarray:
     return np.sqrt((d**2).mean(-1))
 
 
-def load_scene(spec: dict, n_max: int | None) -> Scene:
+def data_file(root: Path, rel: str, what: str) -> Path:
+    """A data file of the config, relative to root (the repository, or where gpu_prep.py put .device/)."""
+    path = root / rel
+    if not path.is_file():
+        raise FileNotFoundError(f"configs/bench_gpu.yaml: {what} reads {path}, which does not exist (run "
+                                "`bash benchmarks/gpu_session.sh prep` to copy ../shared/data into .device/)")
+    return path
+
+
+def load_scene(spec: dict, n_max: int | None, root: Path = ROOT) -> Scene:
     kind, name = spec["kind"], spec["name"]
     seed = int(spec.get("seed", 0))
     if kind == "ply":
-        means, quats, scales, opac, sh = load_3dgs_ply(ROOT / spec["path"])
+        means, quats, scales, opac, sh = load_3dgs_ply(data_file(root, spec["path"], f"scene {name}"))
         n_full = means.shape[0]
         viewmat = look_at_viewmat(means, float(spec.get("look_at", 2.2)))
         means, quats, scales, opac, sh = _subsample([means, quats, scales, opac, sh], n_max, seed)
         return Scene(name, means, quats, scales, opac, sh, 0, viewmat,
                      f"trained 3DGS, {n_full} Gaussians in the file, SH degree 0")
     if kind == "garden_npz":
-        data = np.load(ROOT / spec["path"])
+        data = np.load(data_file(root, spec["path"], f"scene {name}"))
         means = torch.from_numpy(data["means3d"]).float()
         colors = torch.from_numpy(data["colors"]).float() / 255.0
         n_full = means.shape[0]
@@ -162,10 +175,10 @@ class Camera:
     valid: torch.Tensor  # [H, W] bool
 
 
-def build_camera(spec: dict, max_side: int | None) -> Camera:
+def build_camera(spec: dict, max_side: int | None, root: Path = ROOT) -> Camera:
     model = spec["model"]
     if "intrinsics_from" in spec:
-        data = np.load(ROOT / spec["intrinsics_from"])
+        data = np.load(data_file(root, spec["intrinsics_from"], f"camera {spec['name']}"))
         K = data["Ks"][int(spec.get("index", 0))].astype(np.float64)
         w, h = int(data["width"]), int(data["height"])
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
@@ -345,6 +358,22 @@ class GsplatContender:
 
 
 # ------------------------------------------------------------------------------------------------- main
+def run_order(cfg: dict, scenes: list[dict], cameras: list[str]) -> list[tuple[dict, int]]:
+    """(scene spec, camera index) pairs to run: the config's `first` pairs (the headline rows, so that a time
+    budget never skips them), then every other pair, scenes outer, in config order."""
+    by_name = {s["name"]: s for s in cfg["scenes"]}
+    all_cams = [c["name"] for c in cfg["cameras"]]
+    picked = {s["name"] for s in scenes}
+    first = []
+    for scene_name, cam_name in cfg.get("first", []):
+        if scene_name not in by_name or cam_name not in all_cams:
+            raise ValueError(f"configs/bench_gpu.yaml: first: [{scene_name}, {cam_name}] names no scene / camera")
+        if scene_name in picked and cam_name in cameras:
+            first.append((scene_name, cameras.index(cam_name)))
+    rest = [(s["name"], i) for s in scenes for i in range(len(cameras)) if (s["name"], i) not in first]
+    return [(by_name[name], i) for name, i in first + rest]
+
+
 @dataclass
 class Reference:
     index: torch.Tensor  # [M] flat pixel ids (valid rays)
@@ -454,65 +483,6 @@ def git_commit() -> str:
         return "unknown"
 
 
-def _fmt(v, spec=".2f"):
-    if v is None:
-        return ""
-    if isinstance(v, float) and math.isinf(v):
-        return "inf"
-    return format(v, spec)
-
-
-def write_outputs(out: Path, meta: dict, rows: list[dict]) -> None:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps({**meta, "rows": rows}, indent=1, default=str) + "\n")
-    unit = "ms (CUDA events)" if meta["timer"] == "cuda_events" else "ms (perf_counter)"
-    lines = [
-        f"# GPU benchmark: 3DGEER against gsplat{' (DRY RUN: CPU, tiny sizes)' if meta['dry_run'] else ''}",
-        "",
-        f"- device: {meta['device']}; torch {meta['torch']}; gsplat {meta['gsplat']}",
-        f"- commit: {meta['commit']}",
-        f"- command: `{meta['command']}`",
-        (f"- config: {meta['config_path']}; warm-up {meta['timing']['warmup']}, median of {meta['timing']['repeats']} "
-        f"runs (per-contender overrides in the config), timer: {unit}, one process, same inputs for all contenders"),
-        ("- forward: no-grad forward. train fwd / bwd / fwd+bwd: one training iteration (loss sum(rgb * w)) timed "
-        "in parts. Gaussians/tile over active tiles (geer: PBF lists; gsplat: tile intersections). Peak MiB: "
-        "max_memory_allocated above the inputs (forward / training). Error: against the float64 brute-force "
-        "render on the same rays (err rays = rays compared: all valid rays or a seeded subsample)."),
-        "",
-    ]
-    for s in meta["scenes"]:
-        lines.append(f"- scene {s['name']}: {s['n']} Gaussians; {s['note']}")
-    for c in meta["cameras"]:
-        lines.append(f"- camera {c['name']}: {c['width']}x{c['height']}, {c['model']}, {c['valid_rays']} valid rays; "
-                     f"brute-force reference {c.get('ref_s', {})} s")
-    lines += [
-        "",
-        ("| scene | camera | contender | forward ms | train fwd ms | bwd ms | fwd+bwd ms | Gaussians/tile mean | std | "
-        "pairs | active tiles | visible | peak MiB fwd / train | max abs err | PSNR vs exact dB | err rays | note |"),
-        "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
-    ]
-    for r in rows:
-        peak = ""
-        if r.get("peak_forward_mib") is not None or r.get("peak_train_mib") is not None:
-            peak = f"{_fmt(r.get('peak_forward_mib'), '.0f')} / {_fmt(r.get('peak_train_mib'), '.0f')}"
-        tiles = f"{r['active_tiles']}/{r['tiles']}" if "tiles" in r else ""
-        lines.append(
-            f"| {r['scene']} | {r['camera']} | {r['contender']} | {_fmt(r.get('forward_ms'))} | "
-            f"{_fmt(r.get('train_forward_ms'))} | {_fmt(r.get('backward_ms'))} | {_fmt(r.get('fwd_bwd_ms'))} | "
-            f"{_fmt(r.get('gpt_mean'), '.1f')} | {_fmt(r.get('gpt_std'), '.1f')} | {r.get('pairs', '')} | {tiles} | "
-            f"{r.get('visible', '')} | {peak} | {_fmt(r.get('err_max'), '.2e')} | {_fmt(r.get('err_psnr'), '.1f')} | "
-            f"{r.get('err_rays', '')} | {r.get('note', '')} |"
-        )
-    staged = [r for r in rows if r.get("stages_ms")]
-    if staged:
-        lines += ["", "## Stage timings (torch.profiler, device ms per training iteration, top kernels)", ""]
-        for r in staged:
-            top = list(r["stages_ms"].items())[:8]
-            lines.append(f"- {r['scene']} / {r['camera']} / {r['contender']}: "
-                         + "; ".join(f"`{k[:60]}` {v:.3f}" for k, v in top))
-    out.write_text("\n".join(lines) + "\n")
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--config", type=Path, default=ROOT / "configs" / "bench_gpu.yaml")
@@ -522,6 +492,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", default=None, help="comma-separated scene names (default: all in the config)")
     ap.add_argument("--cameras", default=None, help="comma-separated camera names (default: all)")
     ap.add_argument("--contenders", default=None, help="comma-separated contender names (default: all)")
+    ap.add_argument("--no-gsplat", action="store_true", help="write gsplat rows as skipped (its build is not ready)")
+    ap.add_argument("--data-root", type=Path, default=ROOT, help="where the config's data paths start (default: repo)")
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
 
@@ -564,57 +536,65 @@ def main(argv: list[str] | None = None) -> int:
     tile = int(cfg.get("tile_size", 16))
     cameras = []
     for cspec in pick(cfg["cameras"], args.cameras):
-        cam = build_camera(cspec, max_side)
+        cam = build_camera(cspec, max_side, args.data_root)
         cameras.append(cam)
         meta["cameras"].append({"name": cam.name, "model": cam.model, "width": cam.width, "height": cam.height,
                                 "K": cam.K.tolist(), "valid_rays": int(cam.valid.sum()), "ref_s": {}})
     rows: list[dict] = []
     contenders = pick(cfg["contenders"], args.contenders)
-    for sspec in pick(cfg["scenes"], args.scenes):
-        scene = load_scene(sspec, n_max)
-        meta["scenes"].append({"name": scene.name, "n": scene.n, "note": scene.note})
-        print(f"scene {scene.name}: {scene.n} Gaussians", flush=True)
-        for cam, cmeta in zip(cameras, meta["cameras"]):
-            grid = RayGrid.from_rays(cam.dirs.float(), cam.valid, tile_size=tile).to(device)
-            weight = torch.rand(cam.height, cam.width, 3, generator=_gen(cfg.get("loss_seed", 0))).to(device)
-            ref = None
-            for cspec in contenders:
-                row = {"scene": scene.name, "camera": cam.name, "contender": cspec["name"],
-                       "n_gaussians": scene.n, "width": cam.width, "height": cam.height}
-                elapsed = time.perf_counter() - t_start
-                reason = None
-                if budget and elapsed > budget:
-                    reason = f"skipped: time budget ({budget:.0f} s) spent"
-                elif cspec["renderer"] == "gsplat" and not cuda:
-                    reason = NEEDS_CUDA
-                elif not dry and scene.n > int(cspec.get("max_gaussians", 1 << 62)):
-                    reason = f"skipped: config limits this contender to {cspec['max_gaussians']} Gaussians"
-                elif not dry and cam.width * cam.height > int(cspec.get("max_pixels", 1 << 62)):
-                    reason = f"skipped: config limits this contender to {cspec['max_pixels']} pixels"
-                if reason is None and ref is None:
-                    try:
-                        ref = make_reference(scene, cam, bg, err_cfg, max_rays, device)
-                        cmeta["ref_s"][scene.name] = round(ref.seconds, 2)
-                    except Exception as exc:  # noqa: BLE001
-                        reason = f"reference failed: {type(exc).__name__}: {exc}"
-                if reason is None:
-                    try:
-                        row.update(run_row(cspec, scene, cam, grid, ref, bg, weight, timer, cfg, dry))
-                    except Exception as exc:  # noqa: BLE001 - record and go on (unverified kernels, OOM)
-                        traceback.print_exc()
-                        row["note"] = f"error: {type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"
-                        if cuda:
-                            torch.cuda.empty_cache()
-                else:
-                    row["note"] = reason
-                rows.append(row)
-                print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items() if k != "stages_ms"},
-                      flush=True)
-                write_outputs(args.out, meta, rows)
-            del grid, weight, ref
-            if cuda:
-                torch.cuda.empty_cache()
-        del scene
+    order = run_order(cfg, pick(cfg["scenes"], args.scenes), [c.name for c in cameras])
+    loaded: dict[str, Scene] = {}
+    for idx, (sspec, ci) in enumerate(order):
+        if sspec["name"] not in loaded:
+            loaded[sspec["name"]] = load_scene(sspec, n_max, args.data_root)
+            scene = loaded[sspec["name"]]
+            meta["scenes"].append({"name": scene.name, "n": scene.n, "note": scene.note})
+            print(f"scene {scene.name}: {scene.n} Gaussians", flush=True)
+        scene, cam, cmeta = loaded[sspec["name"]], cameras[ci], meta["cameras"][ci]
+        # One (scene, camera): its grid, loss weights and reference are shared by the contenders.
+        grid = RayGrid.from_rays(cam.dirs.float(), cam.valid, tile_size=tile).to(device)
+        weight = torch.rand(cam.height, cam.width, 3, generator=_gen(cfg.get("loss_seed", 0))).to(device)
+        ref = None
+        for cspec in contenders:
+            row = {"scene": scene.name, "camera": cam.name, "contender": cspec["name"],
+                   "n_gaussians": scene.n, "width": cam.width, "height": cam.height}
+            elapsed = time.perf_counter() - t_start
+            reason = None
+            if budget and elapsed > budget:
+                reason = f"skipped: time budget ({budget:.0f} s) spent"
+            elif cspec["renderer"] == "gsplat" and not cuda:
+                reason = NEEDS_CUDA
+            elif cspec["renderer"] == "gsplat" and args.no_gsplat:
+                reason = "skipped: gsplat's CUDA build was not ready (--no-gsplat)"
+            elif not dry and scene.n > int(cspec.get("max_gaussians", 1 << 62)):
+                reason = f"skipped: config limits this contender to {cspec['max_gaussians']} Gaussians"
+            elif not dry and cam.width * cam.height > int(cspec.get("max_pixels", 1 << 62)):
+                reason = f"skipped: config limits this contender to {cspec['max_pixels']} pixels"
+            if reason is None and ref is None:
+                try:
+                    ref = make_reference(scene, cam, bg, err_cfg, max_rays, device)
+                    cmeta["ref_s"][scene.name] = round(ref.seconds, 2)
+                except Exception as exc:  # noqa: BLE001
+                    reason = f"reference failed: {type(exc).__name__}: {exc}"
+            if reason is None:
+                try:
+                    row.update(run_row(cspec, scene, cam, grid, ref, bg, weight, timer, cfg, dry))
+                except Exception as exc:  # noqa: BLE001 - record and go on (unverified kernels, OOM)
+                    traceback.print_exc()
+                    row["note"] = f"error: {type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"
+                    if cuda:
+                        torch.cuda.empty_cache()
+            else:
+                row["note"] = reason
+            rows.append(row)
+            print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items() if k != "stages_ms"},
+                  flush=True)
+            write_outputs(args.out, meta, rows)
+        del grid, weight, ref
+        if all(s["name"] != scene.name for s, _ in order[idx + 1 :]):
+            del loaded[scene.name]
+        if cuda:
+            torch.cuda.empty_cache()
     meta["total_s"] = round(time.perf_counter() - t_start, 1)
     write_outputs(args.out, meta, rows)
     print(f"wrote {args.out} and {args.out.with_suffix('.json')} in {meta['total_s']} s", flush=True)

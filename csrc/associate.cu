@@ -27,14 +27,14 @@ template <typename T> __device__ __forceinline__ TileGrid<T> tile_grid(const Ass
     return g;
 }
 
-template <typename T> __global__ void count_tiles_kernel(const AssociateArgs<T> a, int32_t* counts) {
+template <typename T> __global__ void __launch_bounds__(kThreads) count_tiles_kernel(const AssociateArgs<T> a, int32_t* counts) {
     const int i = blockIdx.x * blockDim.x + threadIdx.x;
     if (i >= a.n) return;
     counts[i] = for_each_overlapping_tile(a.bounds + 4 * i, a.alive[i] != 0, tile_grid(a), [](int) {});
 }
 
 template <typename T>
-__global__ void emit_pairs_kernel(const AssociateArgs<T> a, const int64_t* offsets, uint64_t* keys, int32_t* ids) {
+__global__ void __launch_bounds__(kThreads) emit_pairs_kernel(const AssociateArgs<T> a, const int64_t* offsets, uint64_t* keys, int32_t* ids) {
     const int i = blockIdx.x * blockDim.x + threadIdx.x;
     if (i >= a.n) return;
     int64_t out = offsets[i];
@@ -47,7 +47,7 @@ __global__ void emit_pairs_kernel(const AssociateArgs<T> a, const int64_t* offse
 }
 
 // A tile's list starts where the tile id changes and ends where the next one starts.
-__global__ void tile_ranges_kernel(const uint64_t* keys, int64_t m, int32_t* ranges) {
+__global__ void __launch_bounds__(kThreads) tile_ranges_kernel(const uint64_t* keys, int64_t m, int32_t* ranges) {
     const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
     if (i >= m) return;
     const uint32_t tile = uint32_t(keys[i] >> 32);
@@ -59,33 +59,40 @@ static int blocks_for(int64_t n, int threads) { return int((n + threads - 1) / t
 
 template <typename T> void launch_count_tiles(const AssociateArgs<T>& a, int32_t* counts, cudaStream_t stream) {
     if (a.n <= 0) return;
-    count_tiles_kernel<T><<<blocks_for(a.n, 256), 256, 0, stream>>>(a, counts);
+    count_tiles_kernel<T><<<blocks_for(a.n, kThreads), kThreads, 0, stream>>>(a, counts);
+    GEER_KERNEL_LAUNCH_CHECK("count_tiles_kernel");
 }
 
 template <typename T>
 void launch_emit_pairs(const AssociateArgs<T>& a, const int64_t* offsets, uint64_t* keys, int32_t* ids,
                        cudaStream_t stream) {
     if (a.n <= 0) return;
-    emit_pairs_kernel<T><<<blocks_for(a.n, 256), 256, 0, stream>>>(a, offsets, keys, ids);
+    emit_pairs_kernel<T><<<blocks_for(a.n, kThreads), kThreads, 0, stream>>>(a, offsets, keys, ids);
+    GEER_KERNEL_LAUNCH_CHECK("emit_pairs_kernel");
 }
 
 size_t sort_pairs_temp_bytes(int64_t m, int end_bit) {
     size_t bytes = 0;
-    cub::DeviceRadixSort::SortPairs(nullptr, bytes, static_cast<const uint64_t*>(nullptr),
-                                    static_cast<uint64_t*>(nullptr), static_cast<const int32_t*>(nullptr),
-                                    static_cast<int32_t*>(nullptr), m, 0, end_bit);
+    GEER_CUDA_CHECK(cub::DeviceRadixSort::SortPairs(nullptr, bytes, static_cast<const uint64_t*>(nullptr),
+                                                    static_cast<uint64_t*>(nullptr),
+                                                    static_cast<const int32_t*>(nullptr),
+                                                    static_cast<int32_t*>(nullptr), m, 0, end_bit),
+                    "cub::DeviceRadixSort::SortPairs (temp size)");
     return bytes;
 }
 
 void sort_pairs(void* temp, size_t temp_bytes, const uint64_t* keys_in, uint64_t* keys_out, const int32_t* ids_in,
                 int32_t* ids_out, int64_t m, int end_bit, cudaStream_t stream) {
     if (m <= 0) return;
-    cub::DeviceRadixSort::SortPairs(temp, temp_bytes, keys_in, keys_out, ids_in, ids_out, m, 0, end_bit, stream);
+    GEER_CUDA_CHECK(
+        cub::DeviceRadixSort::SortPairs(temp, temp_bytes, keys_in, keys_out, ids_in, ids_out, m, 0, end_bit, stream),
+        "cub::DeviceRadixSort::SortPairs");
 }
 
 void launch_tile_ranges(const uint64_t* sorted_keys, int64_t m, int32_t* ranges, cudaStream_t stream) {
     if (m <= 0) return;
-    tile_ranges_kernel<<<blocks_for(m, 256), 256, 0, stream>>>(sorted_keys, m, ranges);
+    tile_ranges_kernel<<<blocks_for(m, kThreads), kThreads, 0, stream>>>(sorted_keys, m, ranges);
+    GEER_KERNEL_LAUNCH_CHECK("tile_ranges_kernel");
 }
 
 template void launch_count_tiles<float>(const AssociateArgs<float>&, int32_t*, cudaStream_t);

@@ -35,11 +35,11 @@ uint8_t* mbptr(at::Tensor& t) { return t.numel() ? reinterpret_cast<uint8_t*>(t.
 
 cudaStream_t stream() { return c10::cuda::getCurrentCUDAStream().stream(); }
 
-// Small per-view constants (camera centre, rotation) travel by value in the launch arguments.
-template <typename T> void to_host(const at::Tensor& t, T* out, int count) {
-    TORCH_CHECK(t.numel() == count, "geer: expected ", count, " values, got ", t.numel());
-    const at::Tensor c = t.detach().to(at::kCPU).contiguous();
-    for (int i = 0; i < count; ++i) out[i] = c.data_ptr<T>()[i];
+// Small per-view constants (camera centre, rotation) stay on the device: the kernels read them in place
+// (a host copy here would be a device-to-host sync in every forward and backward).
+void check_view_constant(const at::Tensor& t, const at::Tensor& ref, int64_t count, const char* name) {
+    check_float(t, ref, name);
+    TORCH_CHECK(t.numel() == count, "geer: ", name, " must hold ", count, " values, got ", t.numel());
 }
 
 template <typename F> void dispatch(const at::Tensor& t, F&& f) {
@@ -74,8 +74,10 @@ geer::PreprocessArgs<T> preprocess_args(const at::Tensor& means_c, const at::Ten
         a.sh_k = int(sh.size(1));
         a.means_w = cptr<T>(means_w);
     }
-    to_host<T>(cam_center, a.cam_center, 3);
-    to_host<T>(rot_c, a.rot_c, 9);
+    check_view_constant(cam_center, means_c, 3, "cam_center");
+    check_view_constant(rot_c, means_c, 9, "rot_c");
+    a.cam_center = cptr<T>(cam_center);
+    a.rot_c = cptr<T>(rot_c);
     a.paper_lambda = paper_lambda ? 1 : 0;
     return a;
 }
@@ -273,6 +275,17 @@ std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats
     return {g_mc, g_q, g_s, g_sh, g_mw};
 }
 
+// ------------------------------------------------------------------------------------ checks
+// A trivial kernel with `threads` per block on `like`'s device; returns the block size it saw. Over 1024
+// threads the launch is refused and this raises (tests/test_cuda_gpu.py: a failed launch raises at its call).
+at::Tensor launch_probe(at::Tensor like, int64_t threads) {
+    const c10::cuda::OptionalCUDAGuard guard(device_of(like));
+    check_input(like, "like");
+    auto out = at::full({1}, -1, like.options().dtype(at::kInt));
+    geer::launch_probe(int(threads), mptr<int32_t>(out), stream());
+    return out;
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -282,4 +295,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("render_forward", &render_forward);
     m.def("render_backward", &render_backward);
     m.def("preprocess_backward", &preprocess_backward);
+    m.def("launch_probe", &launch_probe);
 }

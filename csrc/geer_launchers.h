@@ -3,13 +3,43 @@
 // bindings.cpp allocates the tensors and fills these structs; the .cu files build with plain nvcc.
 //
 // Layouts (all contiguous, row-major): N Gaussians, T tiles, R = height * width rays, M pairs.
+//
+// Every kernel declares its largest block with __launch_bounds__ (so ptxas fits its registers to that
+// block, and tests/test_csrc_compile.py can check registers x block <= 65,536 from the build), and every
+// launch and CUB call is checked where it happens: a failure throws std::runtime_error (a RuntimeError in
+// Python) naming the kernel, instead of leaving uninitialised outputs for a later, unrelated op to trip on.
 #pragma once
 
 #include <cuda_runtime_api.h>
 #include <stddef.h>
 #include <stdint.h>
 
+#include <stdexcept>
+#include <string>
+
 namespace geer {
+
+// Threads per block of the per-Gaussian / per-pair kernels.
+constexpr int kThreads = 256;
+// Render kernels, one thread per ray of a tile: tiles up to 16 x 16 (the default) launch a build bounded at
+// 256 threads, with all the registers it wants; larger tiles (up to 32 x 32, the bindings' limit) a build
+// bounded at 1024 threads, which ptxas fits into 64 registers (float64 spills a little there).
+constexpr int kSmallTileThreads = 256;
+constexpr int kLargeTileThreads = 1024;
+
+inline void check_cuda(cudaError_t err, const char* what, const char* file, int line) {
+    if (err == cudaSuccess) return;
+    throw std::runtime_error(std::string("geer: ") + what + " failed: " + cudaGetErrorName(err) + ": " +
+                             cudaGetErrorString(err) + " (" + file + ":" + std::to_string(line) + ")");
+}
+// After every <<<...>>>: launch errors (bad configuration, too many resources) raise at their own call.
+// cudaGetLastError also clears them, so the next operation does not inherit this one's error.
+#define GEER_KERNEL_LAUNCH_CHECK(kernel) ::geer::check_cuda(cudaGetLastError(), "launch of " kernel, __FILE__, __LINE__)
+// Around every call that returns a cudaError_t (CUB).
+#define GEER_CUDA_CHECK(call, what) ::geer::check_cuda((call), what, __FILE__, __LINE__)
+
+// A trivial kernel launched with `threads` per block (tests: a block over 1024 threads must raise at this call).
+void launch_probe(int threads, int32_t* out, cudaStream_t stream);
 
 // ------------------------------------------------------------------ stage 1: preprocess (per Gaussian)
 template <typename T> struct PreprocessArgs {
@@ -22,8 +52,10 @@ template <typename T> struct PreprocessArgs {
     int sh_k;            // K
     int sh_degree;       // active degree, -1 for RGB colours
     const T* means_w;    // [N,3] world means (SH view direction = mean - camera centre)
-    T cam_center[3];     // world camera centre
-    T rot_c[9];          // world-to-camera rotation (viewmat[:3,:3])
+    // Per-view constants, read in place on the device (every thread reads the same 12 values, a broadcast):
+    // copying them to the host first would be a device-to-host sync in every forward and backward.
+    const T* cam_center; // [3] world camera centre
+    const T* rot_c;      // [9] world-to-camera rotation (viewmat[:3,:3]), row-major
     int paper_lambda;    // 1: lambda = 3 (paper); 0: opacity-aware lambda^2 = 2 ln(255 sigma)
     // outputs
     T* whiten;           // [N,9]

@@ -6,7 +6,7 @@
 
 namespace geer {
 
-template <typename T> __global__ void preprocess_forward_kernel(const PreprocessArgs<T> a) {
+template <typename T> __global__ void __launch_bounds__(kThreads) preprocess_forward_kernel(const PreprocessArgs<T> a) {
     const int i = blockIdx.x * blockDim.x + threadIdx.x;
     if (i >= a.n) return;
     const Mat3<T> rot_c = load_mat3(a.rot_c);
@@ -26,8 +26,8 @@ template <typename T> __global__ void preprocess_forward_kernel(const Preprocess
 
 template <typename T> void launch_preprocess_forward(const PreprocessArgs<T>& a, cudaStream_t stream) {
     if (a.n <= 0) return;
-    const int threads = 256;
-    preprocess_forward_kernel<T><<<(a.n + threads - 1) / threads, threads, 0, stream>>>(a);
+    preprocess_forward_kernel<T><<<(a.n + kThreads - 1) / kThreads, kThreads, 0, stream>>>(a);
+    GEER_KERNEL_LAUNCH_CHECK("preprocess_forward_kernel");
 }
 
 template void launch_preprocess_forward<float>(const PreprocessArgs<float>&, cudaStream_t);

@@ -7,7 +7,7 @@
 namespace geer {
 
 template <typename T>
-__global__ void preprocess_backward_kernel(const PreprocessArgs<T> a, const PreprocessGradArgs<T> g) {
+__global__ void __launch_bounds__(kThreads) preprocess_backward_kernel(const PreprocessArgs<T> a, const PreprocessGradArgs<T> g) {
     const int i = blockIdx.x * blockDim.x + threadIdx.x;
     if (i >= a.n) return;
     Vec3<T> g_mean_c;
@@ -28,8 +28,8 @@ __global__ void preprocess_backward_kernel(const PreprocessArgs<T> a, const Prep
 template <typename T>
 void launch_preprocess_backward(const PreprocessArgs<T>& a, const PreprocessGradArgs<T>& g, cudaStream_t stream) {
     if (a.n <= 0) return;
-    const int threads = 256;
-    preprocess_backward_kernel<T><<<(a.n + threads - 1) / threads, threads, 0, stream>>>(a, g);
+    preprocess_backward_kernel<T><<<(a.n + kThreads - 1) / kThreads, kThreads, 0, stream>>>(a, g);
+    GEER_KERNEL_LAUNCH_CHECK("preprocess_backward_kernel");
 }
 
 template void launch_preprocess_backward<float>(const PreprocessArgs<float>&, const PreprocessGradArgs<float>&,

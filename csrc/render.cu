@@ -39,8 +39,9 @@ template <typename T> __device__ __forceinline__ void load_frame(const RenderArg
     make_frame(a.whiten + 9 * g, a.o_u + 3 * g, a.rgb + 3 * g, a.opacities[g], f);
 }
 
-template <typename T>
-__global__ void render_forward_kernel(const RenderArgs<T> a, const RenderOutputs<T> out) {
+// kMaxThreads: the largest block this build is launched with (kSmallTileThreads or kLargeTileThreads).
+template <typename T, int kMaxThreads>
+__global__ void __launch_bounds__(kMaxThreads) render_forward_kernel(const RenderArgs<T> a, const RenderOutputs<T> out) {
     constexpr int kBatch = Batch<T>::value;
     __shared__ GaussFrame<T> frames[kBatch];
     const int tile = blockIdx.x;
@@ -74,8 +75,8 @@ template <typename T> __device__ __forceinline__ T warp_sum(T v) {
     return v;
 }
 
-template <typename T>
-__global__ void render_backward_kernel(const RenderArgs<T> a, const RenderGradArgs<T> g) {
+template <typename T, int kMaxThreads>
+__global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const RenderArgs<T> a, const RenderGradArgs<T> g) {
     constexpr int kBatch = Batch<T>::value;
     __shared__ GaussFrame<T> frames[kBatch];
     __shared__ int frame_ids[kBatch];
@@ -144,7 +145,11 @@ void launch_render_forward(const RenderArgs<T>& a, const RenderOutputs<T>& out, 
     const int ts = a.tile_size;
     const int n_tiles = ((a.height + ts - 1) / ts) * ((a.width + ts - 1) / ts);
     if (n_tiles <= 0) return;
-    render_forward_kernel<T><<<n_tiles, threads_per_tile(ts), 0, stream>>>(a, out);
+    const int threads = threads_per_tile(ts);
+    const auto kernel = threads <= kSmallTileThreads ? render_forward_kernel<T, kSmallTileThreads>
+                                                     : render_forward_kernel<T, kLargeTileThreads>;
+    kernel<<<n_tiles, threads, 0, stream>>>(a, out);
+    GEER_KERNEL_LAUNCH_CHECK("render_forward_kernel");
 }
 
 template <typename T>
@@ -152,7 +157,11 @@ void launch_render_backward(const RenderArgs<T>& a, const RenderGradArgs<T>& g, 
     const int ts = a.tile_size;
     const int n_tiles = ((a.height + ts - 1) / ts) * ((a.width + ts - 1) / ts);
     if (n_tiles <= 0) return;
-    render_backward_kernel<T><<<n_tiles, threads_per_tile(ts), 0, stream>>>(a, g);
+    const int threads = threads_per_tile(ts);
+    const auto kernel = threads <= kSmallTileThreads ? render_backward_kernel<T, kSmallTileThreads>
+                                                     : render_backward_kernel<T, kLargeTileThreads>;
+    kernel<<<n_tiles, threads, 0, stream>>>(a, g);
+    GEER_KERNEL_LAUNCH_CHECK("render_backward_kernel");
 }
 
 template void launch_render_forward<float>(const RenderArgs<float>&, const RenderOutputs<float>&, cudaStream_t);

@@ -2,8 +2,10 @@
 
 tests/test_csrc_math.py already checks the kernels' math on the CPU; this adds what only a GPU exercises:
 the JIT build, shared-memory batches (lists longer than one batch), warp padding (tile sizes that are not
-a multiple of 32 rays), warp-reduced atomics, the radix sort and tile ranges. When all of it passes on a
-GPU, set cuda_backend.CUDA_VERIFIED = True so that backend="auto" may choose the kernels.
+a multiple of 32 rays), both render builds (blocks up to 256 and up to 1024 threads, in both precisions),
+warp-reduced atomics, the radix sort and tile ranges, launch errors raised at their own call, and float64
+backward repeatability. When all of it passes on a GPU, set cuda_backend.CUDA_VERIFIED = True so that
+backend="auto" may choose the kernels.
 """
 
 from __future__ import annotations
@@ -123,10 +125,11 @@ def test_float32_gradients_close_to_float64(cuda_ops):
         assert _rel(a, b) <= 1e-3, f"{name}: {_rel(a, b):.3e}"
 
 
-@pytest.mark.parametrize("tile_size", [1, 4, 7, 8, 16, 32])
+@pytest.mark.parametrize("tile_size", [1, 4, 7, 8, 16, 17, 32])
 def test_tile_sizes_and_long_lists(cuda_ops, tile_size):
-    """Warp padding (tile_size^2 not a multiple of 32), 1024-thread blocks, and lists much longer than one
-    shared-memory batch (256 float32 / 128 float64 Gaussians), with rays stopping inside a batch."""
+    """Warp padding (tile_size^2 not a multiple of 32), the 1024-thread build (tiles 17 and 32; float64's
+    backward spills there), and lists much longer than one shared-memory batch (256 float32 / 128 float64
+    Gaussians), with rays stopping inside a batch."""
     for dtype in (F32, F64):
         grid = RayGrid.beap(40, 36, math.radians(50), math.radians(45), tile_size=tile_size, dtype=dtype)
         scene = _scene(1500, 3, False, dtype, spread=0.3, scale_range=(0.05, 0.2), opacity_range=(0.02, 0.3))
@@ -148,8 +151,36 @@ def test_deterministic_forward(cuda_ops):
     scene = _scene(2000, 4, True, F32)
     vm = torch.eye(4, device=DEV)
     a = cuda_backend.render_cuda(*scene, vm, grid, ops=cuda_ops)
-    b = cuda_backend.render_cuda(*scene, vm, grid, ops=cuda_ops)
+    b = cuda_backend.render_cuda(*scene, vm.cpu(), grid, ops=cuda_ops)  # a host pose works too (copied over)
     assert torch.equal(a.rgb, b.rgb) and torch.equal(a.depth, b.depth)
+
+
+def test_float64_backward_repeatable(cuda_ops):
+    """The backward sums per-pair gradients with atomics, whose order varies between runs: in float64 two runs
+    may differ by that rounding only (relative 1e-12), never by a race. Prints the observed difference."""
+    grid, _ = _grids(F64)["fisheye180"]
+    means, quats, scales, opac, _ = _scene(400, 9, True, F64)
+    colors = torch.randn(400, 16, 3, generator=torch.Generator().manual_seed(2), dtype=F64).to(DEV) * 0.4
+    vm = torch.eye(4, dtype=F64, device=DEV)
+    run = lambda: _grads(lambda *a: cuda_backend.render_cuda(*a, vm, grid, sh_degree=3, ops=cuda_ops),
+                         (means, quats, scales, opac, colors), 3)
+    first, second = run(), run()
+    worst = max(_rel(a, b) for a, b in zip(first, second))
+    same = all(torch.equal(a, b) for a, b in zip(first, second))
+    print(f"float64 backward, two runs: max relative difference {worst:.3e} (bitwise equal: {same})")
+    assert worst <= 1e-12
+
+
+def test_failed_launch_raises_at_its_own_call(cuda_ops):
+    """Every launch is checked where it happens: a block the hardware refuses (2048 threads) raises from that
+    call, naming the kernel, and leaves no error behind for the next, unrelated operation."""
+    like = torch.zeros(1, device=DEV)
+    assert int(cuda_ops.launch_probe(like, 1024)) == 1024
+    with pytest.raises(RuntimeError, match=r"launch of probe_kernel failed: cudaErrorInvalidConfiguration"):
+        cuda_ops.launch_probe(like, 2048)
+    assert float((torch.arange(4.0, device=DEV) * 2).sum()) == 12.0
+    torch.cuda.synchronize()
+    assert int(cuda_ops.launch_probe(like, 33)) == 33
 
 
 def test_large_scene_finite_and_timed(cuda_ops):

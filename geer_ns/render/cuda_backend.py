@@ -47,7 +47,8 @@ from .raygrid import RayGrid
 CUDA_VERIFIED = False
 
 _CSRC = Path(__file__).resolve().parents[2] / "csrc"
-_CUDA_SOURCES = ("bindings.cpp", "preprocess.cu", "associate.cu", "render.cu", "preprocess_backward.cu")
+_CUDA_SOURCES = ("bindings.cpp", "preprocess.cu", "associate.cu", "render.cu", "preprocess_backward.cu",
+                 "launch_probe.cu")
 _CPU_SOURCES = ("cpu_ops.cpp",)
 # Absolute tolerance (mirror-tangent domain) for treating a grid as separable, see module docstring.
 _SEPARABLE_TOL = 1e-6
@@ -248,7 +249,8 @@ def render_cuda(
     n = means.shape[0]
     grid = grid.to(device)
     dirs = grid.dirs.to(dtype).contiguous()
-    viewmat = viewmat.detach().to(dtype)
+    # The pose goes to the Gaussians' device (no host round trip); the kernels read rot_c and cam_center there.
+    viewmat = viewmat.detach().to(device=device, dtype=dtype)
     rot_c, t_c = viewmat[:3, :3], viewmat[:3, 3]
 
     # Stage 1. View transform in PyTorch (transforms.to_view_space), the rest per Gaussian in the kernel.

@@ -23,7 +23,7 @@ from .pbf import PBF, LambdaMode, compute_pbf, pbf_lambda_sq
 from .raygrid import RayGrid
 from .sh import sh_to_color
 from .transforms import covariance_factor, to_view_space, whitening
-from .validate import check_gaussians, check_tensor
+from .validate import check_gaussians
 
 
 @dataclass
@@ -88,10 +88,7 @@ def _assemble(
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background) -> None:
-    check_gaussians(means, quats, scales, opacities, colors)
-    check_tensor("viewmat", viewmat, (4, 4))
-    if background is not None:
-        check_tensor("background", background, (3,))
+    check_gaussians(means, quats, scales, opacities, colors, viewmat=viewmat, background=background)  # one sync
     if not isinstance(grid, RayGrid):
         raise TypeError(f"grid: expected a RayGrid, got {type(grid).__name__}")
 
