@@ -39,7 +39,7 @@ from nerfstudio.models.splatfacto import (
 from nerfstudio.utils.colors import get_color
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from geer_ns import host_fixes
+from geer_ns import host_fixes, resume
 from geer_ns.cameras import CameraModel
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, native_view
@@ -301,6 +301,30 @@ class GeerModel(SplatfactoModel):
             verbose=True,
         )
         return strategy, strategy.initialize_state(scene_scale=1.0)
+
+    # ------------------------------------------------------------------------------------- resume
+    # nerfstudio 1.1.5 issue 3554: splatfacto's load_state_dict replaces the Parameters the trainer's
+    # optimizers hold, so `--load-dir` trained nothing. Resize in place and keep the strategy state,
+    # step and RNG states with the checkpoint (geer_ns/resume.py).
+    def load_state_dict(self, state_dict, strict: bool = True, **kwargs):  # type: ignore[override]
+        state_dict = dict(state_dict)
+        if "means" in state_dict:  # splatfacto's backwards compatibility with pre-gauss_params checkpoints
+            for name in ("means", "scales", "quats", "features_dc", "features_rest", "opacities"):
+                state_dict[resume.GAUSS_PREFIX + name] = state_dict.pop(name)
+        resume.resize_in_place(self.gauss_params, state_dict)
+        return torch.nn.Module.load_state_dict(self, state_dict, strict=strict, **kwargs)
+
+    def update_to_step(self, step: int) -> None:
+        self.step = step  # splatfacto pins 30000 on load; the SH degree schedule needs the real step
+
+    def get_extra_state(self) -> Dict[str, object]:
+        return {"step": self.step, "strategy_state": resume.strategy_state(self.strategy_state),
+                "rng": resume.rng_state()}
+
+    def set_extra_state(self, state: Dict[str, object]) -> None:
+        self.step = int(state["step"])
+        resume.restore_strategy_state(self.strategy_state, state["strategy_state"], self.device)
+        resume.restore_rng_state(state["rng"])
 
     # ---------------------------------------------------------------------------------- rendering
     def _view_for(self, camera: Cameras) -> View:

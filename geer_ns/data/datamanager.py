@@ -31,6 +31,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from geer_ns.cameras import CameraModel
 from geer_ns.data.beap import resample_to_beap
 from geer_ns.data.views import beap_view, camera_model, native_view
+from geer_ns import resume
 from geer_ns.host_fixes import pin_if_possible, read_ply_points
 
 Supervision = Literal["beap", "native"]
@@ -185,6 +186,13 @@ class GeerDataManager(FullImageDatamanager):
                     view[key] = view[key].to(self.device) if on_gpu else pin_if_possible(view[key])
         self.train_cameras = self.train_dataset.cameras.to(self.device) if on_gpu else self.train_dataset.cameras
         return views
+
+    # Saved with checkpoints so that a resumed run draws the same images next (nerfstudio issue 3554).
+    def get_extra_state(self) -> Dict:
+        return resume.sampler_state(self)
+
+    def set_extra_state(self, state: Dict) -> None:
+        resume.restore_sampler_state(self, state)
 
     def next_train(self, step: int) -> Tuple[Cameras, Dict]:
         camera, data = super().next_train(step)
