@@ -46,6 +46,7 @@ from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, na
 from geer_ns.render import render
 from geer_ns.render.backend import Backend
 from geer_ns.render.pbf import LambdaMode
+from geer_ns.render.transforms import view_transform
 
 # Every geer checkpoint load (ns-eval, ns-viewer, ns-render, --load-dir) imports this module first, through
 # the method registry or config.yml: allow-list the checkpoint's globals for torch's weights_only loader
@@ -367,7 +368,7 @@ class GeerModel(SplatfactoModel):
         means = params["means"]
         background = self._get_background_color().to(means)
         c2w = self.camera_optimizer.apply_to_camera(camera)[0] if self.training else camera.camera_to_worlds[0]
-        viewmat = world_to_camera_opencv(c2w.to(means))
+        viewmat = world_to_camera_opencv(c2w.to(means.device, torch.float64))  # float64: see view_transform
         means2d = None
         record = self.training and torch.is_grad_enabled()  # not for viewer renders during training
         if record:
@@ -391,9 +392,8 @@ class GeerModel(SplatfactoModel):
 
     def _displaced_means(self, means: Tensor, means2d: Tensor, viewmat: Tensor, steps) -> Tensor:
         """means + R^T lateral(means2d): the render depends on means2d only through the image position."""
-        rot = viewmat[:3, :3]
-        means_c = means.detach() @ rot.T + viewmat[:3, 3]
-        return means + lateral_displacement(means_c, means2d, steps) @ rot
+        means_c = view_transform(means.detach(), viewmat)
+        return means + lateral_displacement(means_c, means2d, steps) @ viewmat[:3, :3].to(means.dtype)
 
     def _record_info(self, means2d: Tensor, out, view: View) -> None:
         height, width = view.size
