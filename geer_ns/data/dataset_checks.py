@@ -72,11 +72,12 @@ class _Problems:
 # ==================================================================================================
 
 
-def check_image_file(path: Path, where: str, size: Optional[Tuple[int, int]] = None, what: str = "image") -> Tuple[int, int]:
+def check_image_file(path: Path, where: str, size: Optional[Tuple[int, int]] = None, what: str = "image",
+                     size_fields: str = "`w` x `h`") -> Tuple[int, int]:
     """(width, height) of an image file from its header, or DatasetError naming `where`.
 
     Reads the header and, for JPEG and PNG, the file's tail: a file cut short misses its end marker.
-    `size` (width, height) is what the dataset says the image must be.
+    `size` (width, height) is what the dataset says the image must be, in its fields `size_fields`.
     """
     from PIL import Image, UnidentifiedImageError
 
@@ -99,8 +100,8 @@ def check_image_file(path: Path, where: str, size: Optional[Tuple[int, int]] = N
         )
     if size is not None and got != tuple(size):
         raise DatasetError(
-            f"geer: {where}: {what} file {path} is {got[0]}x{got[1]} px, expected {size[0]}x{size[1]} (`w` x `h`); "
-            "fix `w`/`h` or resize the file"
+            f"geer: {where}: {what} file {path} is {got[0]}x{got[1]} px, expected {size[0]}x{size[1]} ({size_fields}); "
+            f"fix {size_fields} or resize the file"
         )
     return got
 
@@ -188,7 +189,7 @@ def _check_frame(path: Path, root: Path, meta: dict, i: int, frame: Any, seen: D
             if not isinstance(mask, str):
                 problems.add(f"{where}: `mask_path` is {mask!r}; expected a path relative to {root}")
             else:
-                check_image_file(root / mask, where + ": `mask_path`", got, what="mask")
+                check_image_file(root / mask, where + ": `mask_path`", got, what="mask", size_fields="the image's size")
         depth = frame.get("depth_file_path")
         if isinstance(depth, str) and not (root / depth).is_file():
             problems.add(f"{where}: `depth_file_path` {root / depth} does not exist; fix the path or remove the field")
@@ -297,11 +298,6 @@ def _check_top_level_files(path: Path, root: Path, meta: dict, seen: Dict[str, i
                 f"{path}: `{split}_filenames` names {len(unknown)} file(s) no frame has as `file_path`, e.g. "
                 f"{unknown[0]!r}; expected each to be a frame's `file_path`"
             )
-
-
-def colmap_problem(path: Path, lineno: int, message: str) -> DatasetError:
-    """A COLMAP text-model problem at file:line."""
-    return DatasetError(f"geer: {path}:{lineno}: {message}")
 
 
 def missing_images_error(model_file: Path, missing: Sequence[str], searched: Sequence[Path]) -> DatasetError:
