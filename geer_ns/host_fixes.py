@@ -125,3 +125,35 @@ def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
     else:
         rgb = np.full_like(xyz, 255.0)
     return xyz, rgb.astype(np.uint8)
+
+
+# --------------------------------------------------------------------------------------------------
+# nerfstudio's viewer builds its camera-path spline with splines 0.3.0's quaternion KochanekBartels,
+# which raises for exactly two keyframes ("truth value of an empty array is ambiguous": `assert not tcb`
+# on its empty TCB array; numpy 2 made that an error). Two rotations need no TCB values: the spline is
+# the slerp between them, which is what the patched constructor builds (a one-segment De Casteljau
+# curve, splines' own class).
+# --------------------------------------------------------------------------------------------------
+
+
+def install_two_keyframe_spline_fix() -> bool:
+    """Patch splines.quaternion.KochanekBartels for two open keyframes; False if splines is absent."""
+    try:
+        import splines.quaternion as sq
+    except ImportError:  # pragma: no cover - nerfstudio depends on it
+        return False
+    cls = sq.KochanekBartels
+    if getattr(cls, "_geer_two_keyframes", False):
+        return True
+    original = cls.__init__
+
+    def __init__(self, quaternions, grid=None, *, tcb=(0, 0, 0), alpha=None, endconditions="natural"):
+        if endconditions != "closed" and len(quaternions) == 2:
+            quaternions = sq._check_quaternions(quaternions, closed=False)  # same hemisphere
+            sq.DeCasteljau.__init__(self, [quaternions], sq._check_grid(grid, alpha, quaternions))
+            return
+        original(self, quaternions, grid, tcb=tcb, alpha=alpha, endconditions=endconditions)
+
+    cls.__init__ = __init__
+    cls._geer_two_keyframes = True
+    return True

@@ -47,11 +47,13 @@ from geer_ns.render import render
 from geer_ns.render.backend import Backend
 from geer_ns.render.pbf import LambdaMode
 from geer_ns.render.transforms import view_transform
+from geer_ns.render_guard import RenderGuard, camera_problem, in_viewer_thread, is_viewer_interrupt
 
 # Every geer checkpoint load (ns-eval, ns-viewer, ns-render, --load-dir) imports this module first, through
 # the method registry or config.yml: allow-list the checkpoint's globals for torch's weights_only loader
 # (nerfstudio issue 3683).
 host_fixes.allow_nerfstudio_checkpoints()
+host_fixes.install_two_keyframe_spline_fix()  # the viewer's camera path with two keyframes (splines 0.3.0)
 
 View = Union[BeapView, NativeView]
 
@@ -252,6 +254,7 @@ class GeerModel(SplatfactoModel):
             self.bil_grids = BilateralGrid(num=self.num_train_data, grid_X=shape[0], grid_Y=shape[1], grid_W=shape[2])
         self.strategy, self.strategy_state = self._build_strategy()
         self.info: Dict[str, object] = {}
+        self.render_guard = RenderGuard()
 
     def _initial_means(self) -> torch.nn.Parameter:
         if self.seed_points is not None and not self.config.random_init:
@@ -429,10 +432,25 @@ class GeerModel(SplatfactoModel):
 
     @torch.no_grad()
     def get_outputs_for_camera(self, camera: Cameras, obb_box=None) -> Dict[str, Tensor]:
-        """Render any nerfstudio camera (PERSPECTIVE, FISHEYE, FISHEYE624, EQUIRECTANGULAR) from its own rays."""
+        """Render any nerfstudio camera (PERSPECTIVE, FISHEYE, FISHEYE624, EQUIRECTANGULAR) from its own rays.
+
+        In the viewer's render thread a camera that cannot be rendered (zero or 180-degree field of view, NaN
+        pose, empty image) gives the last good frame and one log line, so that the thread survives
+        (geer_ns/render_guard.py); elsewhere (ns-eval, ns-render) it is an error naming the problem."""
         assert camera is not None, "must provide camera to gaussian model"
         self.set_crop(obb_box)
-        return self.get_outputs(camera.to(self.device))
+        problem = camera_problem(camera)
+        if problem is None:
+            try:
+                return self.render_guard.remember(self.get_outputs(camera.to(self.device)))
+            except Exception as error:  # noqa: BLE001 - the viewer thread must survive any of them
+                if is_viewer_interrupt(error) or not in_viewer_thread():
+                    raise
+                problem = f"{type(error).__name__}: {error}"
+        if not in_viewer_thread():
+            raise ValueError(f"geer: cannot render this camera: {problem}")
+        size = [max(1, int(getattr(camera, k).reshape(-1)[0])) for k in ("width", "height")]
+        return self.render_guard.fallback(problem, self.get_empty_outputs(*size, self.background_color.to(self.device)))
 
     # ------------------------------------------------------------------------------- densification
     def step_post_backward(self, step):
