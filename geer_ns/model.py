@@ -54,6 +54,7 @@ from geer_ns.render_guard import RenderGuard, camera_problem, in_viewer_thread, 
 # (nerfstudio issue 3683).
 host_fixes.allow_nerfstudio_checkpoints()
 host_fixes.install_two_keyframe_spline_fix()  # the viewer's camera path with two keyframes (splines 0.3.0)
+host_fixes.provide_ffmpeg()  # ns-render needs an `ffmpeg` program; imageio-ffmpeg ships one
 
 View = Union[BeapView, NativeView]
 
