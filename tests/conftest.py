@@ -107,3 +107,30 @@ def reference_grids(dtype=torch.float64) -> dict:
         "fisheye180": RayGrid.from_rays(fish_dirs, fish_valid, tile_size=16),
         "equirect360": RayGrid.from_rays(equirect_rays(96, 48, dtype=dtype), None, tile_size=16),
     }
+
+
+def tiny_trainer_config(data: Path, out: Path, name: str, steps: int):
+    """geer's TrainerConfig for a few CPU steps: no viewer, no evaluation, half resolution, cached on the CPU."""
+    from geer_ns.config import geer_trainer_config
+    from geer_ns.model import GeerModelConfig
+
+    config = geer_trainer_config("geer", GeerModelConfig())
+    config.data = config.pipeline.datamanager.data = data  # as ns-train's main() does
+    config.pipeline.datamanager.cache_images = "cpu"
+    config.output_dir, config.experiment_name, config.timestamp = out, name, "run"
+    config.vis = "tensorboard"
+    config.max_num_iterations = steps
+    config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = 0
+    config.pipeline.model.num_downscales, config.pipeline.model.resolution_schedule = 1, 1_000_000
+    return config
+
+
+def train_in_process(config) -> Path:
+    """nerfstudio's training loop (what ns-train runs after parsing); returns the last checkpoint."""
+    from nerfstudio.scripts.train import train_loop
+    from nerfstudio.utils import writer
+
+    writer.EVENT_WRITERS.clear()  # nerfstudio's writers are module globals: one run's writers per run
+    train_loop(0, 1, config)
+    writer.EVENT_WRITERS.clear()
+    return sorted((config.get_base_dir() / "nerfstudio_models").glob("step-*.ckpt"))[-1]

@@ -14,7 +14,7 @@ from geer_ns.cameras import OpenCVFisheyeCamera
 from geer_ns.data.colmap_parser import GeerColmapDataParserConfig, camera_model_for_image
 from geer_ns.data.dataset_checks import DatasetError
 
-from conftest import shared_data
+from conftest import shared_data, tiny_trainer_config, train_in_process
 
 FIXTURE = Path(__file__).resolve().parent / "fixtures" / "t265_colmap"
 NAMES = sorted(f"{side}raw/frame_00000000{i}.jpg" for side in ("left", "right") for i in (1, 2, 3))
@@ -139,26 +139,9 @@ def test_truncated_image_is_named(tmp_path):
 
 def test_geer_colmap_trains_the_t265_fixture(tmp_path, single_thread):
     """nerfstudio's training loop (what ns-train calls) with the geer-colmap dataparser, a couple of steps."""
-    from nerfstudio.scripts.train import train_loop
-    from nerfstudio.utils import writer
-
-    from geer_ns.config import geer_trainer_config
-    from geer_ns.model import GeerModelConfig
-
-    config = geer_trainer_config("geer", GeerModelConfig())
-    config.data = config.pipeline.datamanager.data = FIXTURE
+    config = tiny_trainer_config(FIXTURE, tmp_path, "t265", 3)
     config.pipeline.datamanager.dataparser = GeerColmapDataParserConfig()
-    config.pipeline.datamanager.cache_images = "cpu"
-    config.output_dir, config.experiment_name, config.timestamp = tmp_path, "t265", "run"
-    config.vis = "tensorboard"
-    config.max_num_iterations = 3
-    config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = 0
-    config.pipeline.model.num_downscales = 1
-    config.pipeline.model.resolution_schedule = 1_000_000
-    writer.EVENT_WRITERS.clear()
-    train_loop(0, 1, config)
-    writer.EVENT_WRITERS.clear()
-    ckpt = torch.load(next((config.get_base_dir() / "nerfstudio_models").glob("step-*.ckpt")), map_location="cpu")
+    ckpt = torch.load(train_in_process(config), map_location="cpu")
     assert ckpt["step"] == 2
     means = ckpt["pipeline"]["_model.gauss_params.means"]
     assert means.shape[0] == 5000  # frustum seeds: 1000 per training camera (5 of 6; one is eval)

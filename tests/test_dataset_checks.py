@@ -14,10 +14,10 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from geer_ns.config import geer_trainer_config
 from geer_ns.data.dataset_checks import VALID_CAMERA_MODELS, DatasetError, check_transforms_json
 from geer_ns.data.synthetic_room import default_scene_dir
-from geer_ns.model import GeerModelConfig
+
+from conftest import tiny_trainer_config
 
 N_FRAMES = 4
 
@@ -49,11 +49,7 @@ def _edit(root: Path, change) -> dict:
 
 def _start_training(root: Path, out: Path) -> str:
     """ns-train's order: config.yml written, then the trainer set up. Returns the DatasetError message."""
-    config = geer_trainer_config("geer", GeerModelConfig())
-    config.data = config.pipeline.datamanager.data = root
-    config.output_dir, config.experiment_name, config.timestamp = out, "broken", "run"
-    config.vis = "tensorboard"
-    config.pipeline.datamanager.cache_images = "cpu"
+    config = tiny_trainer_config(root, out, "broken", 1)
     config.save_config()
     with pytest.raises(DatasetError) as info:
         config.setup(local_rank=0, world_size=1).setup()

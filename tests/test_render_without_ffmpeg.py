@@ -17,31 +17,17 @@ import pytest
 
 from geer_ns.data.synthetic_room import default_scene_dir
 
+from conftest import tiny_trainer_config, train_in_process
+
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
-    from nerfstudio.scripts.train import train_loop
-    from nerfstudio.utils import writer
-
-    from geer_ns.config import geer_trainer_config
-    from geer_ns.model import GeerModelConfig
-
-    out = tmp_path_factory.mktemp("render")
-    config = geer_trainer_config("geer", GeerModelConfig())
-    config.data = config.pipeline.datamanager.data = default_scene_dir()
-    config.pipeline.datamanager.cache_images = "cpu"
-    config.output_dir, config.experiment_name, config.timestamp = out, "room", "run"
-    config.vis = "tensorboard"
-    config.max_num_iterations = 3
-    config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = 0
-    config.pipeline.model.num_downscales = 1
+    config = tiny_trainer_config(default_scene_dir(), tmp_path_factory.mktemp("render"), "room", 3)
     config.save_config()
-    writer.EVENT_WRITERS.clear()
-    train_loop(0, 1, config)
-    writer.EVENT_WRITERS.clear()
+    train_in_process(config)
     return config.get_base_dir() / "config.yml"
 
 

@@ -12,12 +12,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from nerfstudio.scripts.train import train_loop
-from nerfstudio.utils import writer
-
-from geer_ns.config import geer_trainer_config
 from geer_ns.data.synthetic_room import default_scene_dir
-from geer_ns.model import GeerModelConfig
+
+from conftest import tiny_trainer_config, train_in_process
 
 # gsplat refines at steps > warm-up that are multiples of refine_every and at least num_train_data (21) +
 # refine_every past a reset (every 30 refinements): here at steps 28 and 32, both in the resumed range, with
@@ -26,38 +23,21 @@ N, M = 26, 8
 
 
 def _config(out: Path, name: str, steps: int, load_dir=None):
-    config = geer_trainer_config("geer", GeerModelConfig())
-    config.data = config.pipeline.datamanager.data = default_scene_dir()  # as ns-train main() does
-    config.output_dir = out
-    config.experiment_name = name
-    config.timestamp = "run"
-    config.vis = "tensorboard"
-    config.max_num_iterations = steps
-    config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = 0
+    config = tiny_trainer_config(default_scene_dir(), out, name, steps)
     config.steps_per_save = 1_000_000
     config.load_dir = load_dir
-    config.pipeline.datamanager.cache_images = "cpu"
     model = config.pipeline.model
-    model.num_downscales, model.resolution_schedule = 1, 1_000_000
     model.warmup_length, model.refine_every, model.stop_split_at = 20, 4, 1000
     model.densify_grad_thresh = 1e-7  # every seen Gaussian grows: refinements visibly change the count
     return config
 
 
-def _train(config) -> Path:
-    writer.EVENT_WRITERS.clear()  # nerfstudio's writers are module globals: one run's writers per run
-    train_loop(0, 1, config)
-    writer.EVENT_WRITERS.clear()
-    ckpts = sorted((config.get_base_dir() / "nerfstudio_models").glob("step-*.ckpt"))
-    return ckpts[-1]
-
-
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory, single_thread):
     out = tmp_path_factory.mktemp("resume")
-    first = _train(_config(out, "first", N))
-    resumed = _train(_config(out, "resumed", M, load_dir=first.parent))
-    straight = _train(_config(out, "straight", N + M))
+    first = train_in_process(_config(out, "first", N))
+    resumed = train_in_process(_config(out, "resumed", M, load_dir=first.parent))
+    straight = train_in_process(_config(out, "straight", N + M))
     load = lambda p: torch.load(p, map_location="cpu")  # noqa: E731
     return load(first), load(resumed), load(straight)
 
