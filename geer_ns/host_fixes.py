@@ -215,3 +215,24 @@ def _ffmpeg_link(exe: Path) -> Path:
         except OSError:
             continue
     return exe  # unreachable in practice: a fresh temporary folder is writable
+
+
+# --------------------------------------------------------------------------------------------------
+# Known noise of the host stack in every run: torch deprecation FutureWarnings raised by nerfstudio's
+# own code (GradScaler, custom_fwd/bwd, torch.jit.script) and nerfstudio's writer turning loss tensors
+# into floats. Only these exact messages are filtered; those raised while nerfstudio imports its own
+# models happen before any plugin is loaded and cannot be reached from here.
+# --------------------------------------------------------------------------------------------------
+
+KNOWN_NOISE = (
+    (FutureWarning, r"`torch\.cuda\.amp\.(GradScaler|custom_fwd|custom_bwd)\(args\.\.\.\)` is deprecated"),
+    (FutureWarning, r"`torch\.jit\.script` is deprecated"),
+    (UserWarning, r"Converting a tensor with requires_grad=True to a scalar may lead to unexpected behavior"),
+)
+
+
+def quiet_known_warnings() -> None:
+    import warnings
+
+    for category, message in KNOWN_NOISE:
+        warnings.filterwarnings("ignore", message=message, category=category)

@@ -55,6 +55,7 @@ from geer_ns.render_guard import RenderGuard, camera_problem, in_viewer_thread, 
 host_fixes.allow_nerfstudio_checkpoints()
 host_fixes.install_two_keyframe_spline_fix()  # the viewer's camera path with two keyframes (splines 0.3.0)
 host_fixes.provide_ffmpeg()  # ns-render needs an `ffmpeg` program; imageio-ffmpeg ships one
+host_fixes.quiet_known_warnings()  # host FutureWarnings that every run would print
 
 View = Union[BeapView, NativeView]
 
@@ -65,7 +66,16 @@ class GeerModelConfig(SplatfactoModelConfig):
     densify_grad_thresh: float = 0.0002
     """means2d gradient threshold (BEAP pixels, after gsplat's width/2, height/2 scaling), as gsplat's default."""
     use_absgrad: bool = False
-    """geer's means2d carries the summed gradient; per-pixel absolute gradients (AbsGS) are not available."""
+    """IGNORED by geer: its means2d carries the summed gradient; per-pixel absolute gradients (AbsGS) are not
+    available."""
+    rasterize_mode: Literal["classic", "antialiased"] = "classic"
+    """IGNORED by geer (a gsplat rasterizer option): every Gaussian is evaluated exactly along each ray."""
+    output_depth_during_training: bool = False
+    """IGNORED by geer: depth is always rendered."""
+    color_corrected_metrics: bool = False
+    """IGNORED by geer: metrics are computed over the valid pixels, without colour correction."""
+    n_split_samples: int = 2
+    """IGNORED by geer: gsplat's DefaultStrategy splits a Gaussian into two."""
     strategy: Literal["default", "mcmc"] = "default"
     """Densification: gsplat's DefaultStrategy (3DGS heuristics) or MCMCStrategy."""
     mcmc_cap_max: int = 1_000_000
@@ -83,6 +93,19 @@ class GeerModelConfig(SplatfactoModelConfig):
     central_half_angles_deg: Optional[Tuple[float, float]] = None
     """Half-extents (theta, phi) of the 'central' eval region in degrees; None = the paper's App. G rule
     (theta in +-w/(2 fx), phi in +-h/(2 fy))."""
+
+
+# splatfacto options geer accepts (so that splatfacto command lines still parse) but does not use.
+IGNORED_OPTIONS = ("use_absgrad", "rasterize_mode", "output_depth_during_training", "color_corrected_metrics",
+                   "n_split_samples")
+# geer's own options, listed first in `ns-train geer --help` (the method description).
+OWN_OPTIONS_HELP = (
+    "geer's own options: --pipeline.model.renderer-backend {auto,torch,cuda,cpu}, --pipeline.model.lambda-mode "
+    "{opacity,paper}, --pipeline.model.strategy {default,mcmc}, --pipeline.model.max-pairs, "
+    "--pipeline.model.central-half-angles-deg, --pipeline.datamanager.supervision, "
+    "--pipeline.datamanager.mask-edge-fill; resume with --load-dir <run>/nerfstudio_models. Splatfacto options "
+    "marked IGNORED are accepted and not used."
+)
 
 
 # ==================================================================================================
@@ -271,11 +294,18 @@ class GeerModel(SplatfactoModel):
         dc = RGB2SH(rgb) if self.config.sh_degree > 0 else torch.logit(rgb, eps=1e-10)
         return dc, torch.zeros(n, dim_sh - 1, 3)
 
+    def _say_ignored_options(self) -> None:
+        """One line naming the splatfacto options a user set that geer does not use (see IGNORED_OPTIONS)."""
+        defaults = GeerModelConfig()
+        changed = [f"{name}={getattr(self.config, name)!r}" for name in IGNORED_OPTIONS
+                   if getattr(self.config, name) != getattr(defaults, name)]
+        if changed:
+            CONSOLE.print(f"[yellow]geer: ignoring splatfacto option(s) {', '.join(changed)} (not used by the 3DGEER renderer)")
+
     def _build_strategy(self):
         cfg = self.config
-        if cfg.use_absgrad:
-            CONSOLE.print("[yellow]geer: use_absgrad is not supported by the 3DGEER renderer; using plain gradients")
-            cfg.use_absgrad = False
+        self._say_ignored_options()
+        cfg.use_absgrad = False
         if cfg.strategy == "mcmc":
             install_mcmc_cpu_ops()
             strategy = MCMCStrategy(

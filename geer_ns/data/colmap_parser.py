@@ -415,6 +415,20 @@ class GeerColmapDataParserConfig(DataParserConfig):
     principal point: pixels outside are not supervised. For fisheye captures without masks."""
 
 
+class _Parsed(NamedTuple):
+    model_dir: Path
+    recon: object
+    names: List[str]
+    cameras: Cameras
+    specs: List[ColmapCameraSpec]
+    c2w: torch.Tensor
+    transform: torch.Tensor
+    scale: float
+    image_files: List[Path]
+    mask_files: Optional[List[Path]]
+    downscale: int
+
+
 class GeerColmapDataParser(DataParser):
     """See the module docstring."""
 
@@ -503,7 +517,11 @@ class GeerColmapDataParser(DataParser):
         raise ValueError(f"unknown dataparser split {split!r}")
 
     # --- main -----------------------------------------------------------------------------------------
-    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+    def _parse_all(self) -> "_Parsed":
+        """Everything that does not depend on the split, read once per parser (nerfstudio asks once per
+        split): the model, the cameras and poses of all images, the image and mask files."""
+        if getattr(self, "_parsed", None) is not None:
+            return self._parsed
         cfg = self.config
         data = Path(cfg.data)
         model_dir = self._model_dir()
@@ -601,6 +619,12 @@ class GeerColmapDataParser(DataParser):
             NS_INTRINSICS_KEY: torch.stack([getattr(cams, k)[:, 0].double() for k in ("fx", "fy", "cx", "cy")], -1),
         }
 
+        self._parsed = _Parsed(model_dir, recon, names, cams, specs, c2w, transform, scale, image_files, mask_files, df)
+        return self._parsed
+
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+        cfg = self.config
+        model_dir, recon, names, cams, specs, c2w, transform, scale, image_files, mask_files, df = self._parse_all()
         # Split (after orienting / scaling with all images, like nerfstudio).
         idx = self._split_indices(names, split)
         idx_t = torch.as_tensor(idx, dtype=torch.long)
