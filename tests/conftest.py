@@ -134,3 +134,29 @@ def train_in_process(config) -> Path:
     train_loop(0, 1, config)
     writer.EVENT_WRITERS.clear()
     return sorted((config.get_base_dir() / "nerfstudio_models").glob("step-*.ckpt"))[-1]
+
+
+def copy_room(root: Path, n_frames: int, n_eval: int = 0) -> Path:
+    """The first n_frames frames of the embedded room (images, shared mask, seed points) as a dataset in root;
+    the last n_eval of them form the val/test split (without one, no split lists)."""
+    import json
+    import shutil
+
+    from geer_ns.data.synthetic_room import default_scene_dir
+
+    src = default_scene_dir()
+    meta = json.loads((src / "transforms.json").read_text())
+    meta["frames"] = meta["frames"][:n_frames]
+    names = [f["file_path"] for f in meta["frames"]]
+    for key in ("train_filenames", "val_filenames", "test_filenames"):
+        meta.pop(key)
+    if n_eval:
+        meta["train_filenames"] = names[: n_frames - n_eval]
+        meta["val_filenames"] = meta["test_filenames"] = names[n_frames - n_eval:]
+    for frame in meta["frames"]:
+        for key in ("file_path", "mask_path"):
+            (root / frame[key]).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(src / frame[key], root / frame[key])
+    shutil.copy(src / meta["ply_file_path"], root / meta["ply_file_path"])
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return root

@@ -8,16 +8,14 @@ and the field, and leave nothing in the output directory but config.yml. Nothing
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import pytest
 from PIL import Image
 
 from geer_ns.data.dataset_checks import VALID_CAMERA_MODELS, DatasetError, check_transforms_json
-from geer_ns.data.synthetic_room import default_scene_dir
 
-from conftest import tiny_trainer_config
+from conftest import copy_room, tiny_trainer_config
 
 N_FRAMES = 4
 
@@ -25,19 +23,7 @@ N_FRAMES = 4
 @pytest.fixture
 def dataset(tmp_path) -> Path:
     """Four frames of the room (images, shared mask, seed points), valid as they are."""
-    src = default_scene_dir()
-    meta = json.loads((src / "transforms.json").read_text())
-    meta["frames"] = meta["frames"][:N_FRAMES]
-    for key in ("train_filenames", "val_filenames", "test_filenames"):
-        meta.pop(key)
-    root = tmp_path / "data"
-    for frame in meta["frames"]:
-        for key in ("file_path", "mask_path"):
-            (root / frame[key]).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy(src / frame[key], root / frame[key])
-    shutil.copy(src / meta["ply_file_path"], root / meta["ply_file_path"])
-    (root / "transforms.json").write_text(json.dumps(meta))
-    return root
+    return copy_room(tmp_path / "data", N_FRAMES)
 
 
 def _edit(root: Path, change) -> dict:

@@ -1,7 +1,7 @@
 """`ns-train geer --load-dir` continues training (nerfstudio 1.1.5 issue 3554, fixed in geer_ns/resume.py).
 
-Three runs of nerfstudio's own training loop (scripts.train.train_loop, what ns-train calls) on the embedded
-room: N steps, then M more resumed from its checkpoint with a refinement inside, against one uninterrupted
+Three runs of nerfstudio's own training loop (scripts.train.train_loop, what ns-train calls) on four frames
+of the embedded room: N steps, then M more resumed from its checkpoint with a refinement inside, against one uninterrupted
 N + M run with the same seed. The reference is the uninterrupted run, not the code under test.
 """
 
@@ -12,22 +12,21 @@ from pathlib import Path
 import pytest
 import torch
 
-from geer_ns.data.synthetic_room import default_scene_dir
+from conftest import copy_room, tiny_trainer_config, train_in_process
 
-from conftest import tiny_trainer_config, train_in_process
+# gsplat refines at steps > warm-up that are multiples of refine_every and at least num_train_data +
+# refine_every past a reset: with 3 training images, warm-up 4 and refine_every 2, at steps 6, 8, 10 (reset
+# every 30 refinements). N steps, then M resumed: refinements at 8 and 10 inside the resumed range, with
+# densification statistics gathered on both sides of the checkpoint (steps 7 and 8).
+N, M = 8, 4
 
-# gsplat refines at steps > warm-up that are multiples of refine_every and at least num_train_data (21) +
-# refine_every past a reset (every 30 refinements): here at steps 28 and 32, both in the resumed range, with
-# densification statistics gathered on both sides of the checkpoint.
-N, M = 26, 8
 
-
-def _config(out: Path, name: str, steps: int, load_dir=None):
-    config = tiny_trainer_config(default_scene_dir(), out, name, steps)
+def _config(data: Path, out: Path, name: str, steps: int, load_dir=None):
+    config = tiny_trainer_config(data, out, name, steps)
     config.steps_per_save = 1_000_000
     config.load_dir = load_dir
     model = config.pipeline.model
-    model.warmup_length, model.refine_every, model.stop_split_at = 20, 4, 1000
+    model.warmup_length, model.refine_every, model.stop_split_at = 4, 2, 1000
     model.densify_grad_thresh = 1e-7  # every seen Gaussian grows: refinements visibly change the count
     return config
 
@@ -35,9 +34,10 @@ def _config(out: Path, name: str, steps: int, load_dir=None):
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory, single_thread):
     out = tmp_path_factory.mktemp("resume")
-    first = train_in_process(_config(out, "first", N))
-    resumed = train_in_process(_config(out, "resumed", M, load_dir=first.parent))
-    straight = train_in_process(_config(out, "straight", N + M))
+    data = copy_room(out / "data", 4, n_eval=1)
+    first = train_in_process(_config(data, out, "first", N))
+    resumed = train_in_process(_config(data, out, "resumed", M, load_dir=first.parent))
+    straight = train_in_process(_config(data, out, "straight", N + M))
     load = lambda p: torch.load(p, map_location="cpu")  # noqa: E731
     return load(first), load(resumed), load(straight)
 
