@@ -147,3 +147,23 @@ def test_geer_colmap_trains_the_t265_fixture(tmp_path, single_thread):
     assert means.shape[0] == 5000  # frustum seeds: 1000 per training camera (5 of 6; one is eval)
     assert bool(torch.isfinite(means).all())
     assert math.isfinite(float(ckpt["optimizers"]["means"]["state"][0]["step"]))
+
+
+def test_non_finite_pose_in_a_binary_model(tmp_path):
+    import numpy as np
+    import pycolmap
+
+    from geer_ns.data.colmap_files import write_strict_text_model
+
+    (tmp_path / "strict").mkdir()
+    write_strict_text_model(FIXTURE, tmp_path / "strict")
+    rec = pycolmap.Reconstruction()
+    rec.read_text(str(tmp_path / "strict"))
+    frame = rec.frames[rec.images[3].frame_id]
+    frame.rig_from_world = pycolmap.Rigid3d(frame.rig_from_world.rotation, np.array([np.nan, 0.0, 0.0]))
+    model = tmp_path / "bin" / "sparse" / "0"
+    model.mkdir(parents=True)
+    rec.write_binary(str(model))
+    shutil.copytree(FIXTURE / "images", tmp_path / "bin" / "images")
+    with pytest.raises(DatasetError, match=r"images\.bin: image 3 'rightraw/frame_000000002\.jpg': the pose .* NaN"):
+        load(tmp_path / "bin")

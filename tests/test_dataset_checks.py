@@ -235,3 +235,20 @@ def test_several_problems_are_counted(dataset, tmp_path):
     _edit(dataset, break_two)
     msg = _start_training(dataset, tmp_path / "out")
     assert "frames[0]" in msg and "+1 more problem" in msg
+
+
+def test_numbers_written_as_strings_are_read_as_nerfstudio_reads_them(dataset):
+    _edit(dataset, lambda m: m.update(fl_x=str(m["fl_x"]), w="96"))
+    check_transforms_json(dataset / "transforms.json")
+
+
+def test_all_cameras_at_one_position(dataset, tmp_path):
+    def same_place(m):
+        for frame in m["frames"]:
+            for row in frame["transform_matrix"][:3]:
+                row[3] = 0.5
+    _edit(dataset, same_place)
+    msg = _start_training(dataset, tmp_path / "out")
+    assert "transforms.json: `transform_matrix`: all 4 frames have the camera position [0.5, 0.5, 0.5]" in msg
+    assert "auto-scale-poses False" in msg
+    check_transforms_json(dataset / "transforms.json", auto_scale_poses=False)

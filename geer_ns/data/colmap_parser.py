@@ -532,6 +532,12 @@ class GeerColmapDataParser(DataParser):
             raise ValueError(f"{model_dir}: the COLMAP model has no registered images (images with a pose)")
         images.sort(key=lambda im: im.name)
         names = [im.name for im in images]
+        for im in images:  # text models were checked line by line; binary ones here
+            if not np.isfinite(np.asarray(im.cam_from_world().matrix(), dtype=np.float64)).all():
+                raise DatasetError(
+                    f"geer: {_model_file(model_dir, 'images')}: image {im.image_id} '{im.name}': the pose "
+                    "(quaternion / translation) has NaN or Inf entries; fix or remove this image"
+                )
 
         # Cameras: validated once per COLMAP camera id.
         cameras_file = _model_file(model_dir, "cameras")

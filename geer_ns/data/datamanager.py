@@ -70,7 +70,8 @@ def check_data_path(config: GeerDataManagerConfig) -> None:
             )
     if isinstance(config.dataparser, NerfstudioDataParserConfig):
         # Broken files: one line naming file, frame and field, before anything is parsed or cached.
-        check_transforms_json(path if path.suffix == ".json" else path / "transforms.json")
+        check_transforms_json(path if path.suffix == ".json" else path / "transforms.json",
+                              config.dataparser.auto_scale_poses)
 
 
 def native_valid_mask(camera: CameraModel, mask: Optional[torch.Tensor], crop_radius: Optional[float]) -> torch.Tensor:

@@ -125,9 +125,13 @@ def _is_truncated(path: Path, fmt: Optional[str]) -> bool:
 
 
 def _number(value: Any) -> Optional[float]:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
+    """The value as nerfstudio reads it (float(...): numbers and numeric strings), else None."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
         return None
-    return float(value)
+    try:
+        return float(value)
+    except ValueError:
+        return None
 
 
 def _load_json(path: Path) -> Any:
@@ -141,8 +145,10 @@ def _load_json(path: Path) -> Any:
         raise DatasetError(f"geer: {path}:{e.lineno}:{e.colno}: not valid JSON ({e.msg}); fix the syntax there") from None
 
 
-def check_transforms_json(path: Path) -> None:
-    """Check a nerfstudio-data transforms.json and the files it names; DatasetError on the first problem."""
+def check_transforms_json(path: Path, auto_scale_poses: bool = True) -> None:
+    """Check a nerfstudio-data transforms.json and the files it names; DatasetError on the first problem.
+
+    auto_scale_poses: the dataparser's option; it divides by the spread of the camera positions."""
     path = Path(path)
     meta = _load_json(path)
     if not isinstance(meta, dict):
@@ -161,6 +167,14 @@ def check_transforms_json(path: Path) -> None:
         _check_frame(path, root, meta, i, frame, seen, problems)
     _check_top_level_files(path, root, meta, seen, problems)
     problems.raise_if_any()
+    if auto_scale_poses and len(frames) > 1:
+        centres = np.array([np.asarray(f["transform_matrix"], dtype=np.float64)[:3, 3] for f in frames])
+        if np.ptp(centres, axis=0).max() == 0.0:
+            raise DatasetError(
+                f"geer: {path}: `transform_matrix`: all {len(frames)} frames have the camera position "
+                f"{centres[0].tolist()}; nerfstudio's pose scaling divides by their spread (zero): fix the poses, "
+                "or set --pipeline.datamanager.dataparser.auto-scale-poses False for a rotation-only capture"
+            )
 
 
 def _check_frame(path: Path, root: Path, meta: dict, i: int, frame: Any, seen: Dict[str, int], problems: _Problems) -> None:
