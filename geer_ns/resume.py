@@ -80,7 +80,9 @@ def sampler_state(datamanager) -> Dict[str, Any]:
 
 
 def restore_sampler_state(datamanager, state: Mapping[str, Any]) -> None:
-    if not state:
+    """Restored only when it fits the training set now loaded (a changed dataset keeps its fresh queue)."""
+    n = len(getattr(datamanager, "train_dataset", None) or [])
+    if not state or any(not 0 <= int(i) < n for i in state["train_unseen_cameras"]):
         return
     datamanager.train_unseen_cameras = [int(i) for i in state["train_unseen_cameras"]]
     if "random_generator" in state:

@@ -167,3 +167,15 @@ def test_non_finite_pose_in_a_binary_model(tmp_path):
     shutil.copytree(FIXTURE / "images", tmp_path / "bin" / "images")
     with pytest.raises(DatasetError, match=r"images\.bin: image 3 'rightraw/frame_000000002\.jpg': the pose .* NaN"):
         load(tmp_path / "bin")
+
+
+def test_the_t265_sample_as_it_comes_stops_before_writing_anything(tmp_path):
+    """Through ns-train's order (config.yml saved, then the trainer set up): only config.yml is written."""
+    src = shared_data("t265_fisheye")
+    config = tiny_trainer_config(src, tmp_path, "t265", 1)
+    config.pipeline.datamanager.dataparser = GeerColmapDataParserConfig()
+    config.save_config()
+    with pytest.raises(DatasetError, match=r"images\.txt: 6 image\(s\) named there were not found"):
+        config.setup(local_rank=0, world_size=1).setup()
+    written = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*") if p.is_file())
+    assert written == ["t265/geer/run/config.yml"], written
