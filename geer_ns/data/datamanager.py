@@ -28,11 +28,11 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataPars
 from nerfstudio.utils.io import load_from_json
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from geer_ns import resume
 from geer_ns.cameras import CameraModel
 from geer_ns.data.beap import resample_to_beap
 from geer_ns.data.dataset_checks import check_transforms_json
 from geer_ns.data.views import beap_view, camera_model, native_view
-from geer_ns import resume
 from geer_ns.host_fixes import pin_if_possible, read_ply_points
 
 Supervision = Literal["beap", "native"]
