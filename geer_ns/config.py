@@ -15,7 +15,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from geer_ns.data.datamanager import GeerDataManagerConfig
-from geer_ns.model import GeerModelConfig
+from geer_ns.model import OWN_OPTIONS_HELP, GeerModelConfig
 
 MAX_STEPS = 30000
 
@@ -60,10 +60,11 @@ def geer_trainer_config(method_name: str, model: GeerModelConfig) -> TrainerConf
 geer_method = MethodSpecification(
     config=geer_trainer_config("geer", GeerModelConfig()),
     description="3DGEER: exact Gaussian ray tracing for any camera (fisheye, 360), BEAP supervision, "
-    "splatfacto schedule with gsplat DefaultStrategy densification",
+    "splatfacto schedule with gsplat DefaultStrategy densification. " + OWN_OPTIONS_HELP,
 )
 
 geer_mcmc_method = MethodSpecification(
     config=geer_trainer_config("geer-mcmc", GeerModelConfig(strategy="mcmc")),
-    description="3DGEER with gsplat's MCMCStrategy (relocation + noise) instead of split/clone/prune",
+    description="3DGEER with gsplat's MCMCStrategy (relocation + noise) instead of split/clone/prune. "
+    + OWN_OPTIONS_HELP,
 )

@@ -1,6 +1,8 @@
-"""Narrow work-arounds for bugs of the host stack (nerfstudio 1.1.5, torch >= 2.6, torchmetrics, open3d).
+"""Narrow work-arounds for bugs of the host stack (nerfstudio 1.1.5, torch >= 2.6, torchmetrics, open3d,
+splines 0.3.0, a missing system ffmpeg).
 
-Each fix names the host issue it is for and is covered by tests/test_nerfstudio_host_fixes.py.
+Each fix names the host issue it is for and is covered by a test (tests/test_nerfstudio_host_fixes.py,
+tests/test_viewer_robustness.py, tests/test_render_without_ffmpeg.py).
 Nothing here changes behaviour that works: each fix only takes effect where the host would fail.
 """
 
@@ -8,6 +10,8 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
+import tempfile
 from pathlib import Path
 from typing import Optional
 
@@ -125,3 +129,110 @@ def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
     else:
         rgb = np.full_like(xyz, 255.0)
     return xyz, rgb.astype(np.uint8)
+
+
+# --------------------------------------------------------------------------------------------------
+# nerfstudio's viewer builds its camera-path spline with splines 0.3.0's quaternion KochanekBartels,
+# which raises for exactly two keyframes ("truth value of an empty array is ambiguous": `assert not tcb`
+# on its empty TCB array; numpy 2 made that an error). Two rotations need no TCB values: the spline is
+# the slerp between them, which is what the patched constructor builds (a one-segment De Casteljau
+# curve, splines' own class).
+# --------------------------------------------------------------------------------------------------
+
+
+def install_two_keyframe_spline_fix() -> bool:
+    """Patch splines.quaternion.KochanekBartels for two open keyframes; False if splines is absent."""
+    try:
+        import splines.quaternion as sq
+    except ImportError:  # pragma: no cover - nerfstudio depends on it
+        return False
+    cls = sq.KochanekBartels
+    if getattr(cls, "_geer_two_keyframes", False):
+        return True
+    original = cls.__init__
+
+    def __init__(self, quaternions, grid=None, *, tcb=(0, 0, 0), alpha=None, endconditions="natural"):
+        if endconditions != "closed" and len(quaternions) == 2:
+            quaternions = sq._check_quaternions(quaternions, closed=False)  # same hemisphere
+            sq.DeCasteljau.__init__(self, [quaternions], sq._check_grid(grid, alpha, quaternions))
+            return
+        original(self, quaternions, grid, tcb=tcb, alpha=alpha, endconditions=endconditions)
+
+    cls.__init__ = __init__
+    cls._geer_two_keyframes = True
+    return True
+
+
+# --------------------------------------------------------------------------------------------------
+# ns-render (interpolate, camera-path, spiral) exits with "Could not find ffmpeg" when no `ffmpeg` is on
+# PATH, even with --output-format images (install_checks.check_ffmpeg_installed), and mediapy writes
+# videos through the same program. geer depends on imageio-ffmpeg, which ships an ffmpeg binary: when
+# there is no system ffmpeg, a link named `ffmpeg` to it is put first on PATH (and given to mediapy).
+# Every ns-render imports geer_ns.model (through config.yml) before that check.
+# --------------------------------------------------------------------------------------------------
+
+_ffmpeg_said = False
+
+
+def provide_ffmpeg() -> Optional[str]:
+    """The `ffmpeg` program nerfstudio will run: the system one, else imageio-ffmpeg's; None if neither."""
+    global _ffmpeg_said
+    found = shutil.which("ffmpeg")
+    if found is not None:
+        return found
+    try:
+        import imageio_ffmpeg
+
+        exe = Path(imageio_ffmpeg.get_ffmpeg_exe())
+    except Exception:  # not installed, or no binary for this platform
+        return None
+    link = _ffmpeg_link(exe)
+    os.environ["PATH"] = f"{link.parent}{os.pathsep}{os.environ.get('PATH', '')}"
+    try:
+        import mediapy
+
+        mediapy.set_ffmpeg(str(link))
+    except ImportError:  # pragma: no cover - nerfstudio depends on it
+        pass
+    if not _ffmpeg_said:
+        _ffmpeg_said = True
+        _LOG.info("no system ffmpeg: using imageio-ffmpeg's %s", exe)
+    return str(link)
+
+
+def _ffmpeg_link(exe: Path) -> Path:
+    """A folder holding `ffmpeg` -> exe: in geer's cache, else in a fresh temporary folder."""
+    candidates = [Path(os.environ.get("GEER_NS_CACHE", "~/.cache/geer_ns")).expanduser() / "ffmpeg_bin"]
+    for folder in candidates + [Path(tempfile.mkdtemp(prefix="geer_ffmpeg_"))]:
+        link = folder / "ffmpeg"
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            if link.is_symlink() and Path(os.readlink(link)) != exe:
+                link.unlink()
+            if not link.is_symlink():
+                link.symlink_to(exe)
+            return link
+        except OSError:
+            continue
+    return exe  # unreachable in practice: a fresh temporary folder is writable
+
+
+# --------------------------------------------------------------------------------------------------
+# Known noise of the host stack in every run: torch deprecation FutureWarnings raised by nerfstudio's
+# own code (GradScaler, custom_fwd/bwd, torch.jit.script) and nerfstudio's writer turning loss tensors
+# into floats. Only these exact messages are filtered; those raised while nerfstudio imports its own
+# models happen before any plugin is loaded and cannot be reached from here.
+# --------------------------------------------------------------------------------------------------
+
+KNOWN_NOISE = (
+    (FutureWarning, r"`torch\.cuda\.amp\.(GradScaler|custom_fwd|custom_bwd)\(args\.\.\.\)` is deprecated"),
+    (FutureWarning, r"`torch\.jit\.script` is deprecated"),
+    (UserWarning, r"Converting a tensor with requires_grad=True to a scalar may lead to unexpected behavior"),
+)
+
+
+def quiet_known_warnings() -> None:
+    import warnings
+
+    for category, message in KNOWN_NOISE:
+        warnings.filterwarnings("ignore", message=message, category=category)

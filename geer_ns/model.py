@@ -39,18 +39,23 @@ from nerfstudio.models.splatfacto import (
 from nerfstudio.utils.colors import get_color
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from geer_ns import host_fixes
+from geer_ns import host_fixes, resume
 from geer_ns.cameras import CameraModel
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, native_view
 from geer_ns.render import render
 from geer_ns.render.backend import Backend
 from geer_ns.render.pbf import LambdaMode
+from geer_ns.render.transforms import view_transform
+from geer_ns.render_guard import RenderGuard, camera_problem, in_viewer_thread, is_viewer_interrupt
 
 # Every geer checkpoint load (ns-eval, ns-viewer, ns-render, --load-dir) imports this module first, through
 # the method registry or config.yml: allow-list the checkpoint's globals for torch's weights_only loader
 # (nerfstudio issue 3683).
 host_fixes.allow_nerfstudio_checkpoints()
+host_fixes.install_two_keyframe_spline_fix()  # the viewer's camera path with two keyframes (splines 0.3.0)
+host_fixes.provide_ffmpeg()  # ns-render needs an `ffmpeg` program; imageio-ffmpeg ships one
+host_fixes.quiet_known_warnings()  # host FutureWarnings that every run would print
 
 View = Union[BeapView, NativeView]
 
@@ -61,7 +66,16 @@ class GeerModelConfig(SplatfactoModelConfig):
     densify_grad_thresh: float = 0.0002
     """means2d gradient threshold (BEAP pixels, after gsplat's width/2, height/2 scaling), as gsplat's default."""
     use_absgrad: bool = False
-    """geer's means2d carries the summed gradient; per-pixel absolute gradients (AbsGS) are not available."""
+    """IGNORED by geer: its means2d carries the summed gradient; per-pixel absolute gradients (AbsGS) are not
+    available."""
+    rasterize_mode: Literal["classic", "antialiased"] = "classic"
+    """IGNORED by geer (a gsplat rasterizer option): every Gaussian is evaluated exactly along each ray."""
+    output_depth_during_training: bool = False
+    """IGNORED by geer: depth is always rendered."""
+    color_corrected_metrics: bool = False
+    """IGNORED by geer: metrics are computed over the valid pixels, without colour correction."""
+    n_split_samples: int = 2
+    """IGNORED by geer: gsplat's DefaultStrategy splits a Gaussian into two."""
     strategy: Literal["default", "mcmc"] = "default"
     """Densification: gsplat's DefaultStrategy (3DGS heuristics) or MCMCStrategy."""
     mcmc_cap_max: int = 1_000_000
@@ -79,6 +93,19 @@ class GeerModelConfig(SplatfactoModelConfig):
     central_half_angles_deg: Optional[Tuple[float, float]] = None
     """Half-extents (theta, phi) of the 'central' eval region in degrees; None = the paper's App. G rule
     (theta in +-w/(2 fx), phi in +-h/(2 fy))."""
+
+
+# splatfacto options geer accepts (so that splatfacto command lines still parse) but does not use.
+IGNORED_OPTIONS = ("use_absgrad", "rasterize_mode", "output_depth_during_training", "color_corrected_metrics",
+                   "n_split_samples")
+# geer's own options, listed first in `ns-train geer --help` (the method description).
+OWN_OPTIONS_HELP = (
+    "geer's own options: --pipeline.model.renderer-backend {auto,torch,cuda,cpu}, --pipeline.model.lambda-mode "
+    "{opacity,paper}, --pipeline.model.strategy {default,mcmc}, --pipeline.model.max-pairs, "
+    "--pipeline.model.central-half-angles-deg, --pipeline.datamanager.supervision, "
+    "--pipeline.datamanager.mask-edge-fill; resume with --load-dir <run>/nerfstudio_models. Splatfacto options "
+    "marked IGNORED are accepted and not used."
+)
 
 
 # ==================================================================================================
@@ -251,6 +278,7 @@ class GeerModel(SplatfactoModel):
             self.bil_grids = BilateralGrid(num=self.num_train_data, grid_X=shape[0], grid_Y=shape[1], grid_W=shape[2])
         self.strategy, self.strategy_state = self._build_strategy()
         self.info: Dict[str, object] = {}
+        self.render_guard = RenderGuard()
 
     def _initial_means(self) -> torch.nn.Parameter:
         if self.seed_points is not None and not self.config.random_init:
@@ -266,11 +294,18 @@ class GeerModel(SplatfactoModel):
         dc = RGB2SH(rgb) if self.config.sh_degree > 0 else torch.logit(rgb, eps=1e-10)
         return dc, torch.zeros(n, dim_sh - 1, 3)
 
+    def _say_ignored_options(self) -> None:
+        """One line naming the splatfacto options a user set that geer does not use (see IGNORED_OPTIONS)."""
+        defaults = GeerModelConfig()
+        changed = [f"{name}={getattr(self.config, name)!r}" for name in IGNORED_OPTIONS
+                   if getattr(self.config, name) != getattr(defaults, name)]
+        if changed:
+            CONSOLE.print(f"[yellow]geer: ignoring splatfacto option(s) {', '.join(changed)} (not used by the 3DGEER renderer)")
+
     def _build_strategy(self):
         cfg = self.config
-        if cfg.use_absgrad:
-            CONSOLE.print("[yellow]geer: use_absgrad is not supported by the 3DGEER renderer; using plain gradients")
-            cfg.use_absgrad = False
+        self._say_ignored_options()
+        cfg.use_absgrad = False
         if cfg.strategy == "mcmc":
             install_mcmc_cpu_ops()
             strategy = MCMCStrategy(
@@ -301,6 +336,30 @@ class GeerModel(SplatfactoModel):
             verbose=True,
         )
         return strategy, strategy.initialize_state(scene_scale=1.0)
+
+    # ------------------------------------------------------------------------------------- resume
+    # nerfstudio 1.1.5 issue 3554: splatfacto's load_state_dict replaces the Parameters the trainer's
+    # optimizers hold, so `--load-dir` trained nothing. Resize in place and keep the strategy state,
+    # step and RNG states with the checkpoint (geer_ns/resume.py).
+    def load_state_dict(self, state_dict, strict: bool = True, **kwargs):  # type: ignore[override]
+        state_dict = dict(state_dict)
+        if "means" in state_dict:  # splatfacto's backwards compatibility with pre-gauss_params checkpoints
+            for name in ("means", "scales", "quats", "features_dc", "features_rest", "opacities"):
+                state_dict[resume.GAUSS_PREFIX + name] = state_dict.pop(name)
+        resume.resize_in_place(self.gauss_params, state_dict)
+        return torch.nn.Module.load_state_dict(self, state_dict, strict=strict, **kwargs)
+
+    def update_to_step(self, step: int) -> None:
+        self.step = step  # splatfacto pins 30000 on load; the SH degree schedule needs the real step
+
+    def get_extra_state(self) -> Dict[str, object]:
+        return {"step": self.step, "strategy_state": resume.strategy_state(self.strategy_state),
+                "rng": resume.rng_state()}
+
+    def set_extra_state(self, state: Dict[str, object]) -> None:
+        self.step = int(state["step"])
+        resume.restore_strategy_state(self.strategy_state, state["strategy_state"], self.device)
+        resume.restore_rng_state(state["rng"])
 
     # ---------------------------------------------------------------------------------- rendering
     def _view_for(self, camera: Cameras) -> View:
@@ -343,7 +402,7 @@ class GeerModel(SplatfactoModel):
         means = params["means"]
         background = self._get_background_color().to(means)
         c2w = self.camera_optimizer.apply_to_camera(camera)[0] if self.training else camera.camera_to_worlds[0]
-        viewmat = world_to_camera_opencv(c2w.to(means))
+        viewmat = world_to_camera_opencv(c2w.to(means.device, torch.float64))  # float64: see view_transform
         means2d = None
         record = self.training and torch.is_grad_enabled()  # not for viewer renders during training
         if record:
@@ -367,9 +426,8 @@ class GeerModel(SplatfactoModel):
 
     def _displaced_means(self, means: Tensor, means2d: Tensor, viewmat: Tensor, steps) -> Tensor:
         """means + R^T lateral(means2d): the render depends on means2d only through the image position."""
-        rot = viewmat[:3, :3]
-        means_c = means.detach() @ rot.T + viewmat[:3, 3]
-        return means + lateral_displacement(means_c, means2d, steps) @ rot
+        means_c = view_transform(means.detach(), viewmat)
+        return means + lateral_displacement(means_c, means2d, steps) @ viewmat[:3, :3].to(means.dtype)
 
     def _record_info(self, means2d: Tensor, out, view: View) -> None:
         height, width = view.size
@@ -405,10 +463,25 @@ class GeerModel(SplatfactoModel):
 
     @torch.no_grad()
     def get_outputs_for_camera(self, camera: Cameras, obb_box=None) -> Dict[str, Tensor]:
-        """Render any nerfstudio camera (PERSPECTIVE, FISHEYE, FISHEYE624, EQUIRECTANGULAR) from its own rays."""
+        """Render any nerfstudio camera (PERSPECTIVE, FISHEYE, FISHEYE624, EQUIRECTANGULAR) from its own rays.
+
+        In the viewer's render thread a camera that cannot be rendered (zero or 180-degree field of view, NaN
+        pose, empty image) gives the last good frame and one log line, so that the thread survives
+        (geer_ns/render_guard.py); elsewhere (ns-eval, ns-render) it is an error naming the problem."""
         assert camera is not None, "must provide camera to gaussian model"
         self.set_crop(obb_box)
-        return self.get_outputs(camera.to(self.device))
+        problem = camera_problem(camera)
+        if problem is None:
+            try:
+                return self.render_guard.remember(self.get_outputs(camera.to(self.device)))
+            except Exception as error:  # noqa: BLE001 - the viewer thread must survive any of them
+                if is_viewer_interrupt(error) or not in_viewer_thread():
+                    raise
+                problem = f"{type(error).__name__}: {error}"
+        if not in_viewer_thread():
+            raise ValueError(f"geer: cannot render this camera: {problem}")
+        size = [max(1, int(getattr(camera, k).reshape(-1)[0])) for k in ("width", "height")]
+        return self.render_guard.fallback(problem, self.get_empty_outputs(*size, self.background_color.to(self.device)))
 
     # ------------------------------------------------------------------------------- densification
     def step_post_backward(self, step):

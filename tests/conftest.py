@@ -107,3 +107,56 @@ def reference_grids(dtype=torch.float64) -> dict:
         "fisheye180": RayGrid.from_rays(fish_dirs, fish_valid, tile_size=16),
         "equirect360": RayGrid.from_rays(equirect_rays(96, 48, dtype=dtype), None, tile_size=16),
     }
+
+
+def tiny_trainer_config(data: Path, out: Path, name: str, steps: int):
+    """geer's TrainerConfig for a few CPU steps: no viewer, no evaluation, half resolution, cached on the CPU."""
+    from geer_ns.config import geer_trainer_config
+    from geer_ns.model import GeerModelConfig
+
+    config = geer_trainer_config("geer", GeerModelConfig())
+    config.data = config.pipeline.datamanager.data = data  # as ns-train's main() does
+    config.pipeline.datamanager.cache_images = "cpu"
+    config.output_dir, config.experiment_name, config.timestamp = out, name, "run"
+    config.vis = "tensorboard"
+    config.max_num_iterations = steps
+    config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = 0
+    config.pipeline.model.num_downscales, config.pipeline.model.resolution_schedule = 1, 1_000_000
+    return config
+
+
+def train_in_process(config) -> Path:
+    """nerfstudio's training loop (what ns-train runs after parsing); returns the last checkpoint."""
+    from nerfstudio.scripts.train import train_loop
+    from nerfstudio.utils import writer
+
+    writer.EVENT_WRITERS.clear()  # nerfstudio's writers are module globals: one run's writers per run
+    train_loop(0, 1, config)
+    writer.EVENT_WRITERS.clear()
+    return sorted((config.get_base_dir() / "nerfstudio_models").glob("step-*.ckpt"))[-1]
+
+
+def copy_room(root: Path, n_frames: int, n_eval: int = 0) -> Path:
+    """The first n_frames frames of the embedded room (images, shared mask, seed points) as a dataset in root;
+    the last n_eval of them form the val/test split (without one, no split lists)."""
+    import json
+    import shutil
+
+    from geer_ns.data.synthetic_room import default_scene_dir
+
+    src = default_scene_dir()
+    meta = json.loads((src / "transforms.json").read_text())
+    meta["frames"] = meta["frames"][:n_frames]
+    names = [f["file_path"] for f in meta["frames"]]
+    for key in ("train_filenames", "val_filenames", "test_filenames"):
+        meta.pop(key)
+    if n_eval:
+        meta["train_filenames"] = names[: n_frames - n_eval]
+        meta["val_filenames"] = meta["test_filenames"] = names[n_frames - n_eval:]
+    for frame in meta["frames"]:
+        for key in ("file_path", "mask_path"):
+            (root / frame[key]).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(src / frame[key], root / frame[key])
+    shutil.copy(src / meta["ply_file_path"], root / meta["ply_file_path"])
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return root

@@ -19,6 +19,8 @@ import torch
 from PIL import Image
 
 from geer_ns import cameras as gc
+from geer_ns.data.dataset_checks import DatasetError
+from geer_ns.data.frustum_seed import seed_count
 from geer_ns.data.colmap_parser import (
     GeerColmapDataParserConfig,
     camera_model_for_image,
@@ -388,7 +390,9 @@ def test_missing_model_dir(tmp_path):
 def test_missing_image_file(tmp_path):
     write_dataset(tmp_path, build_recon(), "txt")
     (tmp_path / "images" / "sub" / "e.png").unlink()
-    with pytest.raises(FileNotFoundError, match=r"images/sub/e\.png.*sub/e\.png"):
+    (tmp_path / "images" / "b.png").unlink()
+    with pytest.raises(DatasetError, match=r"images\.txt: 2 image\(s\) named there were not found \('b\.png', "
+                                           r"'sub/e\.png'\); searched .*/images, "):
         load(tmp_path)
 
 
@@ -403,7 +407,7 @@ def test_unknown_model_name_in_text_model(tmp_path):
     write_dataset(tmp_path, build_recon(), "txt")
     f = tmp_path / "sparse/0/cameras.txt"
     f.write_text(f.read_text().replace("FOV", "FOOBAR_LENS"))
-    with pytest.raises(ValueError, match=r"cameras\.txt: camera 4: unknown COLMAP camera model FOOBAR_LENS"):
+    with pytest.raises(ValueError, match=r"cameras\.txt:7: camera 4: unknown COLMAP camera model FOOBAR_LENS; expected one of .*OPENCV_FISHEYE"):
         load(tmp_path)
 
 
@@ -425,14 +429,14 @@ def test_non_finite_intrinsics_binary_and_text(tmp_path):
             ln[5] = "nan"  # FULL_OPENCV fx fy cx ...: fy
         text.append(" ".join(ln))
     f.write_text("\n".join(text) + "\n")
-    with pytest.raises(ValueError, match=r"cameras\.txt: camera 2: FULL_OPENCV parameter fy = nan is not finite"):
+    with pytest.raises(ValueError, match=r"cameras\.txt:5: camera 2: FULL_OPENCV parameter fy = nan is not finite"):
         load(tmp_path / "t")
 
 
 def test_image_size_mismatch(tmp_path):
     write_dataset(tmp_path, build_recon(), "bin")
     Image.new("RGB", (63, 48)).save(tmp_path / "images" / "d.png")
-    with pytest.raises(ValueError, match=r"images/d\.png: size 63x48 differs from the COLMAP camera 1 size 64x48"):
+    with pytest.raises(ValueError, match=r"image 'd\.png' \(COLMAP camera 1\): image file \S*images/d\.png is 63x48 px, expected 64x48 "):
         load(tmp_path)
     load(tmp_path, check_image_sizes=False)  # can be switched off
 
@@ -444,12 +448,28 @@ def test_masks_missing_or_wrong_size(tmp_path):
         n for n, _ in IMAGES)
     assert load(tmp_path, masks_path=None).mask_filenames is None
     Image.new("L", (10, 10)).save(tmp_path / "masks" / "b.png")
-    with pytest.raises(ValueError, match=r"masks/b\.png: size 10x10 differs from its image size 48x40"):
+    with pytest.raises(ValueError, match=r"masks/b\.png is 10x10 px, expected 48x40 \(the image's size\)"):
         load(tmp_path)
     Image.new("L", (48, 40)).save(tmp_path / "masks" / "b.png")
     (tmp_path / "masks" / "c.png").unlink()
-    with pytest.raises(FileNotFoundError, match=r"masks/c\.png"):
+    with pytest.raises(DatasetError, match=r"masks/c\.png does not exist"):
         load(tmp_path)
+
+
+def _assert_seeds_inside_frusta(out) -> None:
+    """Every seed point projects into the valid image of at least one camera (exact models), in front of it."""
+    xyz = out.metadata["points3D_xyz"].double()
+    assert len(xyz) == seed_count(len(out.image_filenames))
+    seen = torch.zeros(len(xyz), dtype=torch.bool)
+    for i in range(len(out.image_filenames)):
+        c2w = out.cameras.camera_to_worlds[i].double()
+        rot = c2w[:, :3] * torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64)  # OpenGL -> OpenCV axes
+        local = (xyz - c2w[:, 3]) @ rot
+        m = camera_model_for_image(out, i)
+        px, valid = m.project(local)
+        inside = valid & (px[:, 0] >= 0) & (px[:, 0] <= m.width) & (px[:, 1] >= 0) & (px[:, 1] <= m.height)
+        seen |= inside & (local.norm(dim=-1) > 0)
+    assert bool(seen.all()), int((~seen).sum())
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -483,7 +503,7 @@ def test_real_t265_calibration(tmp_path):
     by_name = {t[9]: t for t in entries}
     names = sorted(by_name)
     assert [p.relative_to(tmp_path / "images").as_posix() for p in out.image_filenames] == names
-    assert "points3D_xyz" not in out.metadata  # no points: models fall back to their own init
+    _assert_seeds_inside_frusta(out)  # no points3D.txt: seeds drawn in the camera frusta
     for i, name in enumerate(names):
         cid = int(by_name[name][8])
         model_name, w, h, params = calib[cid]

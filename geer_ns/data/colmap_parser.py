@@ -8,10 +8,13 @@ calibrated model and never undistorts, so it must take those datasets as they ar
 Layout (``data`` is the dataset root)::
 
     data/
-      sparse/0/ | colmap/sparse/0/ | sparse/   COLMAP model, text or binary (first that exists, or
-                                               ``colmap_path``); points3D.{txt,bin} may be missing
+      sparse/0/ | colmap/sparse/0/ | sparse/   COLMAP model, text (commas accepted) or binary, at any usual
+      | colmap/ | . | ...                      depth (colmap_files.MODEL_DIRS, or ``colmap_path``);
+                                               points3D.{txt,bin} may be missing: seeds are then drawn inside
+                                               the camera frusta (frustum_seed)
       images/<name>                            one file per registered COLMAP image (name as in images.txt,
-                                               sub-folders allowed)
+                                               sub-folders allowed; also looked up under data/ and beside the
+                                               model, and by file name when unique; misses listed together)
       images_<N>/<name>                        optional downscaled copies (``downscale_factor`` = N)
       masks/<name with .png suffix>            optional masks, same relative names (``masks_N`` when downscaled)
       train_list.txt / test_list.txt /         optional split lists: one image name per line (relative to
@@ -88,6 +91,11 @@ from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from geer_ns.cameras import CameraModel, from_nerfstudio, from_pycolmap
+from geer_ns.data import colmap_files
+from geer_ns.data.colmap_files import model_format as _model_format
+from geer_ns.data.colmap_files import param_names as _param_names
+from geer_ns.data.dataset_checks import DatasetError, check_image_file
+from geer_ns.data.frustum_seed import frustum_points, seed_count
 
 __all__ = [
     "ColmapCameraSpec",
@@ -110,7 +118,6 @@ NS_INTRINSICS_KEY = "geer_ns_intrinsics"  # float64 [N, 4]: fx, fy, cx, cy the p
 MAX_PARAMS = 16
 
 MAX_AUTO_RESOLUTION = 1600  # same rule as nerfstudio's colmap dataparser
-_DEFAULT_MODEL_DIRS = (Path("sparse/0"), Path("colmap/sparse/0"), Path("sparse"))
 _FISHEYE_FAMILY = {
     "OPENCV_FISHEYE",
     "SIMPLE_RADIAL_FISHEYE",
@@ -146,13 +153,6 @@ class NerfstudioIntrinsics(NamedTuple):
 # ==================================================================================================
 # COLMAP model -> nerfstudio camera
 # ==================================================================================================
-
-
-def _param_names(model: str) -> List[str]:
-    import pycolmap
-
-    cam = pycolmap.Camera.create_from_model_name(0, model, 1.0, 2, 2)
-    return [n.strip() for n in cam.params_info.split(",")]
 
 
 def _pycolmap_camera(model: str, width: int, height: int, params: Sequence[float], camera_id: int = 1):
@@ -410,6 +410,23 @@ class GeerColmapDataParserConfig(DataParserConfig):
     """Seed points from points3D (metadata points3D_xyz / points3D_rgb)."""
     check_image_sizes: bool = True
     """Check every image (and mask) file's size against its COLMAP camera (reads only the file headers)."""
+    crop_radius: Optional[float] = None
+    """Fisheye image-circle radius in pixels (of the full-resolution images), centred on each camera's
+    principal point: pixels outside are not supervised. For fisheye captures without masks."""
+
+
+class _Parsed(NamedTuple):
+    model_dir: Path
+    recon: object
+    names: List[str]
+    cameras: Cameras
+    specs: List[ColmapCameraSpec]
+    c2w: torch.Tensor
+    transform: torch.Tensor
+    scale: float
+    image_files: List[Path]
+    mask_files: Optional[List[Path]]
+    downscale: int
 
 
 class GeerColmapDataParser(DataParser):
@@ -431,10 +448,10 @@ class GeerColmapDataParser(DataParser):
             if not model_dir.is_dir():
                 raise FileNotFoundError(f"COLMAP model directory {model_dir} (colmap_path) does not exist")
             return model_dir
-        for candidate in _DEFAULT_MODEL_DIRS:
-            if (data / candidate).is_dir() and _model_format(data / candidate) is not None:
-                return data / candidate
-        tried = ", ".join(str(data / c) for c in _DEFAULT_MODEL_DIRS)
+        found = colmap_files.find_model_dir(data)
+        if found is not None:
+            return found
+        tried = ", ".join(str(data / c) for c in colmap_files.MODEL_DIRS)
         raise FileNotFoundError(
             f"no COLMAP model directory (cameras + images .txt or .bin) found; tried {tried} (set colmap_path)"
         )
@@ -500,7 +517,11 @@ class GeerColmapDataParser(DataParser):
         raise ValueError(f"unknown dataparser split {split!r}")
 
     # --- main -----------------------------------------------------------------------------------------
-    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+    def _parse_all(self) -> "_Parsed":
+        """Everything that does not depend on the split, read once per parser (nerfstudio asks once per
+        split): the model, the cameras and poses of all images, the image and mask files."""
+        if getattr(self, "_parsed", None) is not None:
+            return self._parsed
         cfg = self.config
         data = Path(cfg.data)
         model_dir = self._model_dir()
@@ -511,6 +532,12 @@ class GeerColmapDataParser(DataParser):
             raise ValueError(f"{model_dir}: the COLMAP model has no registered images (images with a pose)")
         images.sort(key=lambda im: im.name)
         names = [im.name for im in images]
+        for im in images:  # text models were checked line by line; binary ones here
+            if not np.isfinite(np.asarray(im.cam_from_world().matrix(), dtype=np.float64)).all():
+                raise DatasetError(
+                    f"geer: {_model_file(model_dir, 'images')}: image {im.image_id} '{im.name}': the pose "
+                    "(quaternion / translation) has NaN or Inf entries; fix or remove this image"
+                )
 
         # Cameras: validated once per COLMAP camera id.
         cameras_file = _model_file(model_dir, "cameras")
@@ -528,23 +555,23 @@ class GeerColmapDataParser(DataParser):
                     )
                     cam_info[cid] = (spec._replace(nerfstudio_exact=False), ns_cam)
 
-        image_dir = data / cfg.images_path
-        full_res = [image_dir / n for n in names]
-        for path, im in zip(full_res, images):
-            if not path.is_file():
-                raise FileNotFoundError(f"image file {path} (COLMAP image {im.image_id} '{im.name}') does not exist")
+        located = colmap_files.locate_images(
+            names, colmap_files.image_roots(data, cfg.images_path, model_dir), _model_file(model_dir, "images")
+        )
+        full_res = [root / rel for root, rel in located]
         df = self._downscale_factor(full_res[0])
-        image_files = full_res if df == 1 else [_downscaled(image_dir, df) / n for n in names]
-        if df > 1 and not _downscaled(image_dir, df).is_dir():
-            raise FileNotFoundError(
-                f"downscaled image directory {_downscaled(image_dir, df)} (downscale_factor={df}) does not exist; "
-                "create it (e.g. with ffmpeg or nerfstudio's colmap dataparser) or set downscale_factor 1"
-            )
+        image_files = full_res if df == 1 else [_downscaled(root, df) / rel for root, rel in located]
+        for root in {root for root, _ in located}:
+            if df > 1 and not _downscaled(root, df).is_dir():
+                raise FileNotFoundError(
+                    f"downscaled image directory {_downscaled(root, df)} (downscale_factor={df}) does not exist; "
+                    "create it (e.g. with ffmpeg or nerfstudio's colmap dataparser) or set downscale_factor 1"
+                )
         mask_files: Optional[List[Path]] = None
         if cfg.masks_path is not None and (data / cfg.masks_path).is_dir():
             mask_dir = data / cfg.masks_path
             mask_dir = mask_dir if df == 1 else _downscaled(mask_dir, df)
-            mask_files = [(mask_dir / n).with_suffix(".png") for n in names]
+            mask_files = [(mask_dir / rel).with_suffix(".png") for _, rel in located]
 
         # nerfstudio cameras at full resolution, then rescaled like nerfstudio does.
         ns = [cam_info[int(im.camera_id)][1] for im in images]
@@ -575,27 +602,15 @@ class GeerColmapDataParser(DataParser):
                 spec = _rescaled(spec, 1.0 / df, w, h)
             specs.append(spec)
 
-        if cfg.check_image_sizes:
+        if cfg.check_image_sizes:  # headers and end markers only (dataset_checks.check_image_file)
+            images_file = _model_file(model_dir, "images")
             for i, path in enumerate(image_files):
-                if not path.is_file():
-                    raise FileNotFoundError(f"image file {path} (COLMAP image '{names[i]}') does not exist")
-                want = (specs[i].width, specs[i].height)
-                got = _image_size(path)
-                if got != want:
-                    raise ValueError(
-                        f"image file {path}: size {got[0]}x{got[1]} differs from the COLMAP camera "
-                        f"{specs[i].camera_id} size {want[0]}x{want[1]}"
-                        + (f" (downscaled by {df})" if df > 1 else "")
-                    )
+                where = f"{images_file}: image '{names[i]}' (COLMAP camera {specs[i].camera_id}" + (
+                    f", downscaled by {df})" if df > 1 else ")")
+                check_image_file(path, where, (specs[i].width, specs[i].height), size_fields="its camera's WIDTH x HEIGHT")
             for i, path in enumerate(mask_files or []):
-                if not path.is_file():
-                    raise FileNotFoundError(f"mask file {path} (for image '{names[i]}') does not exist")
-                want = (specs[i].width, specs[i].height)
-                got = _image_size(path)
-                if got != want:
-                    raise ValueError(
-                        f"mask file {path}: size {got[0]}x{got[1]} differs from its image size {want[0]}x{want[1]}"
-                    )
+                check_image_file(path, f"mask of image '{names[i]}'", (specs[i].width, specs[i].height), what="mask",
+                                 size_fields="the image's size")
 
         model_ids = torch.tensor([[_model_id(s.model)] for s in specs], dtype=torch.int64)
         params = torch.zeros(len(specs), MAX_PARAMS, dtype=torch.float64)
@@ -610,14 +625,24 @@ class GeerColmapDataParser(DataParser):
             NS_INTRINSICS_KEY: torch.stack([getattr(cams, k)[:, 0].double() for k in ("fx", "fy", "cx", "cy")], -1),
         }
 
+        self._parsed = _Parsed(model_dir, recon, names, cams, specs, c2w, transform, scale, image_files, mask_files, df)
+        return self._parsed
+
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+        cfg = self.config
+        model_dir, recon, names, cams, specs, c2w, transform, scale, image_files, mask_files, df = self._parse_all()
         # Split (after orienting / scaling with all images, like nerfstudio).
         idx = self._split_indices(names, split)
         idx_t = torch.as_tensor(idx, dtype=torch.long)
         cams = cams[idx_t]
 
+        if cfg.crop_radius is not None:
+            cams.metadata["fisheye_crop_radius"] = float(cfg.crop_radius) / df  # read by the datamanager
         metadata: Dict = {GEER_CAMERAS_KEY: [specs[i] for i in idx]}
         if cfg.load_3D_points:
             metadata.update(_points(recon, transform, scale, model_dir))
+            if "points3D_xyz" not in metadata:
+                metadata.update(_frustum_seed([specs[i] for i in idx], c2w[idx_t], model_dir))
 
         n_inexact = sum(not specs[i].nerfstudio_exact for i in idx)
         if n_inexact:
@@ -680,21 +705,15 @@ geer_colmap_dataparser = DataParserSpecification(
 # ==================================================================================================
 
 
-def _model_format(model_dir: Path) -> Optional[str]:
-    if (model_dir / "cameras.bin").is_file() and (model_dir / "images.bin").is_file():
-        return "bin"
-    if (model_dir / "cameras.txt").is_file() and (model_dir / "images.txt").is_file():
-        return "txt"
-    return None
-
-
 def _model_file(model_dir: Path, stem: str) -> Path:
     fmt = _model_format(model_dir) or "txt"
     return model_dir / f"{stem}.{fmt}"
 
 
 def _read_reconstruction(model_dir: Path):
-    """pycolmap.Reconstruction of model_dir; a missing points3D file counts as no points."""
+    """pycolmap.Reconstruction of model_dir; a missing points3D file counts as no points.
+
+    Text models are first rewritten strictly (colmap_files: commas accepted, errors at file:line)."""
     import pycolmap
 
     fmt = _model_format(model_dir)
@@ -702,21 +721,19 @@ def _read_reconstruction(model_dir: Path):
         raise FileNotFoundError(
             f"COLMAP model directory {model_dir} has no cameras.bin + images.bin or cameras.txt + images.txt"
         )
-    if fmt == "txt":
-        _precheck_cameras_txt(model_dir / "cameras.txt")
-    points = model_dir / f"points3D.{fmt}"
     with tempfile.TemporaryDirectory(prefix="geer_colmap_") as tmp:
-        src = model_dir
-        if not points.is_file():
-            CONSOLE.log(f"[yellow]{points} does not exist: no seed points")
-            src = Path(tmp)
-            for f in model_dir.iterdir():
-                if f.is_file() and f.suffix == f".{fmt}":
-                    shutil.copy(f, src / f.name)
-            if fmt == "txt":
-                (src / "points3D.txt").write_text("")
-            else:
+        src = Path(tmp)
+        if fmt == "txt":
+            has_points = colmap_files.write_strict_text_model(model_dir, src)
+        else:
+            has_points = (model_dir / "points3D.bin").is_file()
+            for name in ("cameras.bin", "images.bin", "points3D.bin"):
+                if (model_dir / name).is_file():
+                    shutil.copy(model_dir / name, src / name)
+            if not has_points:
                 (src / "points3D.bin").write_bytes(struct.pack("<Q", 0))
+        if not has_points:
+            CONSOLE.log(f"[yellow]geer: {model_dir} has no points3D.{fmt}: seed points are drawn in the camera frusta")
         recon = pycolmap.Reconstruction()
         try:
             if fmt == "txt":
@@ -724,38 +741,8 @@ def _read_reconstruction(model_dir: Path):
             else:
                 recon.read_binary(str(src))
         except Exception as e:  # pycolmap raises ValueError / RuntimeError with a C++ check message
-            raise ValueError(f"pycolmap could not read the COLMAP model in {model_dir}: {e}") from e
+            raise DatasetError(f"geer: pycolmap could not read the COLMAP model in {model_dir}: {e}") from e
     return recon
-
-
-def _precheck_cameras_txt(path: Path) -> None:
-    """Clear errors for what pycolmap's text reader rejects with a bare check message."""
-    import pycolmap
-
-    known = set(pycolmap.CameraModelId.__members__) - {"INVALID"}
-    for lineno, line in enumerate(path.read_text(encoding="utf8").splitlines(), 1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        tok = line.replace(",", " ").split()
-        if len(tok) < 4:
-            raise ValueError(f"{path}:{lineno}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..., got {line!r}")
-        cid, model = tok[0], tok[1]
-        if model not in known:
-            raise ValueError(f"{path}: camera {cid}: unknown COLMAP camera model {model}")
-        names = _param_names(model)
-        values = tok[4:]
-        if len(values) != len(names):
-            raise ValueError(
-                f"{path}: camera {cid}: {model} expects {len(names)} params ({', '.join(names)}), got {len(values)}"
-            )
-        for name, text in zip(names, values):
-            try:
-                value = float(text)
-            except ValueError:
-                raise ValueError(f"{path}: camera {cid}: {model} parameter {name} = {text!r} is not a number") from None
-            if not math.isfinite(value):
-                raise ValueError(f"{path}: camera {cid}: {model} parameter {name} = {text} is not finite")
 
 
 def _check_camera(camera, cameras_file: Path) -> Tuple[ColmapCameraSpec, NerfstudioIntrinsics]:
@@ -801,13 +788,13 @@ def _downscaled(folder: Path, df: int) -> Path:
     return folder.parent / f"{folder.name}_{df}"
 
 
-def _image_size(path: Path) -> Tuple[int, int]:
-    """(width, height) from the file header only (PIL opens lazily)."""
-    try:
-        with Image.open(path) as im:
-            return tuple(im.size)  # type: ignore[return-value]
-    except Exception as e:
-        raise ValueError(f"cannot read the image header of {path}: {e}") from e
+def _frustum_seed(specs: Sequence[ColmapCameraSpec], c2w: torch.Tensor, model_dir: Path) -> Dict[str, torch.Tensor]:
+    """Seed points inside the frusta of all images (frustum_seed) when the model has no 3D points."""
+    cams = [from_pycolmap(_pycolmap_camera(s.model, s.width, s.height, s.params, s.camera_id)) for s in specs]
+    count = seed_count(len(cams))
+    xyz, rgb = frustum_points(cams, c2w, count)
+    CONSOLE.log(f"geer: {model_dir}: no 3D points; {count} seed points drawn inside the {len(cams)} camera frusta")
+    return {"points3D_xyz": xyz, "points3D_rgb": rgb}
 
 
 def _points(recon, transform: torch.Tensor, scale: float, model_dir: Path) -> Dict[str, torch.Tensor]:

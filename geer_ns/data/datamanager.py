@@ -28,8 +28,10 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataPars
 from nerfstudio.utils.io import load_from_json
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from geer_ns import resume
 from geer_ns.cameras import CameraModel
 from geer_ns.data.beap import resample_to_beap
+from geer_ns.data.dataset_checks import check_transforms_json
 from geer_ns.data.views import beap_view, camera_model, native_view
 from geer_ns.host_fixes import pin_if_possible, read_ply_points
 
@@ -66,6 +68,10 @@ def check_data_path(config: GeerDataManagerConfig) -> None:
                 f"geer: --data {path} has no transforms.json (nerfstudio-data format expected; "
                 "for a COLMAP reconstruction choose the colmap dataparser)"
             )
+    if isinstance(config.dataparser, NerfstudioDataParserConfig):
+        # Broken files: one line naming file, frame and field, before anything is parsed or cached.
+        check_transforms_json(path if path.suffix == ".json" else path / "transforms.json",
+                              config.dataparser.auto_scale_poses)
 
 
 def native_valid_mask(camera: CameraModel, mask: Optional[torch.Tensor], crop_radius: Optional[float]) -> torch.Tensor:
@@ -127,6 +133,7 @@ class GeerDataManager(FullImageDatamanager):
             config.dataparser.load_3D_points = False
             config.load_seed_points = True
         super().__init__(config, *args, **kwargs)
+        self.train_cameras = self.train_dataset.cameras  # set here, not only by the image cache (on the device there)
         if config.load_seed_points:
             self._add_seed_points()
 
@@ -185,6 +192,13 @@ class GeerDataManager(FullImageDatamanager):
                     view[key] = view[key].to(self.device) if on_gpu else pin_if_possible(view[key])
         self.train_cameras = self.train_dataset.cameras.to(self.device) if on_gpu else self.train_dataset.cameras
         return views
+
+    # Saved with checkpoints so that a resumed run draws the same images next (nerfstudio issue 3554).
+    def get_extra_state(self) -> Dict:
+        return resume.sampler_state(self)
+
+    def set_extra_state(self, state: Dict) -> None:
+        resume.restore_sampler_state(self, state)
 
     def next_train(self, step: int) -> Tuple[Cameras, Dict]:
         camera, data = super().next_train(step)

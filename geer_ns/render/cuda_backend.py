@@ -40,6 +40,7 @@ from torch import Tensor
 
 from .pbf import PBF, LambdaMode
 from .raygrid import RayGrid
+from .transforms import view_transform
 
 # The kernels compile and their math is checked on the CPU (tests/test_csrc_math.py), but they have not yet
 # run on a GPU against the twin. backend="auto" must keep choosing the PyTorch twin while this is False; a
@@ -250,11 +251,12 @@ def render_cuda(
     grid = grid.to(device)
     dirs = grid.dirs.to(dtype).contiguous()
     # The pose goes to the Gaussians' device (no host round trip); the kernels read rot_c and cam_center there.
-    viewmat = viewmat.detach().to(device=device, dtype=dtype)
+    # Stage 1. View transform in PyTorch (transforms.view_transform, float64 inside), the rest per Gaussian
+    # in the kernel.
+    viewmat = viewmat.detach().to(device=device)
+    means_c = view_transform(means, viewmat)
+    viewmat = viewmat.to(dtype)
     rot_c, t_c = viewmat[:3, :3], viewmat[:3, 3]
-
-    # Stage 1. View transform in PyTorch (transforms.to_view_space), the rest per Gaussian in the kernel.
-    means_c = means @ rot_c.T + t_c
     if means_c.requires_grad:
         means_c.retain_grad()
     degree = _sh_setup(colors, sh_degree)

@@ -22,7 +22,7 @@ from .blend import blend_lists
 from .pbf import PBF, LambdaMode, compute_pbf, pbf_lambda_sq
 from .raygrid import RayGrid
 from .sh import sh_to_color
-from .transforms import covariance_factor, to_view_space, whitening
+from .transforms import camera_offsets, covariance_factor, to_view_space, whitening
 from .validate import check_gaussians
 
 
@@ -72,8 +72,7 @@ def preprocess(
         rgb = colors
     else:
         degree = int(math.isqrt(colors.shape[1]) - 1) if sh_degree is None else sh_degree
-        cam_center = -viewmat[:3, :3].T @ viewmat[:3, 3]
-        rgb = sh_to_color(colors, means - cam_center, degree)
+        rgb = sh_to_color(colors, camera_offsets(means, viewmat), degree)
     return Preprocessed(means_c, w, o_u, rgb, opacities, means_c.detach().norm(dim=-1), pbf)
 
 
@@ -126,7 +125,7 @@ def render(
                            ops=load_cpu_ops() if chosen == "cpu" else None)
     grid = grid.to(means.device)
     dirs = grid.dirs.to(means.dtype)
-    viewmat = viewmat.to(means.dtype)
+    # viewmat keeps its dtype: the view transform runs in float64 (transforms.view_transform)
     pre = preprocess(means, quats, scales, opacities, colors, viewmat, sh_degree, lambda_mode)
     tiles = associate(pre.pbf, grid, pre.depth)
     rgb, depth, acc = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs, grid.valid, grid.tile_rays,

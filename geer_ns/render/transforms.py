@@ -17,9 +17,17 @@ from torch import Tensor
 MIN_SCALE = 1e-12
 
 
+def normalize_quats(quats: Tensor) -> Tensor:
+    """Unit quaternions [..., 4] from any non-zero ones. Dividing by the largest |component| first keeps
+    the norm's squares in range: a float32 quaternion of norm 1e19 (or 1e-25) normalises exactly."""
+    tiny = torch.finfo(quats.dtype).tiny
+    q = quats / quats.abs().amax(dim=-1, keepdim=True).clamp_min(tiny)
+    return q / q.norm(dim=-1, keepdim=True).clamp_min(tiny)
+
+
 def quat_to_rotmat(quats: Tensor) -> Tensor:
     """Rotation matrices [..., 3, 3] from quaternions [..., 4] (wxyz, any norm)."""
-    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(quats.dtype).tiny)
+    q = normalize_quats(quats)
     w, x, y, z = q.unbind(-1)
     return torch.stack(
         [
@@ -31,11 +39,27 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
     ).reshape(q.shape[:-1] + (3, 3))
 
 
+def view_transform(means: Tensor, viewmat: Tensor) -> Tensor:
+    """means_c = R_c mu + t [N, 3], computed in float64 and returned in means' dtype.
+
+    Far from the origin R_c mu and t are two large, nearly opposite numbers: in float32 a scene at 1e4
+    loses ~1e-3 of its view-space position (the cancellation), in float64 the result is correctly rounded.
+    """
+    vm = viewmat.to(torch.float64)
+    return (means.to(torch.float64) @ vm[:3, :3].T + vm[:3, 3]).to(means.dtype)
+
+
+def camera_offsets(means: Tensor, viewmat: Tensor) -> Tensor:
+    """mu - camera centre [N, 3] in world axes (SH view directions), in float64 for the same reason."""
+    vm = viewmat.to(torch.float64)
+    center = -vm[:3, :3].T @ vm[:3, 3]
+    return (means.to(torch.float64) - center).to(means.dtype)
+
+
 def to_view_space(means: Tensor, quats: Tensor, viewmat: Tensor) -> tuple[Tensor, Tensor]:
     """View-space means [N, 3] and view-space rotations R_v = R_c R [N, 3, 3]."""
-    rot_c = viewmat[:3, :3]
-    means_c = means @ rot_c.T + viewmat[:3, 3]
-    rot_v = rot_c @ quat_to_rotmat(quats)
+    means_c = view_transform(means, viewmat)
+    rot_v = viewmat[:3, :3].to(means.dtype) @ quat_to_rotmat(quats)
     return means_c, rot_v
 
 

@@ -11,16 +11,23 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+SUPPORTED_DTYPES = (torch.float32, torch.float64)
+
 
 def check_shape(name: str, t: Tensor, shape: tuple[int | None, ...]) -> None:
-    """Type, shape (None: any size) and floating-point dtype; no device work."""
+    """Type, shape (None: any size) and dtype (float32 or float64); no device work."""
     if not isinstance(t, Tensor):
         raise TypeError(f"{name}: expected a torch.Tensor, got {type(t).__name__}")
     if t.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape)):
         want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
         raise ValueError(f"{name}: expected shape {want}, got {list(t.shape)}")
-    if not t.is_floating_point():
-        raise ValueError(f"{name}: expected a floating-point tensor, got {t.dtype}")
+    if t.dtype not in SUPPORTED_DTYPES:
+        # float16/bfloat16 overflow in the exact transmittance (exp of squared distances) and give
+        # non-finite depth; integers and complex numbers are no geometry.
+        raise ValueError(
+            f"{name}: dtype {t.dtype} is not supported; expected torch.float32 or torch.float64 "
+            "(cast with .float())"
+        )
 
 
 def _non_finite(name: str, t: Tensor) -> tuple[Tensor, object]:
@@ -82,7 +89,7 @@ def check_gaussians(
     checks += [
         ((scales <= 0).any(), "scales: must be > 0 (pass exp(log_scales))"),
         (((opacities < 0) | (opacities > 1)).any(), "opacities: must lie in [0, 1] (pass sigmoid(logits))"),
-        ((quats.norm(dim=-1) == 0).any(), "quats: zero-norm quaternion"),
+        ((quats.abs().amax(dim=-1) == 0).any(), "quats: zero-norm quaternion"),  # norm() under/overflows in float32
     ]
     _raise_first(checks)
     return n

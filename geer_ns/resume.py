@@ -1,0 +1,103 @@
+"""Checkpoint state that makes `ns-train --load-dir` continue training exactly where it stopped.
+
+nerfstudio 1.1.5 issue 3554: splatfacto's `load_state_dict` swaps fresh `nn.Parameter`s into
+`gauss_params` after the trainer built the optimizers (and gsplat's strategy state) on the old ones, so
+a resumed run steps parameters nobody renders (every loaded Gaussian stays bit-identical, Adam's step
+count stalls) and the first refinement indexes the stale optimizer state out of bounds. geer instead:
+
+* resizes the existing Parameters in place, so the optimizers the trainer built, and then filled with
+  the checkpoint's optimizer state, hold the very tensors the model renders;
+* saves with the model (nn.Module extra state, plain tensors / numbers: loadable by torch's
+  weights_only loader) what nerfstudio leaves out: the training step, gsplat's strategy state (the
+  densification statistics gathered since the last refinement) and the torch / numpy / Python RNG
+  states, so refinement and random backgrounds go on as in an uninterrupted run;
+* the datamanager saves its camera queue and sampler state (which image comes next).
+"""
+
+from __future__ import annotations
+
+import random
+from typing import Any, Dict, Mapping
+
+import numpy as np
+import torch
+
+GAUSS_PREFIX = "gauss_params."
+
+
+def resize_in_place(gauss_params: torch.nn.ParameterDict, state_dict: Mapping[str, Any]) -> None:
+    """Give each Gaussian Parameter the checkpoint's row count, keeping the Parameter objects."""
+    key = GAUSS_PREFIX + "means"
+    if key not in state_dict:
+        return
+    n = state_dict[key].shape[0]
+    with torch.no_grad():
+        for name, param in gauss_params.items():
+            if param.shape[0] != n:
+                param.data = param.new_zeros((n,) + tuple(param.shape[1:]))
+
+
+def rng_state() -> Dict[str, Any]:
+    """torch (CPU and CUDA), numpy and Python RNG states as tensors, ints and tuples."""
+    np_state = np.random.get_state()
+    state = {
+        "torch": torch.get_rng_state(),
+        "numpy": (str(np_state[0]), torch.from_numpy(np_state[1].astype(np.int64)), *map(_plain, np_state[2:])),
+        "python": random.getstate(),
+    }
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def restore_rng_state(state: Mapping[str, Any]) -> None:
+    torch.set_rng_state(state["torch"].cpu())
+    name, keys, *rest = state["numpy"]
+    np.random.set_state((name, keys.numpy().astype(np.uint32), *rest))
+    random.setstate(_tuples(state["python"]))
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda"]])
+
+
+def strategy_state(state: Mapping[str, Any]) -> Dict[str, Any]:
+    return {k: (v.detach().clone() if isinstance(v, torch.Tensor) else v) for k, v in state.items()}
+
+
+def restore_strategy_state(target: Dict[str, Any], saved: Mapping[str, Any], device) -> None:
+    """Into the model's own dict (gsplat keeps a reference to it)."""
+    target.clear()
+    target.update({k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in saved.items()})
+
+
+def sampler_state(datamanager) -> Dict[str, Any]:
+    """Which training images come next (FullImageDatamanager's queue and its samplers)."""
+    state: Dict[str, Any] = {"train_unseen_cameras": list(getattr(datamanager, "train_unseen_cameras", []))}
+    if hasattr(datamanager, "random_generator"):
+        state["random_generator"] = datamanager.random_generator.getstate()
+    if hasattr(datamanager, "train_unsampled_epoch_count"):
+        state["train_unsampled_epoch_count"] = torch.from_numpy(np.asarray(datamanager.train_unsampled_epoch_count))
+    return state
+
+
+def restore_sampler_state(datamanager, state: Mapping[str, Any]) -> None:
+    """Restored only when it fits the training set now loaded (a changed dataset keeps its fresh queue)."""
+    n = len(getattr(datamanager, "train_dataset", None) or [])
+    if not state or any(not 0 <= int(i) < n for i in state["train_unseen_cameras"]):
+        return
+    datamanager.train_unseen_cameras = [int(i) for i in state["train_unseen_cameras"]]
+    if "random_generator" in state:
+        datamanager.random_generator = random.Random()
+        datamanager.random_generator.setstate(_tuples(state["random_generator"]))
+    if "train_unsampled_epoch_count" in state:
+        datamanager.train_unsampled_epoch_count = state["train_unsampled_epoch_count"].numpy().copy()
+
+
+def _plain(value):
+    return value.item() if hasattr(value, "item") else value
+
+
+def _tuples(value):
+    """Python's Random.setstate wants tuples; a checkpoint round trip may hand back lists."""
+    if isinstance(value, (list, tuple)):
+        return tuple(_tuples(v) for v in value)
+    return value
