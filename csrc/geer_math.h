@@ -501,6 +501,8 @@ template <typename T> struct alignas(16) GaussFrame {
     T opacity;
     T pad[2];
 };
+static_assert(sizeof(GaussFrame<float>) == 128 && alignof(GaussFrame<float>) == 16, "GaussFrame<float>: 8 x 16 B");
+static_assert(sizeof(GaussFrame<double>) == 256, "GaussFrame<double>: 16 x 16 B");
 
 template <typename T> GEER_HD void make_frame(const T* w, const T* o_u, const T* rgb, T opacity, GaussFrame<T>& f) {
     const Vec3<T> o = load3(o_u);

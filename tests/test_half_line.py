@@ -139,18 +139,20 @@ def _camera_at(pos):
     return vm
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
 @pytest.mark.parametrize("crossing", ["alpha", "pbf", "mean"])
-def test_continuity_camera_through_a_gaussian(backends, crossing):
+def test_continuity_camera_through_a_gaussian(backends, crossing, dtype):
     """Moving the camera in 1e-6 steps through a Gaussian's surface (and through its mean) changes no pixel by
     more than the 1/255 skip threshold plus O(step), with either backend."""
     scene, cross, step_dir = _sweep_scene(crossing)
-    grid = RayGrid.from_rays(equirect_rays(32, 16), None, tile_size=8)  # every direction, t* < 0 included
+    render_scene = [t.to(dtype) for t in scene]
+    grid = RayGrid.from_rays(equirect_rays(32, 16, dtype=dtype), None, tile_size=8)  # every direction
     step = 1e-6
     for backend in backends:
         frames, levels = [], []
         for k in range(-20, 21):
             vm = _camera_at(cross + k * step * step_dir)
-            out = render(*scene, vm, grid, backend=backend, background=torch.zeros(3, dtype=F64))
+            out = render(*render_scene, vm.to(dtype), grid, backend=backend, background=torch.zeros(3, dtype=dtype))
             frames.append(torch.cat([out.rgb, out.accumulation], -1))
             levels.append((float(preprocess(*scene, vm).o_u[0].square().sum()), bool(out.pbf.camera_inside[0])))
         jumps = torch.stack([(b - a).abs().max() for a, b in zip(frames, frames[1:])])
@@ -163,7 +165,7 @@ def test_continuity_camera_through_a_gaussian(backends, crossing):
     # What the old camera-inside rule switched on at the crossing: rays whose whole-line response is large
     # but whose peak lies behind the camera (the half-line rule gives them ~1/255 here).
     pre = preprocess(*scene, _camera_at(cross))
-    d2, t_star = canonical_ray_response(pre.o_u[:1], pre.whiten[:1], grid.dirs)
+    d2, t_star = canonical_ray_response(pre.o_u[:1], pre.whiten[:1], grid.dirs.double())
     whole_line = 0.9 * torch.exp(-0.5 * d2[:, 0])
     if crossing != "mean":  # (at the mean t* = 0 on every ray: nothing lies behind)
         assert float(whole_line[t_star[:, 0] < 0].max()) > 0.3

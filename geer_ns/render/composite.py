@@ -28,4 +28,5 @@ def composite(
     t_before, t_after = t_after[..., :-1], t_after[..., 1:]
     weights = torch.where(t_after >= T_MIN, alpha * t_before, torch.zeros_like(alpha))
     rgb = torch.einsum("...pk,...kc->...pc", weights, colors)
-    return rgb, (weights * depths).sum(-1), weights.sum(-1), t_after[..., -1]
+    # The last transmittance as its own tensor: a view would keep the piece's whole product alive.
+    return rgb, (weights * depths).sum(-1), weights.sum(-1), t_after[..., -1].clone()

@@ -133,7 +133,13 @@ def _plane_bounds(
 @torch.no_grad()
 def compute_pbf(means_c: Tensor, cov_factor: Tensor, lam2: Tensor, alive: Tensor, o_u: Tensor) -> PBF:
     """PBF angular bounds from view-space means [N,3], covariance factors M = R_v S [N,3,3] (Sigma_c = M M^T),
-    lambda^2 [N] and the camera centre in each canonical frame o_u [N,3]."""
+    lambda^2 [N] and the camera centre in each canonical frame o_u [N,3].
+
+    Complete for the half-line rule (transmittance.py): a ray is visible only where its half-line t >= 0
+    meets the lambda-ellipsoid. With the camera outside it, a ray whose line peaks behind the camera has
+    q = |o_u|^2 > lambda^2 (alpha < 1/255), and any other visible ray passes through the ellipsoid in front
+    of the camera, inside these bounds. With the camera inside, every half-line starts in the ellipsoid:
+    every direction sees the Gaussian, and the bounds are the full range."""
     camera_inside = (o_u * o_u).sum(-1) <= lam2
     x, y, z = means_c.unbind(-1)
     theta_lo, theta_hi = _plane_bounds(x, z, cov_factor[:, 0], cov_factor[:, 2], lam2, camera_inside)

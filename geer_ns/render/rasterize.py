@@ -105,7 +105,7 @@ def render(
     background: Tensor | None = None,
     lambda_mode: LambdaMode = "opacity",
     backend: Backend = "auto",
-    max_pairs: int = 1 << 22,
+    max_pairs: int = 1 << 20,
 ) -> RenderOutput:
     """Render one view with 3DGEER.
 
@@ -149,7 +149,7 @@ def render_brute_force(
     sh_degree: int | None = None,
     background: Tensor | None = None,
     rays_per_group: int = 64,
-    max_pairs: int = 1 << 22,
+    max_pairs: int = 1 << 20,
 ) -> RenderOutput:
     """Reference renderer: every valid ray against every Gaussian, no PBF, no tiles, same ordering.
 
