@@ -159,11 +159,16 @@ template <typename T> GEER_HD void store_mat3(T* p, const Mat3<T>& a) {
 
 // ================================================================================ forward: Gaussian
 // transforms.quat_to_rotmat: wxyz, any norm (normalised with the norm clamped at tiny).
+// transforms.normalize_quats: divide by the largest |component| first, so the squares stay in range (a
+// float32 quaternion of norm 1e19 or 1e-25 normalises exactly). norm_out = |q|.
 template <typename T> GEER_HD void normalize_quat(const T* q, T* qn, T* norm_out) {
-    T n = g_sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
-    *norm_out = n;
-    T nc = g_max(n, Limits<T>::tiny());
-    for (int i = 0; i < 4; ++i) qn[i] = q[i] / nc;
+    const T m = g_max(g_max(g_max(g_abs(q[0]), g_abs(q[1])), g_max(g_abs(q[2]), g_abs(q[3]))), Limits<T>::tiny());
+    T s[4];
+    for (int i = 0; i < 4; ++i) s[i] = q[i] / m;
+    const T n = g_sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2] + s[3] * s[3]);
+    *norm_out = n * m;
+    const T nc = g_max(n, Limits<T>::tiny());
+    for (int i = 0; i < 4; ++i) qn[i] = s[i] / nc;
 }
 
 template <typename T> GEER_HD Mat3<T> quat_to_rotmat(const T* quat) {
