@@ -26,6 +26,7 @@ import torch
 
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.configs.dataparser_configs import AnnotatedDataParserUnion
+from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.utils.io import load_from_json
@@ -236,6 +237,14 @@ class GeerDataManager(FullImageDatamanager):
                     view[key] = view[key].to(self.device) if on_gpu else pin_if_possible(view[key])
         self.train_cameras = self.train_dataset.cameras.to(self.device) if on_gpu else self.train_dataset.cameras
         return views
+
+    def use_eval_views(self, dataparser: DataParserConfig, split: str = "test") -> None:
+        """Score at other cameras (geer-eval): the eval dataset becomes `dataparser`'s `split`."""
+        self.dataparser = dataparser.setup()
+        self.test_split = split
+        self.eval_dataset = self.create_eval_dataset()
+        self.eval_unseen_cameras = list(range(len(self.eval_dataset)))
+        self.__dict__.pop("cached_eval", None)  # reloaded (and reported) on first use
 
     def supervision_report(self, split: Literal["train", "eval"] = "train") -> SupervisionReport:
         """Per camera: view, images, valid and supervised native pixels (loads the images if not yet)."""
