@@ -9,6 +9,7 @@ cd "$(dirname "$0")/.."
 STEPS=${1:-300}
 DATA=../shared/data/fisheye_room_dev
 OUT=${GEER_BENCH_OUT:-$(mktemp -d)}
+mkdir -p "$OUT"
 export PYTHONPATH=$PWD
 PY=.venv/bin/python
 # The central region for both cameras: +-45 degrees (the pinhole's field of view); beyond is the periphery.
