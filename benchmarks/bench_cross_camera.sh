@@ -2,11 +2,11 @@
 # Cross-camera evaluation on the Blender dev room (paper Tab. 3 style): train geer on the 180-degree fisheye
 # views, score it on the pinhole test views; train on the pinhole views, score it on the full fisheye test
 # views (the periphery is what a pinhole never saw). Each run is also scored on its own test views (ns-eval).
-# CPU schedule: quarter resolution (96 x 96 BEAP / pinhole), STEPS steps. Writes benchmarks/cross_camera.md.
+# CPU schedule: 1/8 resolution (48 x 48 BEAP / pinhole), STEPS steps. Writes benchmarks/cross_camera.md.
 #   bash benchmarks/bench_cross_camera.sh [steps]
 set -euo pipefail
 cd "$(dirname "$0")/.."
-STEPS=${1:-300}
+STEPS=${1:-150}
 DATA=../shared/data/fisheye_room_dev
 OUT=${GEER_BENCH_OUT:-$(mktemp -d)}
 mkdir -p "$OUT"
@@ -15,8 +15,8 @@ PY=.venv/bin/python
 # The central region for both cameras: +-45 degrees (the pinhole's field of view); beyond is the periphery.
 COMMON=(--vis tensorboard --viewer.quit-on-train-completion True --steps-per-eval-image 0
   --steps-per-eval-all-images 0 --max-num-iterations "$STEPS"
-  --pipeline.model.num-downscales 2 --pipeline.model.resolution-schedule 1000000
-  --pipeline.model.warmup-length 100 --pipeline.model.refine-every 100 --pipeline.model.stop-split-at "$STEPS"
+  --pipeline.model.num-downscales 3 --pipeline.model.resolution-schedule 1000000
+  --pipeline.model.warmup-length 50 --pipeline.model.refine-every 50 --pipeline.model.stop-split-at "$STEPS"
   --pipeline.model.renderer-backend cpu --pipeline.model.central-half-angles-deg 45 45)
 declare -A OTHER=([fisheye]=pinhole [pinhole]=fisheye)
 for cam in fisheye pinhole; do
@@ -51,8 +51,8 @@ mapped through the run's `dataparser_transforms.json`), as in the paper's Tab. 3
   `ns-train geer --data ../shared/data/fisheye_room_dev/transforms_fisheye.json ...` then
   `python -m geer_ns.eval_views --load-config .../config.yml --views ../shared/data/fisheye_room_dev/transforms_pinhole.json`
   (`geer-eval` once installed)
-- schedule: {steps} steps at quarter resolution (fisheye: 96x96 BEAP cells of 1.9 deg; pinhole: 96x96), gsplat
-  DefaultStrategy refinement every 100 steps, renderer backend `cpu`, 20k seed points; metrics at full
+- schedule: {steps} steps at 1/8 resolution (fisheye: 48x48 BEAP cells of 3.75 deg; pinhole: 48x48), gsplat
+  DefaultStrategy refinement every 50 steps from step 50, renderer backend `cpu`, 20k seed points; metrics at full
   resolution (384x384) over the 6 test views, valid pixels only; central = within +-45 deg of the axis in
   both BEAP angles (the pinhole's field of view), peripheral = the rest (fisheye only).
 - a short CPU schedule: absolute PSNRs are far below a full 30k-step run; the comparison between rows is

@@ -59,7 +59,7 @@ def geer_trainer_config(method_name: str, model: GeerModelConfig) -> TrainerConf
 
 geer_method = MethodSpecification(
     config=geer_trainer_config("geer", GeerModelConfig()),
-    description="3DGEER: exact Gaussian ray tracing for any camera (fisheye, 360), BEAP supervision, "
+    description="3DGEER: exact Gaussian ray tracing for any camera (fisheye, 360), BEAP or native-ray supervision, "
     "splatfacto schedule with gsplat DefaultStrategy densification",
 )
 
