@@ -140,6 +140,9 @@ class GeerDataManager(FullImageDatamanager):
             # nerfstudio would import open3d (broken on hosts without libusb); we read the PLY ourselves.
             config.dataparser.load_3D_points = False
             config.load_seed_points = True
+        # Set before nerfstudio's __init__, which may cache the images (like FullImageDatamanager's own fields).
+        self._circles: Dict[CameraModel, Optional[np.ndarray]] = {}  # detected image circle per camera
+        self._report: Dict[str, SupervisionReport] = {}  # per split, filled while caching the images
         super().__init__(config, *args, **kwargs)
         if config.load_seed_points:
             self._add_seed_points()
@@ -173,7 +176,7 @@ class GeerDataManager(FullImageDatamanager):
     def _image_circle(self, dataset, idx: int, camera: CameraModel) -> Optional[np.ndarray]:
         """The detected image circle of a fisheye camera that has neither masks nor fisheye_crop_radius
         (detected once per camera from its images, said once); None for every other camera."""
-        circles = self.__dict__.setdefault("_circles", {})
+        circles = self._circles
         if camera in circles:
             return circles[camera]
         files = [f for i, f in enumerate(dataset.image_filenames) if camera_model(dataset.cameras, i) == camera]
@@ -224,7 +227,7 @@ class GeerDataManager(FullImageDatamanager):
 
     def _load_images(self, split: Literal["train", "eval"], cache_images_device: Literal["cpu", "gpu"]) -> List[Dict[str, torch.Tensor]]:
         dataset = self.train_dataset if split == "train" else self.eval_dataset
-        self.__dict__.setdefault("_report", {})[split] = SupervisionReport()
+        self._report[split] = SupervisionReport()
         CONSOLE.log(f"geer: caching {len(dataset)} {split} images (no undistortion)")
         views = [self._load_view(dataset, i, split) for i in range(len(dataset))]
         verb = "supervised" if split == "train" else "scored"
