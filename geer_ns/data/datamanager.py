@@ -175,11 +175,12 @@ class GeerDataManager(FullImageDatamanager):
     # ---------------------------------------------------------------------------------- image cache
     def _image_circle(self, dataset, idx: int, camera: CameraModel) -> Optional[np.ndarray]:
         """The detected image circle of a fisheye camera that has neither masks nor fisheye_crop_radius
-        (detected once per camera from its images, said once); None for every other camera."""
+        (detected once per camera from its train and eval images, said once); None for every other camera."""
         circles = self._circles
         if camera in circles:
             return circles[camera]
-        files = [f for i, f in enumerate(dataset.image_filenames) if camera_model(dataset.cameras, i) == camera]
+        files = [f for ds in (self.train_dataset, self.eval_dataset) for i, f in enumerate(ds.image_filenames)
+                 if camera_model(ds.cameras, i) == camera]
         circle = detect_image_circle_from_files(files)
         name = camera_kind(dataset.cameras, idx)
         if circle is None:
