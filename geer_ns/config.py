@@ -11,11 +11,11 @@ from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
-from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from geer_ns.data.datamanager import GeerDataManagerConfig
 from geer_ns.model import OWN_OPTIONS_HELP, GeerModelConfig
+from geer_ns.pipeline import GeerPipelineConfig
 
 MAX_STEPS = 30000
 
@@ -48,7 +48,7 @@ def geer_trainer_config(method_name: str, model: GeerModelConfig) -> TrainerConf
         steps_per_eval_all_images=1000,
         max_num_iterations=MAX_STEPS,
         mixed_precision=False,
-        pipeline=VanillaPipelineConfig(datamanager=GeerDataManagerConfig(), model=model),
+        pipeline=GeerPipelineConfig(datamanager=GeerDataManagerConfig(), model=model),
         optimizers=splatfacto_optimizers(),
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
         vis="viewer",
@@ -59,7 +59,7 @@ def geer_trainer_config(method_name: str, model: GeerModelConfig) -> TrainerConf
 
 geer_method = MethodSpecification(
     config=geer_trainer_config("geer", GeerModelConfig()),
-    description="3DGEER: exact Gaussian ray tracing for any camera (fisheye, 360), BEAP supervision, "
+    description="3DGEER: exact Gaussian ray tracing for any camera (fisheye, 360), BEAP or native-ray supervision, "
     "splatfacto schedule with gsplat DefaultStrategy densification. " + OWN_OPTIONS_HELP,
 )
 

@@ -160,6 +160,67 @@ def test_mask_is_exact_180deg_circle(dataset):
 # ----------------------------------------------------------------------------------------------
 
 
+def test_kb220_variant_matches_opencv_and_the_kb_polynomial(dataset):
+    """The 220-degree variant: non-zero k1..k4, same poses; inside 90 degrees its rays are cv2.fisheye's, beyond
+    it the closed-form Kannala-Brandt polynomial; its mask is the 110-degree circle."""
+    kb, fe = _load(dataset, "transforms_fisheye220.json"), _load(dataset, "transforms.json")
+    k = np.array([kb[n] for n in ("k1", "k2", "k3", "k4")])
+    assert np.all(k != 0) and kb["camera_model"] == "OPENCV_FISHEYE"
+    assert [f["transform_matrix"] for f in kb["frames"]] == [f["transform_matrix"] for f in fe["frames"]]
+    i, j = np.mgrid[0:SIZE, 0:SIZE]
+    theta_d = np.hypot(j + 0.5 - kb["cx"], i + 0.5 - kb["cy"]) / kb["fl_x"]
+    t = np.deg2rad(110.0)
+    edge = t * (1 + k[0] * t**2 + k[1] * t**4 + k[2] * t**6 + k[3] * t**8)
+    mask = cv2.imread(str(dataset / kb["frames"][0]["mask_path"]), cv2.IMREAD_UNCHANGED) == 255
+    np.testing.assert_array_equal(mask, theta_d <= edge)
+    assert edge * kb["fl_x"] == pytest.approx(SIZE / 2)  # the 220-degree circle fits the image
+    # Rays: OpenCV inside 80 degrees; forward KB polynomial (projection of the colour's ray) everywhere.
+    xy = cv2.fisheye.undistortPoints(np.stack([j, i], -1).reshape(-1, 1, 2).astype(np.float64), _K(kb), k)
+    xy = xy.reshape(SIZE, SIZE, 2)
+    near = theta_d < np.deg2rad(70)
+    d_near = np.concatenate([xy[near], np.ones((int(near.sum()), 1))], 1)
+    frame = kb["frames"][5]
+    c2w = _pose_cv(frame)
+    img = _read_rgb(dataset / frame["file_path"])
+    rgb, _, _ = sr.render_room_rays(np.broadcast_to(c2w[:3, 3], d_near.shape), d_near @ c2w[:3, :3].T)
+    assert np.percentile(np.abs(img[near] - rgb).max(1), 95) <= 1e-2
+    # Beyond 90 degrees: sample angles, project with the KB polynomial, compare the pixel there.
+    rng = np.random.default_rng(0)
+    th, az = rng.uniform(np.deg2rad(92), np.deg2rad(108), 400), rng.uniform(-np.pi, np.pi, 400)
+    td = th * (1 + k[0] * th**2 + k[1] * th**4 + k[2] * th**6 + k[3] * th**8)
+    u, v = kb["cx"] + kb["fl_x"] * td * np.cos(az), kb["cy"] + kb["fl_y"] * td * np.sin(az)
+    dirs = np.stack([np.sin(th) * np.cos(az), np.sin(th) * np.sin(az), np.cos(th)], -1)
+    # Bilinear lookup at the projected point (OpenCV pixel centres at integers); colour edges give outliers,
+    # so the median is compared, and a ray 0.3 rad off in azimuth must not match.
+    mx, my = (u - 0.5).astype(np.float32)[None], (v - 0.5).astype(np.float32)[None]
+    px = cv2.remap(img.astype(np.float32), mx, my, interpolation=cv2.INTER_LINEAR)[0]
+
+    def median_err(d: np.ndarray) -> float:
+        rgb, _, _ = sr.render_room_rays(np.broadcast_to(c2w[:3, 3], d.shape), d @ c2w[:3, :3].T)
+        return float(np.median(np.abs(px - rgb).max(1)))
+
+    off = np.stack([np.sin(th) * np.cos(az + 0.3), np.sin(th) * np.sin(az + 0.3), np.cos(th)], -1)
+    good, bad = median_err(dirs), median_err(off)
+    assert good < 0.02 and bad > 3 * good, (good, bad)
+
+
+def test_equirect_variant_covers_the_sphere(dataset):
+    eq = _load(dataset, "transforms_equirect.json")
+    assert eq["camera_model"] == "EQUIRECTANGULAR" and (eq["w"], eq["h"]) == (2 * SIZE, SIZE)
+    assert (eq["fl_x"], eq["fl_y"], eq["cx"], eq["cy"]) == (SIZE, SIZE, SIZE, SIZE / 2)  # nerfstudio's convention
+    img = _read_rgb(dataset / eq["frames"][2]["file_path"])
+    assert img.shape == (SIZE, 2 * SIZE, 3) and (img.max(-1) > 0).all()  # every ray hits the room
+
+
+def test_mixed_rig_file_lists_both_cameras_per_pose(dataset):
+    rig = _load(dataset, "transforms_rig.json")
+    models = [f["camera_model"] for f in rig["frames"]]
+    assert models.count("OPENCV_FISHEYE") == models.count("OPENCV") == N_VIEWS
+    assert "camera_model" not in rig and all("fl_x" in f and "mask_path" in f for f in rig["frames"])
+    names = [f["file_path"] for f in rig["frames"]]
+    assert sorted(rig["train_filenames"] + rig["test_filenames"]) == sorted(names)
+
+
 def test_fisheye_pixels_match_opencv_unprojection(dataset):
     """Fisheye pixel colours equal the analytic scene along rays from cv2.fisheye.undistortPoints."""
     fe = _load(dataset, "transforms.json")
@@ -247,14 +308,16 @@ def _parse(json_path: Path, split: str):
     return cfg.setup().get_dataparser_outputs(split=split)
 
 
-@pytest.mark.parametrize("name", ["transforms_pinhole.json", "transforms.json"])
+@pytest.mark.parametrize("name", ["transforms_pinhole.json", "transforms.json", "transforms_fisheye220.json",
+                                  "transforms_equirect.json"])
 def test_nerfstudio_rays_reproduce_images(dataset, name):
     meta = _load(dataset, name)
     out_test = _parse(dataset / name, "test")
     out = _parse(dataset / name, "train")
     assert len(out.image_filenames) == len(meta["train_filenames"])
     assert [p.name for p in out_test.image_filenames] == [Path(n).name for n in meta["test_filenames"]]
-    if name == "transforms.json":
+    fisheye = name in ("transforms.json", "transforms_fisheye220.json")
+    if fisheye:
         assert out.mask_filenames is not None and len(out.mask_filenames) == len(out.image_filenames)
     cams = out.cameras
     for idx in (0, 4, 11):
@@ -264,7 +327,7 @@ def test_nerfstudio_rays_reproduce_images(dataset, name):
         rgb, _, _ = sr.render_room_rays(o, d)
         img = _read_rgb(out.image_filenames[idx]).reshape(-1, 3)
         err = np.abs(img - rgb).max(1)
-        if name == "transforms.json":
+        if fisheye:
             mask = cv2.imread(str(out.mask_filenames[idx]), cv2.IMREAD_UNCHANGED).reshape(-1) > 0
             err = err[mask]
         # float32 rays in nerfstudio flip a few pixels on texture/object edges; the rest is

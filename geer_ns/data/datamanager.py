@@ -4,10 +4,13 @@ nerfstudio's FullImageDatamanager undistorts fisheye images (cv2.fisheye, balanc
 cropped) and then treats every camera as a pinhole. geer renders any camera exactly, so here:
 
 * every image keeps its camera type, distortion and size;
-* training views (``supervision="beap"``) are resampled once into the camera's BEAP grid
-  (geer_ns.data.views, the same grid object the model renders) and cached with their validity mask;
-* eval views stay in native pixels with a validity mask (camera-valid, ``mask_path`` mask, fisheye
-  crop circle), so metrics are computed where the camera really saw something;
+* every image gets a validity mask: camera-valid, ``mask_path`` mask, fisheye crop circle
+  (``fisheye_crop_radius``, or, for a fisheye without either, the image circle detected from its images);
+* training views are cached in the view each camera is supervised in (geer_ns.data.supervision: BEAP,
+  resampled once into the camera's BEAP grid, the same grid object the model renders, or native rays for
+  a camera whose rays reach 90 degrees); the choice and the pixel counts are said once at start-up;
+* eval views stay in native pixels with their validity mask, so metrics are computed where the camera
+  really saw something;
 * images are cached as uint8 and masks as bool, on the GPU when there is one.
 """
 
@@ -21,8 +24,9 @@ import cv2
 import numpy as np
 import torch
 
-from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.configs.dataparser_configs import AnnotatedDataParserUnion
+from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.utils.io import load_from_json
@@ -32,10 +36,12 @@ from geer_ns import resume
 from geer_ns.cameras import CameraModel
 from geer_ns.data.beap import resample_to_beap
 from geer_ns.data.dataset_checks import check_transforms_json
-from geer_ns.data.views import beap_view, camera_model, native_view
+from geer_ns.data.image_circle import detect_image_circle_from_files
+from geer_ns.data.nerfstudio_parser import CROP_RADIUS_KEY, GeerNerfstudioDataParserConfig
+from geer_ns.data.supervision import Supervision, SupervisionReport, beap_covered, choose_view
+from geer_ns.data.views import beap_view, camera_kind, camera_model, native_view
 from geer_ns.host_fixes import pin_if_possible, read_ply_points
 
-Supervision = Literal["beap", "native"]
 # Key of Cameras.metadata telling the model in which view a training batch is supervised.
 VIEW_KEY = "geer_view"
 
@@ -43,12 +49,16 @@ VIEW_KEY = "geer_view"
 @dataclass
 class GeerDataManagerConfig(FullImageDatamanagerConfig):
     _target: Type = field(default_factory=lambda: GeerDataManager)
-    dataparser: AnnotatedDataParserUnion = field(default_factory=lambda: NerfstudioDataParserConfig(load_3D_points=False))
-    """Dataset parser. nerfstudio-data's load_3D_points stays off (it needs open3d); the seed points are read
-    by this datamanager instead (load_seed_points)."""
+    dataparser: AnnotatedDataParserUnion = field(
+        default_factory=lambda: GeerNerfstudioDataParserConfig(load_3D_points=False))
+    """Dataset parser: nerfstudio's transforms.json parser plus per-frame camera_model (mixed rigs). Its
+    load_3D_points stays off (it needs open3d); the seed points are read by this datamanager instead."""
     cache_images_type: Literal["uint8", "float32"] = "uint8"
-    supervision: Supervision = "beap"
-    """Train on BEAP images ("beap", the paper's setting) or on the native pixel rays ("native")."""
+    supervision: Supervision = "auto"
+    """Training view per camera: "auto" = BEAP (the paper's setting) unless the camera's valid rays reach 90
+    degrees off-axis, then its native pixel rays (BEAP cannot hold them); "beap" or "native" for every camera."""
+    image_circle_margin: float = 2.0
+    """Pixels kept inside an automatically detected fisheye image circle (its rim pixels are blended)."""
     load_seed_points: bool = True
     """Seed Gaussians from the dataset's point cloud (nerfstudio-data `ply_file_path`)."""
     mask_edge_fill: int = 2
@@ -74,11 +84,15 @@ def check_data_path(config: GeerDataManagerConfig) -> None:
                               config.dataparser.auto_scale_poses)
 
 
-def native_valid_mask(camera: CameraModel, mask: Optional[torch.Tensor], crop_radius: Optional[float]) -> torch.Tensor:
-    """[H, W] bool: pixels the camera model can unproject, inside `mask` and inside the fisheye crop circle."""
+def native_valid_mask(camera: CameraModel, mask: Optional[torch.Tensor], crop_radius: Optional[float],
+                      circle: Optional[np.ndarray] = None) -> torch.Tensor:
+    """[H, W] bool: pixels the camera model can unproject, inside `mask`, inside the fisheye crop circle and
+    inside the detected image `circle` mask."""
     valid = native_view(camera).rays.valid.reshape(camera.height, camera.width).cpu()  # cached per intrinsics
     if mask is not None:
         valid = valid & mask.reshape(valid.shape).bool().cpu()
+    if circle is not None:
+        valid = valid & torch.from_numpy(circle)
     if crop_radius is not None and hasattr(camera, "cx"):
         uv = camera.pixel_centers(torch.float64)
         r2 = (uv[..., 0] - camera.cx) ** 2 + (uv[..., 1] - camera.cy) ** 2
@@ -132,6 +146,9 @@ class GeerDataManager(FullImageDatamanager):
             # nerfstudio would import open3d (broken on hosts without libusb); we read the PLY ourselves.
             config.dataparser.load_3D_points = False
             config.load_seed_points = True
+        # Set before nerfstudio's __init__, which may cache the images (like FullImageDatamanager's own fields).
+        self._circles: Dict[CameraModel, Optional[np.ndarray]] = {}  # detected image circle per camera
+        self._report: Dict[str, SupervisionReport] = {}  # per split, filled while caching the images
         super().__init__(config, *args, **kwargs)
         self.train_cameras = self.train_dataset.cameras  # set here, not only by the image cache (on the device there)
         if config.load_seed_points:
@@ -163,7 +180,37 @@ class GeerDataManager(FullImageDatamanager):
         CONSOLE.log(f"geer: {len(xyz)} seed points from {ply}")
 
     # ---------------------------------------------------------------------------------- image cache
-    def _load_view(self, dataset, idx: int, as_beap: bool) -> Dict[str, torch.Tensor]:
+    def _image_circle(self, dataset, idx: int, camera: CameraModel) -> Optional[np.ndarray]:
+        """The detected image circle of a fisheye camera that has neither masks nor fisheye_crop_radius
+        (detected once per camera from its train and eval images, said once); None for every other camera."""
+        circles = self._circles
+        if camera in circles:
+            return circles[camera]
+        files = [f for ds in (self.train_dataset, self.eval_dataset) for i, f in enumerate(ds.image_filenames)
+                 if camera_model(ds.cameras, i) == camera]
+        circle = detect_image_circle_from_files(files)
+        name = camera_kind(dataset.cameras, idx)
+        if circle is None:
+            CONSOLE.log(f"geer: {name} {camera.width}x{camera.height} has no mask and no fisheye_crop_radius, and "
+                        f"its images show no black border: every pixel the model can unproject is used")
+            circles[camera] = None
+        else:
+            mask = circle.mask(camera.width, camera.height, self.config.image_circle_margin)
+            CONSOLE.log(f"geer: {name} {camera.width}x{camera.height} has no mask and no fisheye_crop_radius: image "
+                        f"circle detected from its images, centre ({circle.cx:.1f}, {circle.cy:.1f}), radius "
+                        f"{circle.radius:.1f} px; the {int((~mask).sum())} pixels outside it (less "
+                        f"{self.config.image_circle_margin:g} px) never enter the loss or the metrics")
+            circles[camera] = mask
+        return circles[camera]
+
+    def _valid_mask(self, dataset, idx: int, camera: CameraModel, mask: Optional[torch.Tensor]) -> torch.Tensor:
+        radius = _crop_radius(dataset.cameras, idx)
+        circle = None
+        if mask is None and radius is None and _is_fisheye(dataset.cameras, idx):
+            circle = self._image_circle(dataset, idx, camera)
+        return native_valid_mask(camera, mask, radius, circle)
+
+    def _load_view(self, dataset, idx: int, split: str) -> Dict[str, torch.Tensor]:
         data = dataset.get_data(idx, image_type=self.config.cache_images_type)
         camera = camera_model(dataset.cameras, idx)
         image = data["image"]
@@ -172,19 +219,28 @@ class GeerDataManager(FullImageDatamanager):
                 f"{dataset.image_filenames[idx]}: image size (h, w) {tuple(image.shape[:2])} does not match "
                 f"its camera's height/width ({camera.height}, {camera.width})"
             )
-        valid = native_valid_mask(camera, data.get("mask"), _crop_radius(dataset.cameras))
-        if as_beap:
-            image, valid = to_beap(image, camera, valid, self.config.mask_edge_fill)
+        seen = self._valid_mask(dataset, idx, camera, data.get("mask"))
+        view = "native" if split == "eval" else choose_view(self.config.supervision, camera, seen)
+        valid, supervised = seen, seen
+        if view == "beap":
+            image, valid = to_beap(image, camera, seen, self.config.mask_edge_fill)
+            supervised = beap_covered(camera, seen, valid)
+        name = f"{camera_kind(dataset.cameras, idx)} {camera.width}x{camera.height}"
+        self._report[split].add(name, camera, view, seen, supervised)
         data["image"] = as_cache_type(image, self.config.cache_images_type)
         data["mask"] = valid[..., None]
+        if split == "train":
+            data[VIEW_KEY] = view  # moved onto the batch's camera by next_train
         return data
 
     def _load_images(self, split: Literal["train", "eval"], cache_images_device: Literal["cpu", "gpu"]) -> List[Dict[str, torch.Tensor]]:
         dataset = self.train_dataset if split == "train" else self.eval_dataset
-        as_beap = split == "train" and self.config.supervision == "beap"
-        kind = "BEAP" if as_beap else "native"
-        CONSOLE.log(f"geer: caching {len(dataset)} {split} images as {kind} views (no undistortion)")
-        views = [self._load_view(dataset, i, as_beap) for i in range(len(dataset))]
+        self._report[split] = SupervisionReport()
+        CONSOLE.log(f"geer: caching {len(dataset)} {split} images (no undistortion)")
+        views = [self._load_view(dataset, i, split) for i in range(len(dataset))]
+        verb = "supervised" if split == "train" else "scored"
+        for line in self._report[split].lines(verb):
+            CONSOLE.log(f"geer: {split} images, {line}")
         on_gpu = cache_images_device == "gpu" and torch.device(self.device).type == "cuda"
         for view in views:
             for key in ("image", "mask", "depth_image"):
@@ -200,14 +256,35 @@ class GeerDataManager(FullImageDatamanager):
     def set_extra_state(self, state: Dict) -> None:
         resume.restore_sampler_state(self, state)
 
+    def use_eval_views(self, dataparser: DataParserConfig, split: str = "test") -> None:
+        """Score at other cameras (geer-eval): the eval dataset becomes `dataparser`'s `split`."""
+        self.dataparser = dataparser.setup()
+        self.test_split = split
+        self.eval_dataset = self.create_eval_dataset()
+        self.eval_unseen_cameras = list(range(len(self.eval_dataset)))
+        self.__dict__.pop("cached_eval", None)  # reloaded (and reported) on first use
+
+    def supervision_report(self, split: Literal["train", "eval"] = "train") -> SupervisionReport:
+        """Per camera: view, images, valid and supervised native pixels (loads the images if not yet)."""
+        _ = self.cached_train if split == "train" else self.cached_eval
+        return self._report[split]
+
     def next_train(self, step: int) -> Tuple[Cameras, Dict]:
         camera, data = super().next_train(step)
         camera.metadata = dict(camera.metadata or {})
-        camera.metadata[VIEW_KEY] = self.config.supervision
+        camera.metadata[VIEW_KEY] = data.pop(VIEW_KEY)
         return camera, data
 
 
-def _crop_radius(cameras: Cameras) -> Optional[float]:
+def _is_fisheye(cameras: Cameras, idx: int) -> bool:
+    return int(cameras.camera_type.reshape(-1)[idx]) in (CameraType.FISHEYE.value, CameraType.FISHEYE624.value)
+
+
+def _crop_radius(cameras: Cameras, idx: int) -> Optional[float]:
+    """The fisheye crop radius of camera `idx`: geer's per-camera value (mixed rigs), else nerfstudio's."""
     meta = cameras.metadata or {}
+    if CROP_RADIUS_KEY in meta:
+        radius = float(meta[CROP_RADIUS_KEY].reshape(-1)[idx])
+        return radius if radius > 0 else None
     radius = meta.get("fisheye_crop_radius")
     return float(radius) if radius is not None else None

@@ -14,9 +14,12 @@ Dataset layout written by :func:`generate_room` (nerfstudio "nerfstudio-data" fo
     OUT_DIR/
       transforms.json            # OPENCV_FISHEYE (k1..k4 = 0): ideal equidistant 180 deg fisheye
       transforms_pinhole.json    # OPENCV (zero distortion), 90 deg FoV, same poses and splits
-      images_fisheye/frame_XXXXX.png
-      images_pinhole/frame_XXXXX.png
+      transforms_fisheye220.json # OPENCV_FISHEYE, Kannala-Brandt k1..k4 != 0, 220 deg circle (synthetic_cameras)
+      transforms_equirect.json   # EQUIRECTANGULAR 2S x S panorama
+      transforms_rig.json        # mixed rig: per-frame camera_model, the 220 deg fisheye + the pinhole
+      images_fisheye/ images_pinhole/ images_fisheye220/ images_equirect/   frame_XXXXX.png
       masks/fisheye_mask.png     # 255 where the pixel centre is inside the 180 deg circle
+      masks/fisheye220_mask.png  # the same for the 220 deg circle; masks/pinhole_mask.png: all 255 (rig)
       points3d.ply               # seed point cloud (binary PLY, xyz float + rgb uchar)
       .geer_ns_synthetic_room.json  # marker: proves this directory was made by this generator
 
@@ -37,6 +40,17 @@ from typing import Callable, Dict, List, Tuple
 import cv2
 import numpy as np
 
+from geer_ns.data.synthetic_cameras import (
+    equirect_intrinsics,
+    equirect_pixel_dirs,
+    fisheye_intrinsics,
+    fisheye_pixel_dirs,
+    kb220_intrinsics,
+    kb220_pixel_dirs,
+    pinhole_intrinsics,
+    pinhole_pixel_dirs,
+)
+
 __all__ = [
     "SCENE_VERSION",
     "ROOM_MIN",
@@ -53,7 +67,7 @@ __all__ = [
     "opencv_to_nerfstudio_c2w",
 ]
 
-SCENE_VERSION = 1
+SCENE_VERSION = 2  # 2: + the 220-degree KB fisheye, the panorama and the mixed rig
 MARKER_NAME = ".geer_ns_synthetic_room.json"
 
 # Room interior (an axis-aligned box, 5 x 4 x 2.4 m).
@@ -334,47 +348,6 @@ def is_inside_free_space(points: np.ndarray, margin: float = 0.0) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def fisheye_intrinsics(size: int) -> Dict[str, float]:
-    """Ideal equidistant fisheye whose 180 deg circle exactly fits a size x size image."""
-    f = size / np.pi  # r = f * theta, r(90 deg) = size / 2
-    return {"fl_x": f, "fl_y": f, "cx": size / 2.0, "cy": size / 2.0, "w": size, "h": size}
-
-
-def pinhole_intrinsics(size: int) -> Dict[str, float]:
-    """Pinhole with a 90 deg horizontal/vertical FoV."""
-    f = (size / 2.0) / np.tan(np.deg2rad(45.0))
-    return {"fl_x": f, "fl_y": f, "cx": size / 2.0, "cy": size / 2.0, "w": size, "h": size}
-
-
-def _pixel_grid(size: int) -> Tuple[np.ndarray, np.ndarray]:
-    """Pixel-centre coordinates (u = j + 0.5, v = i + 0.5), each [size, size]."""
-    c = np.arange(size, dtype=np.float64) + 0.5
-    u, v = np.meshgrid(c, c, indexing="xy")
-    return u, v
-
-
-def fisheye_pixel_dirs(size: int) -> Tuple[np.ndarray, np.ndarray]:
-    """Unit OpenCV-camera directions [size, size, 3] of the equidistant fisheye pixel centres,
-    and the validity mask (theta <= 90 deg, i.e. inside the 180 deg circle)."""
-    k = fisheye_intrinsics(size)
-    u, v = _pixel_grid(size)
-    a = (u - k["cx"]) / k["fl_x"]
-    b = (v - k["cy"]) / k["fl_y"]
-    theta = np.sqrt(a * a + b * b)
-    # sin(theta)/theta -> 1 at the centre; theta never exactly 0 for pixel centres, but be safe.
-    s = np.where(theta > 1e-12, np.sin(theta) / np.maximum(theta, 1e-12), 1.0)
-    dirs = np.stack([a * s, b * s, np.cos(theta)], axis=-1)
-    return dirs, theta <= np.pi / 2.0
-
-
-def pinhole_pixel_dirs(size: int) -> np.ndarray:
-    """Unit OpenCV-camera directions [size, size, 3] of the pinhole pixel centres."""
-    k = pinhole_intrinsics(size)
-    u, v = _pixel_grid(size)
-    d = np.stack([(u - k["cx"]) / k["fl_x"], (v - k["cy"]) / k["fl_y"], np.ones_like(u)], axis=-1)
-    return d / np.linalg.norm(d, axis=-1, keepdims=True)
-
-
 def _look_rotation(forward: np.ndarray, roll: float) -> np.ndarray:
     """R_world_from_cv with columns (right, down, forward) for a +z-up world, then rolled."""
     fwd = forward / np.linalg.norm(forward)
@@ -486,60 +459,87 @@ def _splits(n_views: int, names: List[str]) -> Dict[str, List[str]]:
     return {"train_filenames": train, "val_filenames": held, "test_filenames": held}
 
 
+def _variant_meta(camera_model: str, intrinsics: Dict[str, float], frames: List[dict], names: List[str],
+                  n_views: int, **extra) -> dict:
+    return {
+        "camera_model": camera_model,
+        **intrinsics,
+        **extra,
+        # Poses are already in the final world frame; tell nerfstudio not to re-orient them.
+        "orientation_override": "none",
+        "ply_file_path": "points3d.ply",
+        **_splits(n_views, names),
+        "frames": frames,
+    }
+
+
 def _write_dataset(root: Path, n_views: int, size: int, seed: int) -> None:
     rng = np.random.default_rng(seed + 1_000_003)  # separate stream from the pose jitter
     poses_cv = camera_poses(n_views, seed)
     fe_dirs, fe_mask = fisheye_pixel_dirs(size)
-    ph_dirs = pinhole_pixel_dirs(size)
+    kb_dirs, kb_mask = kb220_pixel_dirs(size)
+    # (image folder, ray directions, circle mask or None): the 180-degree fisheye, the pinhole, the 220-degree
+    # KB fisheye and the panorama, all from the same poses.
+    cameras = {
+        "fisheye": ("images_fisheye", fe_dirs, fe_mask),
+        "pinhole": ("images_pinhole", pinhole_pixel_dirs(size), None),
+        "fisheye220": ("images_fisheye220", kb_dirs, kb_mask),
+        "equirect": ("images_equirect", equirect_pixel_dirs(size), None),
+    }
+    masks = {"fisheye": "masks/fisheye_mask.png", "fisheye220": "masks/fisheye220_mask.png",
+             "pinhole": "masks/pinhole_mask.png"}
+    (root / "masks").mkdir()
+    _write_png(root / masks["fisheye"], (fe_mask * 255).astype(np.uint8))
+    _write_png(root / masks["fisheye220"], (kb_mask * 255).astype(np.uint8))
+    _write_png(root / masks["pinhole"], np.full((size, size), 255, np.uint8))
 
-    for sub in ("images_fisheye", "images_pinhole", "masks"):
-        (root / sub).mkdir()
-    mask_rel = "masks/fisheye_mask.png"
-    _write_png(root / mask_rel, (fe_mask * 255).astype(np.uint8))
-
-    names_fe, names_ph, frames_fe, frames_ph = [], [], [], []
-    for i, c2w in enumerate(poses_cv):
-        fe = _render_view(c2w, fe_dirs)
-        fe[~fe_mask] = 0.0  # outside the 180 deg circle: no light, as on a real fisheye sensor
-        ph = _render_view(c2w, ph_dirs)
-        fn_fe = f"images_fisheye/frame_{i:05d}.png"
-        fn_ph = f"images_pinhole/frame_{i:05d}.png"
-        _write_png(root / fn_fe, _to_u8(fe))
-        _write_png(root / fn_ph, _to_u8(ph))
-        tm = np.round(opencv_to_nerfstudio_c2w(c2w), 12).tolist()
-        names_fe.append(fn_fe)
-        names_ph.append(fn_ph)
-        frames_fe.append({"file_path": fn_fe, "transform_matrix": tm, "mask_path": mask_rel})
-        frames_ph.append({"file_path": fn_ph, "transform_matrix": tm})
+    frames: Dict[str, List[dict]] = {name: [] for name in cameras}
+    for name, (folder, dirs, mask) in cameras.items():
+        (root / folder).mkdir()
+        for i, c2w in enumerate(poses_cv):
+            img = _render_view(c2w, dirs)
+            if mask is not None:
+                img[~mask] = 0.0  # outside the image circle: no light, as on a real fisheye sensor
+            path = f"{folder}/frame_{i:05d}.png"
+            _write_png(root / path, _to_u8(img))
+            frame = {"file_path": path, "transform_matrix": np.round(opencv_to_nerfstudio_c2w(c2w), 12).tolist()}
+            if mask is not None:
+                frame["mask_path"] = masks[name]
+            frames[name].append(frame)
 
     xyz, rgb = _seed_points(poses_cv, 4000, rng)
     _write_ply(root / "points3d.ply", xyz, rgb)
 
+    def names(name: str) -> List[str]:
+        return [f["file_path"] for f in frames[name]]
+
     zero_dist = {"k1": 0.0, "k2": 0.0, "k3": 0.0, "k4": 0.0}
-    fe_meta = {
-        "camera_model": "OPENCV_FISHEYE",
-        **fisheye_intrinsics(size),
-        **zero_dist,
+    kb = kb220_intrinsics(size)
+    metas = {
         # Only used by nerfstudio's pixel sampler when no mask is given; the mask is authoritative.
-        "fisheye_crop_radius": size / 2.0,
-        # Poses are already in the final world frame; tell nerfstudio not to re-orient them.
+        "transforms.json": _variant_meta("OPENCV_FISHEYE", {**fisheye_intrinsics(size), **zero_dist},
+                                         frames["fisheye"], names("fisheye"), n_views,
+                                         fisheye_crop_radius=size / 2.0),
+        "transforms_pinhole.json": _variant_meta("OPENCV", {**pinhole_intrinsics(size), **zero_dist, "p1": 0.0,
+                                                            "p2": 0.0}, frames["pinhole"], names("pinhole"), n_views),
+        "transforms_fisheye220.json": _variant_meta("OPENCV_FISHEYE", kb, frames["fisheye220"], names("fisheye220"),
+                                                    n_views, fisheye_crop_radius=size / 2.0),
+        "transforms_equirect.json": _variant_meta("EQUIRECTANGULAR", equirect_intrinsics(size), frames["equirect"],
+                                                  names("equirect"), n_views),
+    }
+    # A mixed rig in one file: per-frame camera_model and intrinsics (geer's nerfstudio dataparser), the
+    # 220-degree fisheye and the pinhole at every pose.
+    rig_frames = [{**f, "camera_model": "OPENCV_FISHEYE", **kb} for f in frames["fisheye220"]]
+    rig_frames += [{**f, "camera_model": "OPENCV", **pinhole_intrinsics(size), "mask_path": masks["pinhole"]}
+                   for f in frames["pinhole"]]
+    rig_splits = [_splits(n_views, names(n)) for n in ("fisheye220", "pinhole")]
+    metas["transforms_rig.json"] = {
         "orientation_override": "none",
         "ply_file_path": "points3d.ply",
-        **_splits(n_views, names_fe),
-        "frames": frames_fe,
+        **{key: rig_splits[0][key] + rig_splits[1][key] for key in rig_splits[0]},
+        "frames": rig_frames,
     }
-    ph_meta = {
-        "camera_model": "OPENCV",
-        **pinhole_intrinsics(size),
-        **zero_dist,
-        "p1": 0.0,
-        "p2": 0.0,
-        "orientation_override": "none",
-        "ply_file_path": "points3d.ply",
-        **_splits(n_views, names_ph),
-        "frames": frames_ph,
-    }
-    for name, meta in (("transforms.json", fe_meta), ("transforms_pinhole.json", ph_meta)):
+    for name, meta in metas.items():
         (root / name).write_text(json.dumps(meta, indent=2) + "\n")
     marker = {"generator": "geer_ns.data.synthetic_room", "version": SCENE_VERSION,
               "n_views": n_views, "image_size": size, "seed": seed}

@@ -14,10 +14,11 @@ from functools import lru_cache
 import torch
 from torch import Tensor
 
-from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.cameras.cameras import Cameras, CameraType
 
 from geer_ns.cameras import CameraModel
-from geer_ns.data.colmap_parser import camera_model_from_cameras
+from geer_ns.data.colmap_parser import MODEL_ID_KEY, NS_TYPE_KEY, camera_model_from_cameras
+from geer_ns.data.nerfstudio_parser import CAMERA_MODEL_KEY, CAMERA_MODELS
 from geer_ns.data.beap import BeapGrid, beap_grid_for_camera, camera_center_step
 from geer_ns.render import RayGrid
 
@@ -66,6 +67,20 @@ def camera_model(cameras: Cameras, index: int = 0) -> CameraModel:
     """The exact model of camera `index`: the COLMAP model when geer's COLMAP parser stored one (FOV,
     thin-prism, ... which nerfstudio cannot represent), else the model nerfstudio's camera describes."""
     return camera_model_from_cameras(cameras, index)
+
+
+def camera_kind(cameras: Cameras, index: int = 0) -> str:
+    """The name metrics and reports use for camera `index`'s model: the COLMAP model (geer-colmap), the
+    transforms.json camera_model (geer's nerfstudio parser), else nerfstudio's camera type."""
+    import pycolmap
+
+    meta = cameras.metadata or {}
+    ns_type = int(cameras.camera_type.reshape(-1)[index])
+    if MODEL_ID_KEY in meta and int(meta.get(NS_TYPE_KEY, cameras.camera_type).reshape(-1)[index]) == ns_type:
+        return pycolmap.CameraModelId(int(meta[MODEL_ID_KEY].reshape(-1)[index])).name
+    if CAMERA_MODEL_KEY in meta:
+        return CAMERA_MODELS[int(meta[CAMERA_MODEL_KEY].reshape(-1)[index])]
+    return CameraType(ns_type).name
 
 
 @lru_cache(maxsize=_CACHE_SIZE)

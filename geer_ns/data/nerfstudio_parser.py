@@ -1,0 +1,175 @@
+"""nerfstudio's ``transforms.json`` parser, plus mixed rigs: per-frame ``camera_model`` and distortion.
+
+nerfstudio 1.1.5 takes one ``camera_model`` for the whole file and reads a frame's distortion only when
+the file has none at the top level, so a fisheye + pinhole capture cannot be described. This parser is
+nerfstudio's (``Nerfstudio``: the same splits, orientation, centring, scaling, downscaling, masks, depth,
+point cloud) with one step added after it: every frame may carry its own camera fields
+
+    camera_model, fl_x, fl_y, cx, cy, w, h, k1, k2, k3, k4, p1, p2, distortion_params, fisheye_crop_radius
+
+and a frame's own value wins over the top-level one (nerfstudio ignores a frame's value when the top level
+has one; this parser says so once when a file relies on it). A file without such frame fields gives exactly
+nerfstudio's cameras. ``Cameras.metadata`` gets two per-camera tensors: ``geer_camera_model`` (index into
+``CAMERA_MODELS``, the name used to split metrics by camera kind) and ``geer_crop_radius`` (the fisheye crop
+radius in pixels at the loaded resolution, 0 = none).
+
+``dataparser_transforms``: map the poses into the frame of another run (its ``dataparser_transforms.json``)
+instead of orienting, centring and scaling them anew; used to score a model on the cameras of another
+transforms file of the same scene (geer_ns.eval_views).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple, Type
+
+import torch
+
+from nerfstudio.cameras import camera_utils
+from nerfstudio.cameras.cameras import CAMERA_MODEL_TO_TYPE, Cameras, CameraType
+from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
+from nerfstudio.plugins.registry_dataparser import DataParserSpecification
+from nerfstudio.utils.io import load_from_json
+from nerfstudio.utils.rich_utils import CONSOLE
+
+__all__ = ["CAMERA_MODELS", "CAMERA_MODEL_KEY", "CROP_RADIUS_KEY", "GeerNerfstudio", "GeerNerfstudioDataParserConfig",
+           "geer_nerfstudio_dataparser", "map_to_run_frame"]
+
+CAMERA_MODELS = list(CAMERA_MODEL_TO_TYPE)
+CAMERA_MODEL_KEY = "geer_camera_model"  # int64 [N, 1]: index into CAMERA_MODELS
+CROP_RADIUS_KEY = "geer_crop_radius"  # float32 [N, 1]: fisheye crop radius in pixels, 0 = none
+_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
+_FRAME_CAMERA_KEYS = ("camera_model", *_INTRINSIC_KEYS, *_DISTORTION_KEYS, "distortion_params", "fisheye_crop_radius")
+_FISHEYE_TYPES = (CameraType.FISHEYE, CameraType.FISHEYE624)
+
+
+@dataclass
+class GeerNerfstudioDataParserConfig(NerfstudioDataParserConfig):
+    """nerfstudio-data (transforms.json) with per-frame camera_model, intrinsics and distortion."""
+
+    _target: Type = field(default_factory=lambda: GeerNerfstudio)
+    dataparser_transforms: Optional[Path] = None
+    """A run's dataparser_transforms.json: map the poses into that run's frame (instead of orienting,
+    centring and scaling them) to render that run's model at these cameras."""
+
+
+@dataclass
+class GeerNerfstudio(Nerfstudio):
+    """nerfstudio's parser, then per-frame cameras (see the module docstring)."""
+
+    config: GeerNerfstudioDataParserConfig
+
+    def _generate_dataparser_outputs(self, split="train", **kwargs) -> DataparserOutputs:
+        outputs = super()._generate_dataparser_outputs(split, **kwargs)
+        path = self.config.data if self.config.data.suffix == ".json" else self.config.data / "transforms.json"
+        meta = load_from_json(path)
+        frames = self._frames_of(outputs.image_filenames, meta, path)
+        outputs.cameras = self._per_frame_cameras(outputs.cameras, meta, frames, path)
+        if self.config.dataparser_transforms is not None:
+            map_to_run_frame(outputs, self.config.dataparser_transforms, meta, path)
+        return outputs
+
+    def _frames_of(self, image_filenames: List[Path], meta: dict, path: Path) -> List[dict]:
+        """The transforms.json frame of every output image (nerfstudio sorts and splits them)."""
+        by_name = {self._get_fname(Path(f["file_path"]), path.parent): f for f in meta["frames"]}
+        return [by_name[name] for name in image_filenames]
+
+    def _per_frame_cameras(self, cameras: Cameras, meta: dict, frames: List[dict], path: Path) -> Cameras:
+        own = [k for f in frames for k in _FRAME_CAMERA_KEYS if k in f and k in meta and f[k] != meta[k]]
+        if own:
+            CONSOLE.log(f"[yellow]geer: {path}: frames give their own {sorted(set(own))} as well as the top level; "
+                        "each frame's own value is used (nerfstudio would ignore it)")
+        specs = [_frame_camera(meta, f, path) for f in frames]
+        names = [s[0] for s in specs]
+        per_frame = any(k in f for f in frames for k in ("camera_model", *_DISTORTION_KEYS, "distortion_params",
+                                                          "fisheye_crop_radius")) or own
+        scale = 1.0 / float(self.downscale_factor)
+        radius = torch.tensor([[s[3] * scale if CAMERA_MODEL_TO_TYPE[s[0]] in _FISHEYE_TYPES and s[3] else 0.0]
+                               for s in specs], dtype=torch.float32)
+        model_idx = torch.tensor([[CAMERA_MODELS.index(n)] for n in names], dtype=torch.int64)
+        if per_frame:
+            cameras = self._cameras_from_specs(cameras, specs)
+            kinds = sorted(set(names))
+            if len(kinds) > 1:
+                CONSOLE.log(f"geer: {path}: mixed rig, {', '.join(f'{names.count(k)} {k}' for k in kinds)} frames")
+        cameras.metadata = {**(cameras.metadata or {}), CAMERA_MODEL_KEY: model_idx, CROP_RADIUS_KEY: radius}
+        return cameras
+
+    def _cameras_from_specs(self, cameras: Cameras, specs: List[tuple]) -> Cameras:
+        """nerfstudio Cameras with every frame's own type, intrinsics and distortion (same poses)."""
+        n_dist = max(len(s[2]) for s in specs)
+        dist = torch.zeros(len(specs), n_dist)
+        for i, s in enumerate(specs):
+            dist[i, : len(s[2])] = s[2]
+        intr = torch.tensor([s[1] for s in specs], dtype=torch.float64)
+        out = Cameras(
+            camera_to_worlds=cameras.camera_to_worlds,
+            fx=intr[:, 0:1].float(), fy=intr[:, 1:2].float(), cx=intr[:, 2:3].float(), cy=intr[:, 3:4].float(),
+            width=intr[:, 4:5].long(), height=intr[:, 5:6].long(),
+            distortion_params=dist,
+            camera_type=torch.tensor([[CAMERA_MODEL_TO_TYPE[s[0]].value] for s in specs], dtype=torch.int64),
+            metadata={k: v for k, v in (cameras.metadata or {}).items() if k != "fisheye_crop_radius"},
+        )
+        out.rescale_output_resolution(scaling_factor=1.0 / float(self.downscale_factor))
+        return out
+
+
+def _frame_camera(meta: dict, frame: dict, path: Path) -> Tuple[str, List[float], torch.Tensor, Optional[float]]:
+    """(camera_model, [fx, fy, cx, cy, w, h], distortion_params, fisheye_crop_radius) of one frame."""
+    where = f"{path}: frame {frame.get('file_path')!r}"
+
+    def get(key: str, default=None):
+        return frame[key] if key in frame else meta.get(key, default)
+
+    name = get("camera_model", "OPENCV")
+    if name not in CAMERA_MODEL_TO_TYPE:
+        raise ValueError(f"{where}: camera_model {name!r} is not one of {', '.join(CAMERA_MODELS)}")
+    intrinsics = []
+    for key in _INTRINSIC_KEYS:
+        value = get(key)
+        if value is None:
+            raise ValueError(f"{where}: {key} is missing (neither in the frame nor at the top level)")
+        if not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ValueError(f"{where}: {key} must be a finite number, got {value!r}")
+        intrinsics.append(float(value))
+    # The frame's own distortion, when it gives any, replaces the top level's as a whole.
+    source = frame if any(k in frame for k in (*_DISTORTION_KEYS, "distortion_params")) else meta
+    if "distortion_params" in source:
+        dist = torch.tensor(source["distortion_params"], dtype=torch.float32)
+    else:
+        dist = camera_utils.get_distortion_params(**{k: float(source.get(k, 0.0)) for k in _DISTORTION_KEYS})
+    return name, intrinsics, dist, get("fisheye_crop_radius")
+
+
+def map_to_run_frame(outputs: DataparserOutputs, transforms_json: Path, meta: dict, path: Path) -> None:
+    """Re-express the poses (and transform, scale) of `outputs` in the output frame of another run.
+
+    Both parsers map the file's coordinates x to out = s (R x + t) (dataparser_transform [R|t], scale s), so
+    a pose in this parse's frame goes back to the file's coordinates and forward into the run's frame.
+    """
+    if "applied_scale" in meta:
+        raise ValueError(f"{path}: applied_scale is not supported when mapping into another run's frame")
+    try:
+        run = json.loads(Path(transforms_json).read_text())
+        run_t, run_s = torch.tensor(run["transform"], dtype=torch.float64), float(run["scale"])
+    except (OSError, ValueError, KeyError) as err:
+        raise ValueError(f"{transforms_json}: not a dataparser_transforms.json with 'transform' and 'scale' ({err})")
+    own_t, own_s = outputs.dataparser_transform.double(), float(outputs.dataparser_scale)
+    c2w = outputs.cameras.camera_to_worlds.double()
+    rot = own_t[:3, :3].T @ c2w[..., :3, :3]
+    pos = (own_t[:3, :3].T @ (c2w[..., :3, 3:] / own_s - own_t[:3, 3:]))
+    new = torch.cat([run_t[:3, :3] @ rot, run_s * (run_t[:3, :3] @ pos + run_t[:3, 3:])], -1)
+    outputs.cameras.camera_to_worlds = new.to(outputs.cameras.camera_to_worlds.dtype)
+    outputs.dataparser_transform = run_t[:3].float()
+    outputs.dataparser_scale = run_s
+
+
+geer_nerfstudio_dataparser = DataParserSpecification(
+    config=GeerNerfstudioDataParserConfig(),
+    description="nerfstudio-data (transforms.json) with per-frame camera_model, intrinsics and distortion (mixed rigs)",
+)
