@@ -93,6 +93,12 @@ def _load(name: str, sources: tuple[str, ...], cuda: bool, verbose: bool) -> Mod
         return module
 
 
+def build_error(name: str) -> str:
+    """One line on why building extension `name` failed in this process ('' if it did not)."""
+    exc = _errors.get(name)
+    return "" if exc is None else f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1] if str(exc).strip() else ''}"
+
+
 def load_extension(verbose: bool = False) -> ModuleType:
     """The CUDA extension (built on first call; minutes on a cold cache)."""
     return _load("geer_cuda", _CUDA_SOURCES, cuda=True, verbose=verbose)
@@ -239,7 +245,7 @@ def render_cuda(
         raise ValueError(f"lambda_mode must be 'opacity' or 'paper', got {lambda_mode!r}")
     if viewmat.requires_grad and torch.is_grad_enabled():
         raise ValueError("viewmat: gradients w.r.t. the camera pose are not supported by the CUDA backend")
-    if not 1 <= grid.tile_size <= 32:
+    if not 1 <= grid.tile_size <= 32 and ops is not _modules.get("geer_cpu_ops"):
         raise ValueError(f"the CUDA backend needs tile_size in 1..32 (one thread per ray), got {grid.tile_size}")
     dtype, device = means.dtype, means.device
     n = means.shape[0]

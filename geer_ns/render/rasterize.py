@@ -174,7 +174,7 @@ def render(
     `max_pairs` caps the (ray, Gaussian) pairs held in memory at once.
     """
     _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background)
-    chosen = resolve_backend(backend, means.device)
+    chosen = resolve_backend(backend, means.device, pose_grad=viewmat.requires_grad and torch.is_grad_enabled())
     if chosen != "torch":  # the kernels (CUDA), or their math compiled for the CPU
         from .cuda_backend import load_cpu_ops, render_cuda
 
