@@ -134,34 +134,25 @@ std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tenso
         });
         return 0;
     });
-    // Stable counting sort by tile, then each tile's pairs stably by depth order.
+    // Bucket the pairs by tile, visiting the Gaussians front to back (stable sort of their depth order, ties
+    // by index): every tile's list comes out sorted by key, as the radix sort of all pairs leaves it.
     const int64_t m = offsets[n];
-    std::vector<int64_t> tile_start(n_tiles + 1, 0);
-    for (int64_t e = 0; e < m; ++e) ++tile_start[pair_tile[e] + 1];
-    for (int64_t t = 0; t < n_tiles; ++t) tile_start[t + 1] += tile_start[t];
+    const int32_t* ord = order.data_ptr<int32_t>();
+    std::vector<int32_t> front_to_back(n);
+    for (int64_t i = 0; i < n; ++i) front_to_back[i] = int32_t(i);
+    std::stable_sort(front_to_back.begin(), front_to_back.end(),
+                     [&](int32_t a, int32_t b) { return uint32_t(ord[a]) < uint32_t(ord[b]); });
+    std::vector<int64_t> fill(n_tiles + 1, 0);
+    for (int64_t e = 0; e < m; ++e) ++fill[pair_tile[e] + 1];
+    for (int64_t t = 0; t < n_tiles; ++t) fill[t + 1] += fill[t];
     std::vector<uint64_t> keys(m);
     std::vector<int32_t> gids(m);
-    {
-        std::vector<int64_t> fill(tile_start.begin(), tile_start.end() - 1);
-        const int32_t* ord = order.data_ptr<int32_t>();
-        for (int64_t e = 0; e < m; ++e) {
+    for (const int32_t i : front_to_back)
+        for (int64_t e = offsets[i]; e < offsets[i + 1]; ++e) {
             const int64_t j = fill[pair_tile[e]]++;
-            keys[j] = geer::pair_key(pair_tile[e], uint32_t(ord[pair_gid[e]]));
-            gids[j] = pair_gid[e];
+            keys[j] = geer::pair_key(pair_tile[e], uint32_t(ord[i]));
+            gids[j] = i;
         }
-    }
-    parallel(n_tiles, 16, [&](int64_t t) {
-        const int64_t a = tile_start[t], b = tile_start[t + 1];
-        if (b - a < 2) return;
-        std::vector<int64_t> idx(b - a);
-        for (int64_t j = a; j < b; ++j) idx[j - a] = j;
-        std::stable_sort(idx.begin(), idx.end(), [&](int64_t x, int64_t y) { return keys[x] < keys[y]; });
-        std::vector<uint64_t> k2(b - a);
-        std::vector<int32_t> g2(b - a);
-        for (int64_t j = a; j < b; ++j) { k2[j - a] = keys[idx[j - a]]; g2[j - a] = gids[idx[j - a]]; }
-        std::copy(k2.begin(), k2.end(), keys.begin() + a);
-        std::copy(g2.begin(), g2.end(), gids.begin() + a);
-    });
     auto ids = at::empty({m}, at::kInt);
     std::copy(gids.begin(), gids.end(), ids.data_ptr<int32_t>());
     auto ranges = at::zeros({n_tiles, 2}, at::kInt);
