@@ -15,7 +15,8 @@ repository or $GEER_EXT_DIR; TORCH_CUDA_ARCH_LIST defaults to "9.0"). Importing 
 anything and works without a GPU.
 
 Every operation also exists on the CPU (csrc/cpu_ops.cpp, same names and signatures, built by
-`load_cpu_ops`), which runs the kernels' math in plain loops: `render_cuda(..., ops=load_cpu_ops())` drives
+`load_cpu_ops`), which runs the kernels' math and per-block orchestration (csrc/geer_blocks.h) over ATen's
+threads: `render_cuda(..., ops=load_cpu_ops())` drives
 this whole module on the CPU, which is how tests/test_csrc_math.py checks it against the twin.
 
 Differences from the twin, all by design: the kernels return `tiles=None` (lists live as sorted pairs);
