@@ -58,30 +58,34 @@ def fisheye_grid(size: int = 512):
     return RayGrid.from_rays(dirs, valid, tile_size=16)
 
 
-def dev_room_case(crop_deg: float | None = None, room: Path = DATA / "fisheye_room_dev"):
+def masked(case, crop_deg: float):
+    """The same Gaussians and view, rays beyond crop_deg / 2 off the optical axis invalid."""
+    from geer_ns.render import RayGrid
+
+    name, grid, bounds, alive, depth = case
+    valid = (grid.dirs[:, 2] >= math.cos(math.radians(crop_deg / 2))).reshape(grid.height, grid.width)
+    grid = RayGrid.from_rays(grid.dirs.reshape(grid.height, grid.width, 3), valid, grid.tile_size)
+    return f"{name}-masked", grid, bounds, alive, depth
+
+
+def dev_room_case(room: Path = DATA / "fisheye_room_dev"):
     from bench_gpu import _knn_rms
 
     from geer_ns.cameras import EquidistantCamera
     from geer_ns.data.views import beap_view
     from geer_ns.host_fixes import read_ply_points
     from geer_ns.model import world_to_camera_opencv
-    from geer_ns.render import RayGrid
 
     meta = json.loads((room / "transforms_fisheye.json").read_text())
     camera = EquidistantCamera(meta["w"], meta["h"], meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"])
     grid = beap_view(camera).rays
-    if crop_deg is not None:
-        grid = RayGrid.from_rays(grid.dirs.reshape(grid.height, grid.width, 3),
-                                 (grid.dirs[:, 2] >= math.cos(math.radians(crop_deg / 2))).reshape(grid.height, -1),
-                                 grid.tile_size)
     xyz, _ = read_ply_points(room / meta["ply_file_path"])
     means = torch.from_numpy(xyz)
     scales = torch.from_numpy(_knn_rms(xyz.astype(np.float64), 3)).float().clamp_min(1e-7)[:, None].repeat(1, 3)
     quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(means.shape[0], 1)
     opac = torch.full((means.shape[0],), 0.1)  # nerfstudio's initial opacity
     c2w = torch.tensor(meta["frames"][0]["transform_matrix"], dtype=torch.float32)[:3]
-    name = "dev-room-beap" + ("" if crop_deg is None else "-masked")
-    return _pbf_inputs(means, quats, scales, opac, world_to_camera_opencv(c2w), grid, name)
+    return _pbf_inputs(means, quats, scales, opac, world_to_camera_opencv(c2w), grid, "dev-room-beap")
 
 
 def donut_case(grid=None):
@@ -161,7 +165,8 @@ def main() -> None:
 
     ops, before, separable_axes = load_cpu_ops(), load_before_ops(), load_before_separable_axes()
     grid512 = fisheye_grid()
-    cases = [dev_room_case(), dev_room_case(150.0), donut_case(grid512), synthetic_case(200_000, grid512)]
+    room = dev_room_case()
+    cases = [room, masked(room, 150.0), donut_case(grid512), synthetic_case(200_000, grid512)]
     rows = []
     for name, grid, bounds, alive, depth in cases:
         ids, ranges, counts, tests = associate_pairs(ops, bounds, alive, depth, grid)

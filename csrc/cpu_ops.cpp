@@ -15,6 +15,7 @@
 #include <torch/csrc/utils/pybind.h>
 
 #include <algorithm>
+#include <atomic>
 #include <vector>
 
 #include "geer_associate.h"
@@ -52,6 +53,15 @@ template <typename F> void parallel(int64_t n, int64_t grain, F&& f) {
     });
 }
 constexpr int64_t kGaussGrain = 256;
+
+// f(i) for i in [0, n) with each thread taking the next index when done (tiles differ widely in cost).
+template <typename F> void parallel_dynamic(int64_t n, F&& f) {
+    std::atomic<int64_t> next{0};
+    at::parallel_for(0, at::get_num_threads(), 1, [&](int64_t begin, int64_t end) {
+        for (int64_t w = begin; w < end; ++w)
+            for (int64_t i = next++; i < n; i = next++) f(i);
+    });
+}
 
 // ------------------------------------------------------------------------------------ stage 1
 std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats, at::Tensor scales,
@@ -208,7 +218,7 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
         const auto f = frames<T>(whiten, o_u, rgb, opacities, inside);
         const int32_t* id = ids.data_ptr<int32_t>();
         const int32_t* rg = ranges.data_ptr<int32_t>();
-        parallel(geer::tile_count(int(height), int(width), int(tile_size)), 1, [&](int64_t tile) {
+        parallel_dynamic(geer::tile_count(int(height), int(width), int(tile_size)), [&](int64_t tile) {
             const Block<T> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs));
             std::vector<geer::RayForward<T>> st(blk.threads);
             for (int tid = 0; tid < blk.threads; ++tid) geer::ray_forward_init(st[tid], blk.valid[tid] != 0);
@@ -267,7 +277,7 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
         const int32_t* rg = ranges.data_ptr<int32_t>();
         const int32_t* nc = n_contrib.data_ptr<int32_t>();
         std::vector<T> pair_grad(size_t(m) * kGradValues, T(0));  // one slot per (tile, Gaussian) pair
-        parallel(geer::tile_count(int(height), int(width), int(tile_size)), 1, [&](int64_t tile) {
+        parallel_dynamic(geer::tile_count(int(height), int(width), int(tile_size)), [&](int64_t tile) {
             const Block<T> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs));
             std::vector<geer::RayBackward<T>> st(blk.threads);
             std::vector<int> my_n(blk.threads);

@@ -56,12 +56,14 @@ def _check(ops, case, twin: bool):
         assert n_tests - ref.tile_tests >= pairs  # same search; the emit pass tests each pair's tile at least once
 
 
-@pytest.mark.parametrize("crop_deg", [None, 150.0])
-def test_dev_room_beap(ops, crop_deg):
+def test_dev_room_beap(ops):
     """The dev room's BEAP training view as is, and masked to a 150-degree circle (inactive tiles)."""
     shared_data("fisheye_room_dev", "transforms_fisheye.json")
-    case = cpu_association.dev_room_case(crop_deg)
-    assert bool(case[1].tile_active.all()) == (crop_deg is None)
+    case = cpu_association.dev_room_case()
+    assert bool(case[1].tile_active.all())
+    _check(ops, case, twin=True)
+    case = cpu_association.masked(case, 150.0)
+    assert not bool(case[1].tile_active.all())
     _check(ops, case, twin=True)
 
 
