@@ -100,8 +100,7 @@ std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats,
 
 // ------------------------------------------------------------------------------------ stage 2
 // associate.cu's passes: count (pyramid search), exclusive scan, emit (each Gaussian's tile box only),
-// then a stable sort by key (by tile, then by depth order within each tile; pairs arrive in Gaussian
-// order, so ties keep the lower index first, like the radix sort) and the ranges.
+// then the pairs in key order (the radix sort's result, reached by bucketing: see below) and the ranges.
 // -> (ids, ranges [T,2], counts [N] tiles per Gaussian, tests [N] tile tests of both passes).
 std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tensor order, at::Tensor node_bounds,
                                   at::Tensor node_active, int64_t tiles_x, int64_t tiles_y) {
