@@ -38,8 +38,8 @@ cat > benchmarks/cpu_training.md <<MD
 - commit: $(git rev-parse --short HEAD)
 - command: \`bash benchmarks/bench_cpu_training.sh $STEPS $ROOM_STEPS\`
 - dev room rows: \`benchmarks/cpu_training_step.py\`, one 256x256 BEAP view of the dev fisheye room, its 20k
-  seed points as Gaussians (kNN scales, opacity 0.1; large, faint: nearly every Gaussian reaches every
-  tile), render + masked L1 + backward + Adam, median of $ROOM_STEPS steps after a warm-up step.
+  seed points as Gaussians (kNN scales, opacity 0.1: the large, faint Gaussians of a training start),
+  render + masked L1 + backward + Adam, median of $ROOM_STEPS steps after a warm-up step.
 - synthetic room rows: ns-train on the embedded synthetic room (21 training views, 4000 seed Gaussians,
   refinement every 50 steps from 100 to 600 as in scripts/demo.sh), nerfstudio's profiler mean of
   Trainer.train_iteration over $STEPS steps.
