@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 DATA = ROOT.parent / "shared" / "data"
-BEFORE_COMMIT = "5190816"
+BEFORE_COMMIT = "51908164d68e"  # main when this benchmark was written
 
 
 def _pbf_inputs(means, quats, scales, opac, viewmat, grid, name):
