@@ -9,6 +9,7 @@
 
 #include <vector>
 
+#include "geer_associate.h"
 #include "geer_launchers.h"
 
 namespace {
@@ -109,24 +110,23 @@ std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats,
 }
 
 // ------------------------------------------------------------------------------------ stage 2
-std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tensor rank, at::Tensor tile_bounds,
-                                  at::Tensor active, at::Tensor col_bounds, at::Tensor row_bounds, int64_t tiles_x,
-                                  int64_t tiles_y, bool separable) {
+// -> (ids sorted by (tile, depth order), ranges [T,2], counts [N] tiles per Gaussian, tests [N] tile tests).
+std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tensor order, at::Tensor node_bounds,
+                                  at::Tensor node_active, int64_t tiles_x, int64_t tiles_y) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(bounds));
     check_float(bounds, bounds, "bounds");
     check_kind(alive, at::kBool, "alive");
-    check_kind(rank, at::kInt, "rank");
-    check_float(tile_bounds, bounds, "tile_bounds");
-    check_kind(active, at::kBool, "active");
-    const int64_t n = bounds.size(0), n_tiles = tile_bounds.size(0);
-    TORCH_CHECK(n_tiles == tiles_x * tiles_y, "geer: tile count mismatch");
-    TORCH_CHECK(n_tiles < (int64_t(1) << 31), "geer: too many tiles");
-    if (separable) {
-        check_float(col_bounds, bounds, "col_bounds");
-        check_float(row_bounds, bounds, "row_bounds");
-    }
+    check_kind(order, at::kInt, "order");
+    check_float(node_bounds, bounds, "node_bounds");
+    check_kind(node_active, at::kBool, "node_active");
+    TORCH_CHECK(tiles_x < (1 << 16) && tiles_y < (1 << 16), "geer: at most 65535 tiles along an axis");
+    const int64_t n = bounds.size(0), n_tiles = tiles_x * tiles_y;
+    TORCH_CHECK(node_bounds.size(0) == geer::make_tile_pyramid(int(tiles_x), int(tiles_y)).n_nodes &&
+                    node_active.size(0) == node_bounds.size(0),
+                "geer: node_bounds / node_active must hold the tile pyramid of a ", tiles_x, " x ", tiles_y, " grid");
     auto iopts = bounds.options().dtype(at::kInt);
     auto ranges = at::zeros({n_tiles, 2}, iopts);
+    auto counts = at::zeros({n}, iopts), tests = at::zeros({n}, iopts);
     at::Tensor ids_sorted;
     dispatch(bounds, [&](auto tag) {
         using T = decltype(tag);
@@ -134,25 +134,22 @@ std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tenso
         a.n = int(n);
         a.bounds = cptr<T>(bounds);
         a.alive = bptr(alive);
-        a.rank = cptr<int32_t>(rank);
-        a.tile_bounds = cptr<T>(tile_bounds);
-        a.active = bptr(active);
-        a.n_tiles = int(n_tiles);
+        a.order = cptr<int32_t>(order);
+        a.node_bounds = cptr<T>(node_bounds);
+        a.node_active = bptr(node_active);
         a.tiles_x = int(tiles_x);
         a.tiles_y = int(tiles_y);
-        a.separable = separable ? 1 : 0;
-        a.col_bounds = separable ? cptr<T>(col_bounds) : nullptr;
-        a.row_bounds = separable ? cptr<T>(row_bounds) : nullptr;
-        auto counts = at::zeros({n}, iopts);
-        geer::launch_count_tiles<T>(a, mptr<int32_t>(counts), stream());
+        auto boxes = at::empty({n}, bounds.options().dtype(at::kLong));
+        auto* box_ptr = reinterpret_cast<uint64_t*>(mptr<int64_t>(boxes));
+        geer::launch_count_tiles<T>(a, mptr<int32_t>(counts), box_ptr, mptr<int32_t>(tests), stream());
         auto inclusive = at::cumsum(counts, 0, at::kLong);
         const int64_t m = n ? inclusive[n - 1].item<int64_t>() : 0;  // one host sync: the pair count
         TORCH_CHECK(m < (int64_t(1) << 31), "geer: more than 2^31 (tile, Gaussian) pairs");
         auto offsets = (inclusive - counts).contiguous();
         auto keys = at::empty({m}, bounds.options().dtype(at::kLong));
         auto ids = at::empty({m}, iopts);
-        geer::launch_emit_pairs<T>(a, mptr<int64_t>(offsets), reinterpret_cast<uint64_t*>(mptr<int64_t>(keys)),
-                                   mptr<int32_t>(ids), stream());
+        geer::launch_emit_pairs<T>(a, box_ptr, mptr<int64_t>(offsets), reinterpret_cast<uint64_t*>(mptr<int64_t>(keys)),
+                                   mptr<int32_t>(ids), mptr<int32_t>(tests), stream());
         int tile_bits = 0;
         while ((int64_t(1) << tile_bits) < n_tiles) ++tile_bits;
         const int end_bit = 32 + tile_bits;
@@ -166,7 +163,7 @@ std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tenso
         geer::launch_tile_ranges(reinterpret_cast<const uint64_t*>(cptr<int64_t>(keys_sorted)), m,
                                  mptr<int32_t>(ranges), stream());
     });
-    return {ids_sorted, ranges};
+    return {ids_sorted, ranges, counts, tests};
 }
 
 // ------------------------------------------------------------------------------------ stage 3

@@ -1,15 +1,25 @@
-// CPU build of geer_math.h for tests/test_csrc_math.py: the CUDA pipeline's per-Gaussian, per-pair
-// and per-ray math run in plain loops, behind the same operation names and signatures as the CUDA
-// extension (bindings.cpp), so geer_ns/render/cuda_backend.py can drive either. What the GPU adds on
-// top (shared-memory batches, warp reductions, atomics, radix sort) is not exercised here.
-// ATen + pybind only (not torch/extension.h): half the compile time of this test-only build.
+// The 3DGEER pipeline on the CPU: geer_math.h (per-Gaussian, per-pair, per-ray math), geer_associate.h
+// (tile search, sort keys, ranges) and geer_blocks.h (which ray and which list entry each GPU thread
+// touches, batches, the warp reduction's order) run behind the same operation names and signatures as
+// the CUDA extension (bindings.cpp), so geer_ns/render/cuda_backend.py drives either: backend="cpu", and
+// the twin checks of tests/test_csrc_math.py. What the GPU adds on top (shared memory, atomics, the
+// radix sort) is not exercised here.
+//
+// Multi-threaded with at::parallel_for over tiles (render) and Gaussians (preprocess, association), with
+// every float sum in a fixed order: results do not depend on the thread count or scheduling. The render
+// backward sums each (tile, Gaussian) pair's gradient over the tile's rays in the kernel's order (warp
+// tree, then warps in order) into that pair's own slot, then each Gaussian sums its pairs in list order.
+// ATen + pybind only (not torch/extension.h): half the compile time.
 #include <ATen/ATen.h>
+#include <ATen/Parallel.h>
 #include <torch/csrc/utils/pybind.h>
 
 #include <algorithm>
-#include <numeric>
+#include <atomic>
 #include <vector>
 
+#include "geer_associate.h"
+#include "geer_blocks.h"
 #include "geer_math.h"
 
 namespace {
@@ -36,6 +46,23 @@ template <typename T, typename F> auto dispatch(const at::Tensor& t, F&& f) {
     return f(double{});
 }
 
+// f(i) for i in [0, n), split over ATen's threads (each index handled by exactly one thread).
+template <typename F> void parallel(int64_t n, int64_t grain, F&& f) {
+    at::parallel_for(0, n, grain, [&](int64_t begin, int64_t end) {
+        for (int64_t i = begin; i < end; ++i) f(i);
+    });
+}
+constexpr int64_t kGaussGrain = 256;
+
+// f(i) for i in [0, n) with each thread taking the next index when done (tiles differ widely in cost).
+template <typename F> void parallel_dynamic(int64_t n, F&& f) {
+    std::atomic<int64_t> next{0};
+    at::parallel_for(0, at::get_num_threads(), 1, [&](int64_t begin, int64_t end) {
+        for (int64_t w = begin; w < end; ++w)
+            for (int64_t i = next++; i < n; i = next++) f(i);
+    });
+}
+
 // ------------------------------------------------------------------------------------ stage 1
 std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats, at::Tensor scales,
                                               at::Tensor opacities, at::Tensor sh, at::Tensor means_w,
@@ -53,7 +80,7 @@ std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats,
         const Mat3<T> rc = geer::load_mat3(ptr<T>(rot_c));
         const Vec3<T> cam = geer::load3(ptr<T>(cam_center));
         const int64_t k = sh_degree >= 0 ? sh.size(1) : 0;
-        for (int64_t i = 0; i < n; ++i) {
+        parallel(n, kGaussGrain, [&](int64_t i) {
             auto g = geer::preprocess_gaussian(geer::load3(ptr<T>(means_c) + 3 * i), ptr<T>(quats) + 4 * i,
                                                ptr<T>(scales) + 3 * i, ptr<T>(opacities)[i], rc, paper_lambda);
             geer::store_mat3(mptr<T>(whiten) + 9 * i, g.w);
@@ -65,58 +92,82 @@ std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats,
                 const Vec3<T> dir = geer::load3(ptr<T>(means_w) + 3 * i) - cam;
                 geer::store3(mptr<T>(rgb) + 3 * i, geer::sh_to_color(ptr<T>(sh) + 3 * k * i, int(sh_degree), dir));
             }
-        }
+        });
         return 0;
     });
     return {whiten, o_u, rgb, bounds, alive, inside};
 }
 
 // ------------------------------------------------------------------------------------ stage 2
-std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tensor rank,
-                                     at::Tensor tile_bounds, at::Tensor active, at::Tensor col_bounds,
-                                     at::Tensor row_bounds, int64_t tiles_x, int64_t tiles_y, bool separable) {
-    bounds = cpu(bounds); alive = cpu(alive); rank = cpu(rank).to(at::kInt); tile_bounds = cpu(tile_bounds);
-    active = cpu(active); col_bounds = cpu(col_bounds); row_bounds = cpu(row_bounds);
-    const int64_t n = bounds.size(0), n_tiles = tile_bounds.size(0);
-    std::vector<uint64_t> keys;
-    std::vector<int32_t> gids;
+// associate.cu's passes: count (pyramid search), exclusive scan, emit (each Gaussian's tile box only),
+// then the pairs in key order (the radix sort's result, reached by bucketing: see below) and the ranges.
+// -> (ids, ranges [T,2], counts [N] tiles per Gaussian, tests [N] tile tests of both passes).
+std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tensor order, at::Tensor node_bounds,
+                                  at::Tensor node_active, int64_t tiles_x, int64_t tiles_y) {
+    bounds = cpu(bounds); alive = cpu(alive); order = cpu(order).to(at::kInt); node_bounds = cpu(node_bounds);
+    node_active = cpu(node_active);
+    TORCH_CHECK(tiles_x < (1 << 16) && tiles_y < (1 << 16), "geer cpu_ops: at most 65535 tiles along an axis");
+    const geer::TilePyramid pyr = geer::make_tile_pyramid(int(tiles_x), int(tiles_y));
+    TORCH_CHECK(node_bounds.size(0) == pyr.n_nodes && node_active.size(0) == pyr.n_nodes,
+                "geer cpu_ops: node_bounds / node_active must hold the tile pyramid of a ", tiles_x, " x ", tiles_y,
+                " grid (", pyr.n_nodes, " nodes)");
+    const int64_t n = bounds.size(0), n_tiles = tiles_x * tiles_y;
+    auto counts = at::zeros({n}, at::kInt), tests = at::zeros({n}, at::kInt);
+    int32_t* cnt = counts.data_ptr<int32_t>();
+    int32_t* tst = tests.data_ptr<int32_t>();
+    std::vector<uint64_t> boxes(n);
+    std::vector<int64_t> offsets(n + 1, 0);
+    std::vector<int32_t> pair_tile, pair_gid;
     dispatch<int>(bounds, [&](auto tag) {
         using T = decltype(tag);
-        geer::TileGrid<T> grid{ptr<T>(tile_bounds), bptr(active), int(n_tiles), int(tiles_x), int(tiles_y),
-                               separable, separable ? ptr<T>(col_bounds) : nullptr,
-                               separable ? ptr<T>(row_bounds) : nullptr};
-        // Count, scan, emit: the two passes of associate.cu.
-        std::vector<int64_t> offsets(n + 1, 0);
-        for (int64_t i = 0; i < n; ++i)
-            offsets[i + 1] = offsets[i] + geer::for_each_overlapping_tile(ptr<T>(bounds) + 4 * i, bptr(alive)[i] != 0,
-                                                                         grid, [](int) {});
-        keys.resize(offsets[n]);
-        gids.resize(offsets[n]);
-        for (int64_t i = 0; i < n; ++i) {
+        const geer::PyramidNodes<T> nodes{ptr<T>(node_bounds), bptr(node_active)};
+        parallel(n, kGaussGrain, [&](int64_t i) {
+            geer::TileBox box;
+            int t;
+            cnt[i] = geer::count_overlapping_tiles(ptr<T>(bounds) + 4 * i, bptr(alive)[i] != 0, pyr, nodes, &t, &box);
+            boxes[i] = geer::pack_box(box);
+            tst[i] = t;
+        });
+        for (int64_t i = 0; i < n; ++i) offsets[i + 1] = offsets[i] + cnt[i];
+        TORCH_CHECK(offsets[n] < (int64_t(1) << 31), "geer cpu_ops: more than 2^31 (tile, Gaussian) pairs");
+        pair_tile.resize(offsets[n]);
+        pair_gid.resize(offsets[n]);
+        parallel(n, kGaussGrain, [&](int64_t i) {
             int64_t out = offsets[i];
-            const int r = ptr<int32_t>(rank)[i];
-            geer::for_each_overlapping_tile(ptr<T>(bounds) + 4 * i, bptr(alive)[i] != 0, grid, [&](int tile) {
-                keys[out] = geer::pair_key(tile, r);
-                gids[out] = int32_t(i);
-                ++out;
-            });
-        }
+            tst[i] += geer::emit_overlapping_tiles(ptr<T>(bounds) + 4 * i, geer::unpack_box(boxes[i]), int(tiles_x),
+                                                   nodes, [&](int tile) {
+                                                       pair_tile[out] = tile;
+                                                       pair_gid[out] = int32_t(i);
+                                                       ++out;
+                                                   });
+        });
         return 0;
     });
-    std::vector<int64_t> order(keys.size());
-    std::iota(order.begin(), order.end(), 0);
-    std::sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return keys[a] < keys[b]; });
-    const int64_t m = int64_t(keys.size());
+    // Bucket the pairs by tile, visiting the Gaussians front to back (stable sort of their depth order, ties
+    // by index): every tile's list comes out sorted by key, as the radix sort of all pairs leaves it.
+    const int64_t m = offsets[n];
+    const int32_t* ord = order.data_ptr<int32_t>();
+    std::vector<int32_t> front_to_back(n);
+    for (int64_t i = 0; i < n; ++i) front_to_back[i] = int32_t(i);
+    std::stable_sort(front_to_back.begin(), front_to_back.end(),
+                     [&](int32_t a, int32_t b) { return uint32_t(ord[a]) < uint32_t(ord[b]); });
+    std::vector<int64_t> fill(n_tiles + 1, 0);
+    for (int64_t e = 0; e < m; ++e) ++fill[pair_tile[e] + 1];
+    for (int64_t t = 0; t < n_tiles; ++t) fill[t + 1] += fill[t];
+    std::vector<uint64_t> keys(m);
+    std::vector<int32_t> gids(m);
+    for (const int32_t i : front_to_back)
+        for (int64_t e = offsets[i]; e < offsets[i + 1]; ++e) {
+            const int64_t j = fill[pair_tile[e]]++;
+            keys[j] = geer::pair_key(pair_tile[e], uint32_t(ord[i]));
+            gids[j] = i;
+        }
     auto ids = at::empty({m}, at::kInt);
+    std::copy(gids.begin(), gids.end(), ids.data_ptr<int32_t>());
     auto ranges = at::zeros({n_tiles, 2}, at::kInt);
-    for (int64_t j = 0; j < m; ++j) {
-        ids.data_ptr<int32_t>()[j] = gids[order[j]];
-        const uint32_t tile = uint32_t(keys[order[j]] >> 32);
-        if (j == 0 || uint32_t(keys[order[j - 1]] >> 32) != tile) ranges.data_ptr<int32_t>()[2 * tile] = int32_t(j);
-        if (j == m - 1 || uint32_t(keys[order[j + 1]] >> 32) != tile)
-            ranges.data_ptr<int32_t>()[2 * tile + 1] = int32_t(j + 1);
-    }
-    return {ids, ranges};
+    int32_t* rg = ranges.data_ptr<int32_t>();
+    parallel(m, 4096, [&](int64_t j) { geer::mark_tile_range(keys.data(), m, j, rg); });
+    return {ids, ranges, counts, tests};
 }
 
 // ------------------------------------------------------------------------------------ stage 3
@@ -125,20 +176,28 @@ std::vector<GaussFrame<T>> frames(const at::Tensor& whiten, const at::Tensor& o_
                                   const at::Tensor& opac) {
     const int64_t n = whiten.size(0);
     std::vector<GaussFrame<T>> f(n);
-    for (int64_t i = 0; i < n; ++i)
+    parallel(n, kGaussGrain, [&](int64_t i) {
         geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, ptr<T>(rgb) + 3 * i, ptr<T>(opac)[i], f[i]);
+    });
     return f;
 }
 
-// Calls f(tile, ray) for every in-image ray slot, in the tile layout of raygrid._tile_ray_indices.
-template <typename F> void for_each_tile_ray(int64_t height, int64_t width, int64_t ts, F&& f) {
-    const int64_t tx = (width + ts - 1) / ts, ty = (height + ts - 1) / ts;
-    for (int64_t tile = 0; tile < tx * ty; ++tile)
-        for (int64_t k = 0; k < ts * ts; ++k) {
-            const int64_t row = (tile / tx) * ts + k / ts, col = (tile % tx) * ts + k % ts;
-            if (row < height && col < width) f(tile, row * width + col);
+// One tile's block as render.cu launches it: its threads' ray slots, validity and directions.
+template <typename T> struct Block {
+    int threads;
+    std::vector<geer::RaySlot> slot;
+    std::vector<uint8_t> valid;
+    std::vector<Vec3<T>> dir;
+
+    Block(int tile, int64_t height, int64_t width, int64_t ts, const uint8_t* ray_valid, const T* dirs)
+        : threads(geer::threads_per_tile(int(ts))), slot(threads), valid(threads), dir(threads) {
+        for (int tid = 0; tid < threads; ++tid) {
+            slot[tid] = geer::ray_slot(int(height), int(width), int(ts), tile, tid);
+            valid[tid] = slot[tid].in_image && ray_valid[slot[tid].ray] != 0;
+            dir[tid] = valid[tid] ? geer::load3(dirs + 3 * slot[tid].ray) : Vec3<T>{T(0), T(0), T(0)};
         }
-}
+    }
+};
 
 std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb,
                                           at::Tensor opacities, at::Tensor dirs, at::Tensor valid, at::Tensor ids,
@@ -152,23 +211,45 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     auto n_contrib = at::zeros({r}, at::kInt);
     dispatch<int>(whiten, [&](auto tag) {
         using T = decltype(tag);
+        constexpr int kBatch = geer::Batch<T>::value;
         const auto f = frames<T>(whiten, o_u, rgb, opacities);
-        for_each_tile_ray(height, width, tile_size, [&](int64_t tile, int64_t ray) {
-            const int start = ranges.data_ptr<int32_t>()[2 * tile], end = ranges.data_ptr<int32_t>()[2 * tile + 1];
-            geer::RayForward<T> st;
-            geer::ray_forward_init(st, bptr(valid)[ray] != 0);
-            const Vec3<T> d = geer::load3(ptr<T>(dirs) + 3 * ray);
-            for (int j = start; j < end && !st.done; ++j)
-                geer::ray_forward_step(st, f[ids.data_ptr<int32_t>()[j]], d, j - start);
-            for (int c = 0; c < 3; ++c) mptr<T>(out_rgb)[3 * ray + c] = st.rgb[c];
-            mptr<T>(depth)[ray] = st.depth;
-            mptr<T>(acc)[ray] = st.acc;
-            mptr<T>(t_final)[ray] = st.trans;
-            n_contrib.data_ptr<int32_t>()[ray] = st.n_contrib;
+        const int32_t* id = ids.data_ptr<int32_t>();
+        const int32_t* rg = ranges.data_ptr<int32_t>();
+        parallel_dynamic(geer::tile_count(int(height), int(width), int(tile_size)), [&](int64_t tile) {
+            const Block<T> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs));
+            std::vector<geer::RayForward<T>> st(blk.threads);
+            for (int tid = 0; tid < blk.threads; ++tid) geer::ray_forward_init(st[tid], blk.valid[tid] != 0);
+            const int start = rg[2 * tile], end = rg[2 * tile + 1];
+            for (int b = 0; b < geer::batch_count(end - start, kBatch); ++b) {
+                bool all_done = true;  // __syncthreads_count(done) == blockDim.x
+                for (int tid = 0; tid < blk.threads; ++tid) all_done = all_done && st[tid].done;
+                if (all_done) break;
+                const geer::ListBatch bt = geer::forward_batch(start, end, b, kBatch);
+                for (int k = 0; k < bt.size; ++k) {
+                    const int j = geer::batch_entry(bt, k);
+                    for (int tid = 0; tid < blk.threads; ++tid)
+                        geer::ray_forward_step(st[tid], f[id[j]], blk.dir[tid], j - start);
+                }
+            }
+            for (int tid = 0; tid < blk.threads; ++tid) {
+                if (!blk.slot[tid].in_image) continue;
+                const int ray = blk.slot[tid].ray;
+                for (int c = 0; c < 3; ++c) mptr<T>(out_rgb)[3 * ray + c] = st[tid].rgb[c];
+                mptr<T>(depth)[ray] = st[tid].depth;
+                mptr<T>(acc)[ray] = st[tid].acc;
+                mptr<T>(t_final)[ray] = st[tid].trans;
+                n_contrib.data_ptr<int32_t>()[ray] = st[tid].n_contrib;
+            }
         });
         return 0;
     });
     return {out_rgb, depth, acc, t_final, n_contrib};
+}
+
+// PairGrad as 16 values: W (9), o_u (3), colour (3), opacity.
+constexpr int kGradValues = 16;
+template <typename T> T grad_value(const geer::PairGrad<T>& p, int v) {
+    return v < 9 ? p.w[v] : v < 12 ? p.o[v - 9] : v < 15 ? p.rgb[v - 12] : p.opacity;
 }
 
 std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb,
@@ -180,34 +261,80 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
     whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities);
     dirs = cpu(dirs); valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges); t_final = cpu(t_final);
     n_contrib = cpu(n_contrib); g_rgb = cpu(g_rgb); g_depth = cpu(g_depth); g_acc = cpu(g_acc);
-    const int64_t n = whiten.size(0);
+    const int64_t n = whiten.size(0), m = ids.numel();
     auto opts = whiten.options();
     auto gw = at::zeros({n, 3, 3}, opts), go = at::zeros({n, 3}, opts), gc = at::zeros({n, 3}, opts);
     auto gs = at::zeros({n}, opts);
     dispatch<int>(whiten, [&](auto tag) {
         using T = decltype(tag);
+        constexpr int kBatch = geer::Batch<T>::value;
+        constexpr int kWarp = geer::kWarp;
         const auto f = frames<T>(whiten, o_u, rgb, opacities);
-        for_each_tile_ray(height, width, tile_size, [&](int64_t tile, int64_t ray) {
-            if (!bptr(valid)[ray]) return;
-            const int start = ranges.data_ptr<int32_t>()[2 * tile];
-            geer::RayBackward<T> st;
-            st.trans = ptr<T>(t_final)[ray];
-            st.rec = T(0);
-            for (int c = 0; c < 3; ++c) st.g_rgb[c] = ptr<T>(g_rgb)[3 * ray + c];
-            st.g_depth = ptr<T>(g_depth)[ray];
-            st.g_acc = ptr<T>(g_acc)[ray];
-            const Vec3<T> d = geer::load3(ptr<T>(dirs) + 3 * ray);
-            for (int pos = n_contrib.data_ptr<int32_t>()[ray] - 1; pos >= 0; --pos) {
-                const int g = ids.data_ptr<int32_t>()[start + pos];
-                geer::PairGrad<T> p;
-                if (!geer::ray_backward_step(st, f[g], d, p)) continue;
-                for (int i = 0; i < 9; ++i) mptr<T>(gw)[9 * g + i] += p.w[i];
-                for (int i = 0; i < 3; ++i) {
-                    mptr<T>(go)[3 * g + i] += p.o[i];
-                    mptr<T>(gc)[3 * g + i] += p.rgb[i];
-                }
-                mptr<T>(gs)[g] += p.opacity;
+        const int32_t* id = ids.data_ptr<int32_t>();
+        const int32_t* rg = ranges.data_ptr<int32_t>();
+        const int32_t* nc = n_contrib.data_ptr<int32_t>();
+        std::vector<T> pair_grad(size_t(m) * kGradValues, T(0));  // one slot per (tile, Gaussian) pair
+        parallel_dynamic(geer::tile_count(int(height), int(width), int(tile_size)), [&](int64_t tile) {
+            const Block<T> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs));
+            std::vector<geer::RayBackward<T>> st(blk.threads);
+            std::vector<int> my_n(blk.threads);
+            int block_n = 0;
+            for (int tid = 0; tid < blk.threads; ++tid) {
+                const bool ok = blk.valid[tid] != 0;
+                const int ray = blk.slot[tid].ray;
+                my_n[tid] = ok ? nc[ray] : 0;
+                block_n = std::max(block_n, my_n[tid]);  // atomicMax
+                st[tid].trans = ok ? ptr<T>(t_final)[ray] : T(1);
+                st[tid].rec = T(0);
+                for (int c = 0; c < 3; ++c) st[tid].g_rgb[c] = ok ? ptr<T>(g_rgb)[3 * ray + c] : T(0);
+                st[tid].g_depth = ok ? ptr<T>(g_depth)[ray] : T(0);
+                st[tid].g_acc = ok ? ptr<T>(g_acc)[ray] : T(0);
             }
+            const int start = rg[2 * tile];
+            geer::PairGrad<T> p[kWarp];
+            T lanes[kWarp];
+            for (int b = 0; b < geer::batch_count(block_n, kBatch); ++b) {
+                const geer::ListBatch bt = geer::backward_batch(start, block_n, b, kBatch);
+                for (int k = 0; k < bt.size; ++k) {
+                    const int j = geer::batch_entry(bt, k);
+                    const int pos = j - start;
+                    const GaussFrame<T>& frame = f[id[j]];
+                    T* slot = pair_grad.data() + size_t(j) * kGradValues;
+                    for (int w0 = 0; w0 < blk.threads; w0 += kWarp) {
+                        bool any = false;  // __any_sync
+                        for (int lane = 0; lane < kWarp; ++lane) {
+                            const int tid = w0 + lane;
+                            const bool contrib = pos < my_n[tid] && geer::ray_backward_step(st[tid], frame, blk.dir[tid], p[lane]);
+                            if (!contrib) geer::pair_grad_zero(p[lane]);
+                            any = any || contrib;
+                        }
+                        if (!any) continue;
+                        for (int v = 0; v < kGradValues; ++v) {
+                            for (int lane = 0; lane < kWarp; ++lane) lanes[lane] = grad_value(p[lane], v);
+                            slot[v] += geer::warp_tree_sum_lanes(lanes);  // the warp's atomicAdd
+                        }
+                    }
+                }
+            }
+        });
+        // Each Gaussian sums its pairs in list order.
+        std::vector<int64_t> start(n + 1, 0);
+        for (int64_t j = 0; j < m; ++j) ++start[id[j] + 1];
+        for (int64_t i = 0; i < n; ++i) start[i + 1] += start[i];
+        std::vector<int64_t> pairs(m), fill(start.begin(), start.end() - 1);
+        for (int64_t j = 0; j < m; ++j) pairs[fill[id[j]]++] = j;
+        parallel(n, kGaussGrain, [&](int64_t g) {
+            T sum[kGradValues] = {};
+            for (int64_t q = start[g]; q < start[g + 1]; ++q) {
+                const T* slot = pair_grad.data() + size_t(pairs[q]) * kGradValues;
+                for (int v = 0; v < kGradValues; ++v) sum[v] += slot[v];
+            }
+            for (int v = 0; v < 9; ++v) mptr<T>(gw)[9 * g + v] = sum[v];
+            for (int v = 0; v < 3; ++v) {
+                mptr<T>(go)[3 * g + v] = sum[9 + v];
+                mptr<T>(gc)[3 * g + v] = sum[12 + v];
+            }
+            mptr<T>(gs)[g] = sum[15];
         });
         return 0;
     });
@@ -231,20 +358,20 @@ std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats
         const Mat3<T> rc = geer::load_mat3(ptr<T>(rot_c));
         const Vec3<T> cam = geer::load3(ptr<T>(cam_center));
         const int64_t k = sh_degree >= 0 ? sh.size(1) : 0;
-        for (int64_t i = 0; i < n; ++i) {
+        parallel(n, kGaussGrain, [&](int64_t i) {
             Vec3<T> gm;
             geer::preprocess_backward_gaussian(geer::load3(ptr<T>(means_c) + 3 * i), ptr<T>(quats) + 4 * i,
                                                ptr<T>(scales) + 3 * i, rc, ptr<T>(g_whiten) + 9 * i,
                                                geer::load3(ptr<T>(g_o_u) + 3 * i), gm, mptr<T>(g_q) + 4 * i,
                                                mptr<T>(g_s) + 3 * i);
             geer::store3(mptr<T>(g_mc) + 3 * i, gm);
-            if (sh_degree < 0) continue;
+            if (sh_degree < 0) return;
             Vec3<T> gd;
             const Vec3<T> dir = geer::load3(ptr<T>(means_w) + 3 * i) - cam;
             geer::sh_backward(ptr<T>(sh) + 3 * k * i, int(sh_degree), dir, geer::load3(ptr<T>(g_rgb) + 3 * i),
                               mptr<T>(g_sh) + 3 * k * i, gd);
             geer::store3(mptr<T>(g_mw) + 3 * i, gd);
-        }
+        });
         return 0;
     });
     return {g_mc, g_q, g_s, g_sh, g_mw};

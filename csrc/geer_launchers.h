@@ -70,22 +70,22 @@ template <typename T> void launch_preprocess_forward(const PreprocessArgs<T>& a,
 // ------------------------------------------------------------------ stage 2: association (per tile)
 template <typename T> struct AssociateArgs {
     int n;
-    const T* bounds;        // [N,4] PBF bounds (unwrapped angles)
-    const uint8_t* alive;   // [N]
-    const int32_t* rank;    // [N] front-to-back rank (stable sort of depth)
-    const T* tile_bounds;   // [T,4] mirror-tangent bounds: theta lo, hi, phi lo, hi
-    const uint8_t* active;  // [T]
-    int n_tiles, tiles_x, tiles_y;
-    int separable;          // BEAP-style grid: col/row bounds below are valid
-    const T* col_bounds;    // [tiles_x,2] mirror-tangent theta bounds per tile column
-    const T* row_bounds;    // [tiles_y,2] mirror-tangent phi bounds per tile row
+    const T* bounds;          // [N,4] PBF bounds (unwrapped angles)
+    const uint8_t* alive;     // [N]
+    const int32_t* order;     // [N] depth order key: float32 depth bits, or rank for float64 (geer_associate.h)
+    const T* node_bounds;     // [nodes,4] tile pyramid (raygrid.RayGrid.tile_pyramid), level 0 = the tiles
+    const uint8_t* node_active;  // [nodes]
+    int tiles_x, tiles_y;
 };
-// Pass 1: number of tiles each Gaussian overlaps -> counts [N].
-template <typename T> void launch_count_tiles(const AssociateArgs<T>& a, int32_t* counts, cudaStream_t stream);
-// Pass 2: with offsets [N] (exclusive scan of counts), write keys (tile << 32 | rank) and Gaussian ids.
+// Pass 1: tiles each Gaussian overlaps -> counts [N], their tile box boxes [N] (packed), tile tests [N].
 template <typename T>
-void launch_emit_pairs(const AssociateArgs<T>& a, const int64_t* offsets, uint64_t* keys, int32_t* ids,
-                       cudaStream_t stream);
+void launch_count_tiles(const AssociateArgs<T>& a, int32_t* counts, uint64_t* boxes, int32_t* tests,
+                        cudaStream_t stream);
+// Pass 2: with offsets [N] (exclusive scan of counts), write keys (tile << 32 | order) and Gaussian ids,
+// visiting each Gaussian's box only; adds the emit pass's tile tests to tests [N].
+template <typename T>
+void launch_emit_pairs(const AssociateArgs<T>& a, const uint64_t* boxes, const int64_t* offsets, uint64_t* keys,
+                       int32_t* ids, int32_t* tests, cudaStream_t stream);
 // Radix sort of M pairs by key (bits [0, end_bit)); temp storage size first, then the sort.
 size_t sort_pairs_temp_bytes(int64_t m, int end_bit);
 void sort_pairs(void* temp, size_t temp_bytes, const uint64_t* keys_in, uint64_t* keys_out, const int32_t* ids_in,

@@ -4,7 +4,7 @@
 // geer_ns/render/ (the specification), written to round the same way where that matters:
 //   transforms.py  quat_to_rotmat, whitening (W = S^-1 R_v^T, MIN_SCALE clamp), o_u = -W mu_c
 //   pbf.py         lambda^2 rule, _plane_bounds (rotated-frame tangent solve), mirror_tangent
-//   associate.py   interval pieces at the +-pi seam, tile overlap in the mirror-tangent domain
+//   (association, tile pyramid and pair keys: geer_associate.h)
 //   transmittance  ray frame, D^2 = |m_u / |d_u||^2, t*, the half-line rule q(max(t*, 0)), alpha =
 //                  min(0.99, sigma exp(-q/2)) kept where q <= 2 ln(255 sigma), one gradient at every clamp
 //   composite.py   front-to-back blending, stop before T < 1e-4
@@ -373,124 +373,6 @@ GEER_HD Vec3<T> sh_to_color(const T* coeffs, int degree, const Vec3<T>& dir, Vec
     if (raw) *raw = acc;
     return Vec3<T>{g_max(acc.x, T(0)), g_max(acc.y, T(0)), g_max(acc.z, T(0))};
 }
-
-// ================================================================================ association
-// associate._interval_pieces: unwrapped [lo, hi] split at the +-pi seam into two mirror-tangent pieces.
-// The second piece is empty (lo = +inf, hi = -inf) when there is no wrap.
-template <typename T> struct MirrorPieces {
-    T a_lo, a_hi, b_lo, b_hi;
-};
-
-template <typename T> GEER_HD MirrorPieces<T> interval_pieces(T lo, T hi) {
-    const T pi = T(kPi), two_pi = T(2 * kPi);
-    const T a_lo = g_min(g_max(lo, -pi), pi), a_hi = g_min(g_max(hi, -pi), pi);
-    const bool wraps_up = hi > pi, wraps_down = lo < -pi;
-    const T b_lo = wraps_up ? -pi : lo + two_pi;
-    const T b_hi = wraps_up ? hi - two_pi : pi;
-    const bool has_b = wraps_up || wraps_down;
-    MirrorPieces<T> p;
-    p.a_lo = mirror_tangent(a_lo);
-    p.a_hi = mirror_tangent(a_hi);
-    p.b_lo = has_b ? mirror_tangent(b_lo) : Limits<T>::inf();
-    p.b_hi = has_b ? mirror_tangent(b_hi) : -Limits<T>::inf();
-    return p;
-}
-
-// associate._overlaps for one tile interval [t_lo, t_hi] (mirror domain).
-template <typename T> GEER_HD bool pieces_overlap(const MirrorPieces<T>& p, T t_lo, T t_hi) {
-    return (p.a_lo <= t_hi && t_lo <= p.a_hi) || (p.b_lo <= t_hi && t_lo <= p.b_hi);
-}
-
-// The tiles of one view as the association sees them. Bounds are in the mirror-tangent domain.
-template <typename T> struct TileGrid {
-    const T* tile_bounds;     // [n_tiles][4]: theta lo, hi, phi lo, hi
-    const uint8_t* active;    // [n_tiles]
-    int n_tiles;
-    int tiles_x, tiles_y;
-    // Separable (BEAP) grids: tile (ty, tx) has theta bounds col[tx] and phi bounds row[ty], both
-    // non-decreasing in lo and hi, so the tiles a Gaussian overlaps form rectangles found by binary search.
-    bool separable;
-    const T* col_bounds;      // [tiles_x][2]
-    const T* row_bounds;      // [tiles_y][2]
-};
-
-// First index i in [0, n) with a[2 i + k] >= v (a non-decreasing), n if none.
-template <typename T> GEER_HD int lower_bound_strided(const T* a, int n, int k, T v) {
-    int lo = 0, hi = n;
-    while (lo < hi) {
-        const int mid = (lo + hi) >> 1;
-        if (a[2 * mid + k] >= v) hi = mid; else lo = mid + 1;
-    }
-    return lo;
-}
-// First index i in [0, n) with a[2 i + k] > v, n if none.
-template <typename T> GEER_HD int upper_bound_strided(const T* a, int n, int k, T v) {
-    int lo = 0, hi = n;
-    while (lo < hi) {
-        const int mid = (lo + hi) >> 1;
-        if (a[2 * mid + k] > v) hi = mid; else lo = mid + 1;
-    }
-    return lo;
-}
-
-// Half-open index ranges of the separable columns (or rows) that overlap either piece; up to two,
-// disjoint and ordered. Returns how many.
-template <typename T> GEER_HD int separable_ranges(const T* bounds, int n, const MirrorPieces<T>& p, int* r) {
-    int cnt = 0;
-    const T los[2] = {p.a_lo, p.b_lo}, his[2] = {p.a_hi, p.b_hi};
-    for (int k = 0; k < 2; ++k) {
-        const int first = lower_bound_strided(bounds, n, 1, los[k]);   // hi >= piece lo
-        const int last = upper_bound_strided(bounds, n, 0, his[k]);    // lo <= piece hi, exclusive
-        if (first >= last) continue;
-        r[2 * cnt] = first;
-        r[2 * cnt + 1] = last;
-        ++cnt;
-    }
-    if (cnt == 2) {  // merge overlapping ranges so that no tile is listed twice
-        if (r[2] < r[0]) { int a = r[0], b = r[1]; r[0] = r[2]; r[1] = r[3]; r[2] = a; r[3] = b; }
-        if (r[2] <= r[1]) { r[1] = g_max(r[1], r[3]); cnt = 1; }
-    }
-    return cnt;
-}
-
-// Calls f(tile) for every active tile whose theta and phi ranges both overlap the Gaussian's PBF
-// (associate.associate), in increasing tile order per rectangle. Returns the number of tiles.
-// Separable grids: O(log T + hits). Other grids: every tile is tested, O(T) per Gaussian.
-template <typename T, typename F>
-GEER_HD int for_each_overlapping_tile(const T* pbf_bounds, bool alive, const TileGrid<T>& grid, F&& f) {
-    if (!alive) return 0;
-    const MirrorPieces<T> pt = interval_pieces(pbf_bounds[0], pbf_bounds[1]);
-    const MirrorPieces<T> pp = interval_pieces(pbf_bounds[2], pbf_bounds[3]);
-    int count = 0;
-    if (grid.separable) {
-        int cr[4], rr[4];
-        const int nc = separable_ranges(grid.col_bounds, grid.tiles_x, pt, cr);
-        const int nr = separable_ranges(grid.row_bounds, grid.tiles_y, pp, rr);
-        for (int a = 0; a < nr; ++a)
-            for (int ty = rr[2 * a]; ty < rr[2 * a + 1]; ++ty)
-                for (int b = 0; b < nc; ++b)
-                    for (int tx = cr[2 * b]; tx < cr[2 * b + 1]; ++tx) {
-                        const int tile = ty * grid.tiles_x + tx;
-                        if (!grid.active[tile]) continue;
-                        f(tile);
-                        ++count;
-                    }
-        return count;
-    }
-    for (int tile = 0; tile < grid.n_tiles; ++tile) {
-        if (!grid.active[tile]) continue;
-        const T* tb = grid.tile_bounds + 4 * tile;
-        if (pieces_overlap(pt, tb[0], tb[1]) && pieces_overlap(pp, tb[2], tb[3])) {
-            f(tile);
-            ++count;
-        }
-    }
-    return count;
-}
-
-// Sort key of one (tile, Gaussian) pair: tile in the high 32 bits, the Gaussian's front-to-back rank
-// (stable sort of depth, ties by index: exactly the twin's order) in the low 32 bits.
-GEER_HD constexpr uint64_t pair_key(int tile, int rank) { return (uint64_t(uint32_t(tile)) << 32) | uint64_t(uint32_t(rank)); }
 
 // ================================================================================ forward: pair
 // One Gaussian as the render stage sees it (transmittance.ray_frame, plus what blending needs): 32 values,

@@ -7,33 +7,13 @@
 // Backward: same layout, the list traversed back to front from the block's last blended Gaussian;
 // per-pair gradients of (W, o_u, colour, opacity) are summed over the warp with shuffles and added
 // to the Gaussian's buffers with one atomic per warp and value.
-// Per-pair and per-ray math: geer_math.h (eval_pair, ray_forward_step, ray_backward_step).
+// Per-pair and per-ray math: geer_math.h (eval_pair, ray_forward_step, ray_backward_step); which ray and
+// which list entry a thread touches: geer_blocks.h (shared with the CPU build, so the CPU tests run it).
+#include "geer_blocks.h"
 #include "geer_launchers.h"
 #include "geer_math.h"
 
 namespace geer {
-
-// Gaussians per shared-memory batch: ~30 KB of frames for either precision.
-template <typename T> struct Batch { static constexpr int value = sizeof(T) == 4 ? 256 : 128; };
-
-static int threads_per_tile(int tile_size) { return ((tile_size * tile_size + 31) / 32) * 32; }
-
-// The ray a thread owns: the tile's pixel (row-major within the tile, as raygrid._tile_ray_indices).
-struct RaySlot {
-    int ray;        // index into the R rays, valid when in_image
-    bool in_image;  // the tile does not overhang the image here (and the thread is not warp padding)
-};
-
-template <typename T> __device__ __forceinline__ RaySlot ray_slot(const RenderArgs<T>& a, int tile, int tid) {
-    const int ts = a.tile_size;
-    const int tiles_x = (a.width + ts - 1) / ts;
-    const int row = (tile / tiles_x) * ts + tid / ts;
-    const int col = (tile % tiles_x) * ts + tid % ts;
-    RaySlot s;
-    s.in_image = tid < ts * ts && row < a.height && col < a.width;
-    s.ray = s.in_image ? row * a.width + col : 0;
-    return s;
-}
 
 template <typename T> __device__ __forceinline__ void load_frame(const RenderArgs<T>& a, int g, GaussFrame<T>& f) {
     make_frame(a.whiten + 9 * g, a.o_u + 3 * g, a.rgb + 3 * g, a.opacities[g], f);
@@ -46,20 +26,21 @@ __global__ void __launch_bounds__(kMaxThreads) render_forward_kernel(const Rende
     __shared__ GaussFrame<T> frames[kBatch];
     const int tile = blockIdx.x;
     const int tid = threadIdx.x;
-    const RaySlot slot = ray_slot(a, tile, tid);
+    const RaySlot slot = ray_slot(a.height, a.width, a.tile_size, tile, tid);
     const bool valid = slot.in_image && a.valid[slot.ray] != 0;
     const Vec3<T> d = valid ? load3(a.dirs + 3 * slot.ray) : Vec3<T>{T(0), T(0), T(0)};
     RayForward<T> st;
     ray_forward_init(st, valid);
 
     const int start = a.ranges[2 * tile], end = a.ranges[2 * tile + 1];
-    for (int base = start; base < end; base += kBatch) {
+    const int n_batches = batch_count(end - start, kBatch);
+    for (int b = 0; b < n_batches; ++b) {
         // Also the barrier that keeps the previous batch alive until every thread has used it.
         if (__syncthreads_count(st.done ? 1 : 0) == int(blockDim.x)) break;
-        const int nb = min(kBatch, end - base);
-        for (int k = tid; k < nb; k += blockDim.x) load_frame(a, a.ids[base + k], frames[k]);
+        const ListBatch bt = forward_batch(start, end, b, kBatch);
+        for (int k = tid; k < bt.size; k += blockDim.x) load_frame(a, a.ids[batch_entry(bt, k)], frames[k]);
         __syncthreads();
-        for (int k = 0; k < nb && !st.done; ++k) ray_forward_step(st, frames[k], d, base + k - start);
+        for (int k = 0; k < bt.size && !st.done; ++k) ray_forward_step(st, frames[k], d, batch_entry(bt, k) - start);
     }
     if (!slot.in_image) return;
     const int r = slot.ray;
@@ -71,8 +52,7 @@ __global__ void __launch_bounds__(kMaxThreads) render_forward_kernel(const Rende
 }
 
 template <typename T> __device__ __forceinline__ T warp_sum(T v) {
-    for (int off = 16; off > 0; off >>= 1) v += __shfl_down_sync(0xffffffffu, v, off);
-    return v;
+    return warp_tree_sum(v, [](T x, int off) { return __shfl_down_sync(0xffffffffu, x, off); });
 }
 
 template <typename T, int kMaxThreads>
@@ -84,7 +64,7 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
     const int tile = blockIdx.x;
     const int tid = threadIdx.x;
     const int lane = tid & 31;
-    const RaySlot slot = ray_slot(a, tile, tid);
+    const RaySlot slot = ray_slot(a.height, a.width, a.tile_size, tile, tid);
     const bool valid = slot.in_image && a.valid[slot.ray] != 0;
     const int r = slot.ray;
     const Vec3<T> d = valid ? load3(a.dirs + 3 * r) : Vec3<T>{T(0), T(0), T(0)};
@@ -102,19 +82,19 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
     if (my_n > 0) atomicMax(&block_n, my_n);
     __syncthreads();
     const int start = a.ranges[2 * tile];
-    const int stop = start + block_n;
+    const int n_batches = batch_count(block_n, kBatch);
 
-    for (int top = stop; top > start; top -= kBatch) {
-        const int nb = min(kBatch, top - start);
+    for (int b = 0; b < n_batches; ++b) {
+        const ListBatch bt = backward_batch(start, block_n, b, kBatch);
         __syncthreads();  // the previous batch is no longer read
-        for (int k = tid; k < nb; k += blockDim.x) {
-            const int gid = a.ids[top - 1 - k];
+        for (int k = tid; k < bt.size; k += blockDim.x) {
+            const int gid = a.ids[batch_entry(bt, k)];
             frame_ids[k] = gid;
             load_frame(a, gid, frames[k]);
         }
         __syncthreads();
-        for (int k = 0; k < nb; ++k) {
-            const int pos = top - 1 - k - start;  // list position within the tile
+        for (int k = 0; k < bt.size; ++k) {
+            const int pos = batch_entry(bt, k) - start;  // list position within the tile
             PairGrad<T> p;
             const bool contrib = pos < my_n && ray_backward_step(st, frames[k], d, p);
             if (!__any_sync(0xffffffffu, contrib)) continue;
@@ -142,10 +122,9 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
 
 template <typename T>
 void launch_render_forward(const RenderArgs<T>& a, const RenderOutputs<T>& out, cudaStream_t stream) {
-    const int ts = a.tile_size;
-    const int n_tiles = ((a.height + ts - 1) / ts) * ((a.width + ts - 1) / ts);
+    const int n_tiles = tile_count(a.height, a.width, a.tile_size);
     if (n_tiles <= 0) return;
-    const int threads = threads_per_tile(ts);
+    const int threads = threads_per_tile(a.tile_size);
     const auto kernel = threads <= kSmallTileThreads ? render_forward_kernel<T, kSmallTileThreads>
                                                      : render_forward_kernel<T, kLargeTileThreads>;
     kernel<<<n_tiles, threads, 0, stream>>>(a, out);
@@ -154,10 +133,9 @@ void launch_render_forward(const RenderArgs<T>& a, const RenderOutputs<T>& out, 
 
 template <typename T>
 void launch_render_backward(const RenderArgs<T>& a, const RenderGradArgs<T>& g, cudaStream_t stream) {
-    const int ts = a.tile_size;
-    const int n_tiles = ((a.height + ts - 1) / ts) * ((a.width + ts - 1) / ts);
+    const int n_tiles = tile_count(a.height, a.width, a.tile_size);
     if (n_tiles <= 0) return;
-    const int threads = threads_per_tile(ts);
+    const int threads = threads_per_tile(a.tile_size);
     const auto kernel = threads <= kSmallTileThreads ? render_backward_kernel<T, kSmallTileThreads>
                                                      : render_backward_kernel<T, kLargeTileThreads>;
     kernel<<<n_tiles, threads, 0, stream>>>(a, g);

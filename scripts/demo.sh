@@ -21,17 +21,20 @@ if [ "$("$PY" -c 'import torch; print(torch.cuda.is_available())')" = "True" ]; 
   STEPS=${GEER_DEMO_STEPS:-30000}
   SCHEDULE=()
 else
-  # CPU: BEAP supervision at half resolution (48 x 48 cells) throughout; refinement every 50 steps from
-  # step 100 to 200 (each refinement grows the Gaussian count, and with it the CPU time per step).
-  echo "[demo] no GPU: short CPU schedule"
-  STEPS=${GEER_DEMO_STEPS:-300}
+  # CPU: rendered by the kernels' code built for the CPU (backend auto; built once here, outside the
+  # training time, and loudly replaced by the PyTorch renderer if it cannot be built). BEAP supervision
+  # at half resolution (48 x 48 cells) for the first half, full resolution after; refinement every 50
+  # steps from step 100 to 600 (each refinement grows the Gaussian count, and with it the time per step).
+  echo "[demo] no GPU: CPU schedule (renderer: csrc/cpu_ops.cpp, built on first use)"
+  "$PY" -c 'from geer_ns.render.backend import resolve_backend; import torch; print("[demo] renderer backend:", resolve_backend("auto", torch.device("cpu")))'
+  STEPS=${GEER_DEMO_STEPS:-1200}
   SCHEDULE=(
     --pipeline.model.num-downscales 1
-    --pipeline.model.resolution-schedule 1000000
+    --pipeline.model.resolution-schedule $((STEPS / 2))
     --pipeline.model.warmup-length 100
     --pipeline.model.refine-every 50
-    --pipeline.model.stop-split-at 201
-    --steps-per-eval-image 100
+    --pipeline.model.stop-split-at 601
+    --steps-per-eval-image 200
     --steps-per-eval-all-images 0
   )
 fi

@@ -5,6 +5,10 @@ happen in the mirror-tangent domain tan(angle / 2) (Eq. D.7 with xi = 1), which 
 (-pi, pi) ordered; a PBF interval that crosses the +-pi seam (Gaussians behind a >180 degree camera)
 is split into its two pieces. Within a tile, Gaussians are ordered front to back by the Euclidean
 distance of their mean (ties: lower index first), as the renderer composites them.
+
+The overlapping tiles are found by descending the grid's tile pyramid (raygrid.TilePyramid) level by
+level, testing a node's four children only where the node itself overlaps: O(N log T + pairs) tile
+tests on any grid instead of N x T, and the same search, test for test, as csrc/geer_associate.h.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from .raygrid import RayGrid
 class TileLists:
     gaussians: Tensor  # [n_tiles, K] long, Gaussian ids front to back, -1 padding
     counts: Tensor  # [n_tiles] long
+    tile_tests: int = 0  # (Gaussian, pyramid node) overlap tests the search made
 
     @property
     def max_count(self) -> int:
@@ -44,37 +49,52 @@ def _interval_pieces(lo: Tensor, hi: Tensor, xi: float) -> tuple[Tensor, Tensor,
     return m(a_lo), m(a_hi), b_lo_m, b_hi_m
 
 
-def _overlaps(tile_bounds: Tensor, pieces: tuple[Tensor, Tensor, Tensor, Tensor]) -> Tensor:
-    """[T, N] whether tile intervals [T, 2] overlap either piece of the Gaussians' intervals."""
-    t_lo, t_hi = tile_bounds[:, 0:1], tile_bounds[:, 1:2]
-    a_lo, a_hi, b_lo, b_hi = (p[None] for p in pieces)
-    return ((a_lo <= t_hi) & (t_lo <= a_hi)) | ((b_lo <= t_hi) & (t_lo <= b_hi))
+def _overlaps(lo: Tensor, hi: Tensor, pieces: tuple[Tensor, Tensor, Tensor, Tensor]) -> Tensor:
+    """Whether intervals [lo, hi] overlap either piece (all broadcast together)."""
+    a_lo, a_hi, b_lo, b_hi = pieces
+    return ((a_lo <= hi) & (lo <= a_hi)) | ((b_lo <= hi) & (lo <= b_hi))
 
 
 @torch.no_grad()
-def associate(pbf: PBF, grid: RayGrid, depth: Tensor, xi: float = 1.0, tile_chunk: int = 256) -> TileLists:
+def associate(pbf: PBF, grid: RayGrid, depth: Tensor, xi: float = 1.0) -> TileLists:
     """Per-tile Gaussian lists sorted front to back by `depth` [N] (Euclidean distance of the mean)."""
     device = depth.device
-    order = torch.sort(depth, stable=True).indices  # front to back
-    theta_pieces = tuple(p[order] for p in _interval_pieces(pbf.theta_lo, pbf.theta_hi, xi))
-    phi_pieces = tuple(p[order] for p in _interval_pieces(pbf.phi_lo, pbf.phi_hi, xi))
-    alive = pbf.alive[order]
-    tile_theta_m, tile_phi_m = grid.tile_mirror_bounds(xi)
+    theta_pieces = _interval_pieces(pbf.theta_lo, pbf.theta_hi, xi)
+    phi_pieces = _interval_pieces(pbf.phi_lo, pbf.phi_hi, xi)
+    pyr = grid.tile_pyramid(xi=xi)
+    # Candidates (Gaussian g, node idx within the level), from the single top node down to the tiles.
+    g = torch.nonzero(pbf.alive).squeeze(1) if grid.num_tiles else depth.new_zeros(0, dtype=torch.long)
+    idx = torch.zeros_like(g)
+    tests = 0
+    for level in range(len(pyr.levels) - 1, -1, -1):
+        node = pyr.offsets[level] + idx
+        b = pyr.bounds[node]
+        hit = pyr.active[node] & _overlaps(b[:, 0], b[:, 1], tuple(p[g] for p in theta_pieces))
+        hit &= _overlaps(b[:, 2], b[:, 3], tuple(p[g] for p in phi_pieces))
+        tests += g.numel()
+        g, idx = g[hit], idx[hit]
+        if level == 0:
+            break
+        nx = pyr.levels[level][0]
+        cnx, cny = pyr.levels[level - 1]
+        cx = 2 * (idx % nx)[:, None] + torch.tensor([0, 1, 0, 1], device=device)
+        cy = 2 * (idx // nx)[:, None] + torch.tensor([0, 0, 1, 1], device=device)
+        ok = (cx < cnx) & (cy < cny)
+        g, idx = g[:, None].expand(-1, 4)[ok], (cy * cnx + cx)[ok]
+    tiles = idx
 
-    rows, cols = [], []
-    for start in range(0, grid.num_tiles, tile_chunk):
-        sl = slice(start, start + tile_chunk)
-        hit = _overlaps(tile_theta_m[sl], theta_pieces) & _overlaps(tile_phi_m[sl], phi_pieces)
-        hit &= alive[None] & grid.tile_active[sl, None]
-        r, c = torch.nonzero(hit, as_tuple=True)  # row-major: sorted by tile, then by depth rank
-        rows.append(r + start)
-        cols.append(c)
-    rows, cols = torch.cat(rows), torch.cat(cols)
+    # Sort by (tile, depth rank): rank from a stable depth sort, so ties keep the lower index first.
+    order = torch.sort(depth, stable=True).indices
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(order.numel(), device=device)
+    key = tiles * max(1, order.numel()) + rank[g]
+    perm = torch.sort(key).indices
+    tiles, g = tiles[perm], g[perm]
 
-    counts = torch.bincount(rows, minlength=grid.num_tiles)
+    counts = torch.bincount(tiles, minlength=grid.num_tiles)
     k = int(counts.max()) if counts.numel() else 0
     offsets = torch.cumsum(counts, 0) - counts
-    rank = torch.arange(rows.numel(), device=device) - offsets[rows]
+    pos = torch.arange(tiles.numel(), device=device) - offsets[tiles]
     gaussians = torch.full((grid.num_tiles, k), -1, dtype=torch.long, device=device)
-    gaussians[rows, rank] = order[cols]
-    return TileLists(gaussians, counts)
+    gaussians[tiles, pos] = g
+    return TileLists(gaussians, counts, tests)

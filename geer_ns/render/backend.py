@@ -1,10 +1,11 @@
-"""Backend selection: the CUDA kernels when they can run, the PyTorch twin otherwise.
+"""Backend selection: the compiled pipeline when it can run, the PyTorch twin otherwise.
 
-`auto` never fails: it takes CUDA only for CUDA tensors, with kernels that have been verified on a GPU
-(`cuda_backend.CUDA_VERIFIED`) and an extension that builds. An explicit `cuda` request that cannot be
-honoured is an error, never a silent fallback. `cpu` (opt-in) runs the kernels' shared math compiled for
-the CPU (csrc/cpu_ops.cpp, JIT-built on first use): single-threaded, analytic backward, ~3x faster than
-the PyTorch twin for training on a CPU (benchmarks/cpu_training.md).
+`auto` never fails. CPU tensors: `cpu`, the kernels' code compiled for the CPU (csrc/cpu_ops.cpp, JIT-built
+on first use, multi-threaded, analytic backward, checked against the twin by tests/test_csrc_math.py;
+benchmarks/cpu_training.md). CUDA tensors: `cuda` once the kernels have been verified on a GPU
+(`cuda_backend.CUDA_VERIFIED`) and the extension builds. When auto cannot use them (a failed build, camera
+pose gradients, which only the twin computes) it renders with the PyTorch twin and says so, once. An explicit
+`cpu` or `cuda` request that cannot be honoured is an error, never a silent fallback.
 """
 
 from __future__ import annotations
@@ -34,7 +35,20 @@ def _warn_once(message: str) -> None:
         warnings.warn(message, RuntimeWarning, stacklevel=3)
 
 
-def resolve_backend(backend: Backend, device: torch.device) -> Literal["torch", "cuda", "cpu"]:
+def cpu_ops_available() -> bool:
+    """Whether csrc/cpu_ops.cpp builds and loads here (built once per process, cached on disk)."""
+    from .cuda_backend import load_cpu_ops
+
+    try:
+        load_cpu_ops()
+    except Exception:  # noqa: BLE001 - any build/load failure means "not available"; the cause is kept
+        return False
+    return True
+
+
+def resolve_backend(backend: Backend, device: torch.device, pose_grad: bool = False) -> Literal["torch", "cuda", "cpu"]:
+    """The backend that renders tensors on `device`; `pose_grad`: gradients w.r.t. the camera pose are
+    needed (only the PyTorch twin computes them)."""
     if backend == "torch":
         return "torch"
     if backend == "cpu":
@@ -56,6 +70,18 @@ def resolve_backend(backend: Backend, device: torch.device) -> Literal["torch", 
     if backend == "auto":
         from .cuda_backend import CUDA_VERIFIED
 
+        if pose_grad:
+            _warn_once("geer: camera pose gradients are requested; rendering with the PyTorch renderer (the "
+                       "compiled backends do not compute them)")
+            return "torch"
+        if device.type == "cpu":
+            if cpu_ops_available():
+                return "cpu"
+            from .cuda_backend import build_error
+
+            _warn_once(f"geer: csrc/cpu_ops.cpp could not be built or loaded ({build_error('geer_cpu_ops')}); "
+                       "rendering with the much slower PyTorch renderer")
+            return "torch"
         # Kernels not yet verified on a GPU are opt-in (backend="cuda"); auto never triggers a build for them.
         if device.type != "cuda":
             return "torch"

@@ -15,15 +15,15 @@ repository or $GEER_EXT_DIR; TORCH_CUDA_ARCH_LIST defaults to "9.0"). Importing 
 anything and works without a GPU.
 
 Every operation also exists on the CPU (csrc/cpu_ops.cpp, same names and signatures, built by
-`load_cpu_ops`), which runs the kernels' math in plain loops: `render_cuda(..., ops=load_cpu_ops())` drives
+`load_cpu_ops`), which runs the kernels' math and per-block orchestration (csrc/geer_blocks.h) over ATen's
+threads: `render_cuda(..., ops=load_cpu_ops())` drives
 this whole module on the CPU, which is how tests/test_csrc_math.py checks it against the twin.
 
-Differences from the twin, all by design: the CUDA path returns `tiles=None` (lists live as sorted pairs on
-the device); on separable (BEAP) grids a Gaussian's tiles are found by binary search against per-column /
-per-row bounds (the union over each column's / row's tiles, within 1e-6 of every tile's own bound), which
-may add a pair whose bound touches a tile only within that slack; such a pair has alpha < 1/255 on every
-ray of the tile (the PBF is complete), so images do not change, only `tile_counts` by such pairs. viewmat
-gradients are not computed (an error if viewmat requires grad).
+Differences from the twin, all by design: the kernels return `tiles=None` (lists live as sorted pairs);
+viewmat gradients are not computed (an error if viewmat requires grad). The lists themselves are the twin's,
+pair for pair and in the same order: both search the same tile pyramid (raygrid.TilePyramid) with the same
+tests, and the sort key's depth order is the twin's stable depth order (float32: the depth's bits with ties
+kept in index order by the stable sort; float64: the rank from a stable sort).
 """
 
 from __future__ import annotations
@@ -51,8 +51,6 @@ _CSRC = Path(__file__).resolve().parents[2] / "csrc"
 _CUDA_SOURCES = ("bindings.cpp", "preprocess.cu", "associate.cu", "render.cu", "preprocess_backward.cu",
                  "launch_probe.cu")
 _CPU_SOURCES = ("cpu_ops.cpp",)
-# Absolute tolerance (mirror-tangent domain) for treating a grid as separable, see module docstring.
-_SEPARABLE_TOL = 1e-6
 
 _lock = threading.Lock()
 _modules: dict[str, ModuleType] = {}
@@ -98,14 +96,20 @@ def _load(name: str, sources: tuple[str, ...], cuda: bool, verbose: bool) -> Mod
         return module
 
 
+def build_error(name: str) -> str:
+    """One line on why building extension `name` failed in this process ('' if it did not)."""
+    exc = _errors.get(name)
+    return "" if exc is None else f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1] if str(exc).strip() else ''}"
+
+
 def load_extension(verbose: bool = False) -> ModuleType:
     """The CUDA extension (built on first call; minutes on a cold cache)."""
     return _load("geer_cuda", _CUDA_SOURCES, cuda=True, verbose=verbose)
 
 
 def load_cpu_ops(verbose: bool = False) -> ModuleType:
-    """geer_math.h compiled for the CPU with the CUDA extension's operations: the kernels' math checked
-    without a GPU, and the opt-in `backend="cpu"` (single-threaded C++, analytic backward)."""
+    """csrc/ compiled for the CPU with the CUDA extension's operations: the kernels' math and per-block
+    orchestration checked without a GPU, and `backend="cpu"` (multi-threaded C++, analytic backward)."""
     return _load("geer_cpu_ops", _CPU_SOURCES, cuda=False, verbose=verbose)
 
 
@@ -196,25 +200,25 @@ def _sh_setup(colors: Tensor, sh_degree: int | None) -> int:
     return degree
 
 
-def separable_axes(theta_m: Tensor, phi_m: Tensor, active: Tensor, tiles_y: int, tiles_x: int):
-    """(col [tiles_x, 2], row [tiles_y, 2]) mirror-tangent bounds when the tile grid is separable (every tile
-    active, each tile's theta bounds those of its column and phi bounds those of its row within
-    _SEPARABLE_TOL, non-decreasing along the axis): BEAP grids. None otherwise."""
-    if theta_m.shape[0] != tiles_y * tiles_x or not bool(active.all()):
-        return None
-    th = theta_m.reshape(tiles_y, tiles_x, 2)
-    ph = phi_m.reshape(tiles_y, tiles_x, 2)
-    col = torch.stack([th[..., 0].amin(0), th[..., 1].amax(0)], -1)
-    row = torch.stack([ph[..., 0].amin(1), ph[..., 1].amax(1)], -1)
-    if not (torch.isfinite(col).all() and torch.isfinite(row).all()):
-        return None
-    spread = max(float((th - col[None]).abs().max()), float((ph - row[:, None]).abs().max()))
-    if spread > _SEPARABLE_TOL:
-        return None
-    for axis in (col, row):
-        if axis.shape[0] > 1 and not bool((axis[1:] >= axis[:-1]).all()):
-            return None
-    return col.contiguous(), row.contiguous()
+def depth_order_key(depth: Tensor) -> Tensor:
+    """[N] int32 low half of the association's sort key (csrc/geer_associate.h pair_key): the twin's
+    front-to-back order. float32: the depth's bits (non-negative floats order like their bits; equal
+    depths stay in index order through the stable sort), no global sort. float64: the stable-sort rank."""
+    if depth.dtype == torch.float32:
+        return depth.contiguous().view(torch.int32)
+    order = torch.sort(depth, stable=True).indices
+    rank = torch.empty(depth.shape[0], dtype=torch.int32, device=depth.device)
+    rank[order] = torch.arange(depth.shape[0], dtype=torch.int32, device=depth.device)
+    return rank
+
+
+def associate_pairs(ops: ModuleType, bounds: Tensor, alive: Tensor, depth: Tensor, grid: RayGrid):
+    """Stage 2 on the kernels: (ids [M] int32 sorted by (tile, depth), ranges [T, 2], counts [N] tiles per
+    Gaussian, tests [N] tile tests of the count and emit passes). bounds [N, 4] PBF (theta_lo, theta_hi,
+    phi_lo, phi_hi), alive [N], depth [N] the Euclidean distances the twin sorts by."""
+    pyr = grid.tile_pyramid(bounds.dtype)
+    return ops.associate(bounds.contiguous(), alive.contiguous(), depth_order_key(depth), pyr.bounds.to(bounds.device),
+                         pyr.active.to(bounds.device), grid.tiles_x, grid.tiles_y)
 
 
 # ----------------------------------------------------------------------------------------- pipeline
@@ -244,7 +248,7 @@ def render_cuda(
         raise ValueError(f"lambda_mode must be 'opacity' or 'paper', got {lambda_mode!r}")
     if viewmat.requires_grad and torch.is_grad_enabled():
         raise ValueError("viewmat: gradients w.r.t. the camera pose are not supported by the CUDA backend")
-    if not 1 <= grid.tile_size <= 32:
+    if not 1 <= grid.tile_size <= 32 and ops is not _modules.get("geer_cpu_ops"):
         raise ValueError(f"the CUDA backend needs tile_size in 1..32 (one thread per ray), got {grid.tile_size}")
     dtype, device = means.dtype, means.device
     n = means.shape[0]
@@ -268,21 +272,8 @@ def render_cuda(
     )
     rgb = colors.contiguous() if degree < 0 else rgb_sh
 
-    # Stage 2. Front-to-back rank: the twin's stable depth sort, so lists match it exactly.
-    depth = means_c.detach().norm(dim=-1)
-    order = torch.sort(depth, stable=True).indices
-    rank = torch.empty(n, dtype=torch.int32, device=device)
-    rank[order] = torch.arange(n, dtype=torch.int32, device=device)
-    theta_m, phi_m = grid.tile_mirror_bounds()
-    theta_m, phi_m = theta_m.to(dtype), phi_m.to(dtype)
-    tile_bounds = torch.cat([theta_m, phi_m], -1).contiguous()
-    axes = separable_axes(theta_m, phi_m, grid.tile_active, grid.tiles_y, grid.tiles_x)
-    empty = means.new_zeros(0, 2)
-    col, row = axes if axes is not None else (empty, empty)
-    ids, ranges = ops.associate(
-        bounds.contiguous(), alive.contiguous(), rank, tile_bounds, grid.tile_active.contiguous(), col, row,
-        grid.tiles_x, grid.tiles_y, axes is not None,
-    )
+    # Stage 2. Lists in the twin's front-to-back order (depth as the twin computes it).
+    ids, ranges, counts, _tests = associate_pairs(ops, bounds, alive, means_c.detach().norm(dim=-1), grid)
 
     # Stage 3. Per tile / ray.
     rgb_sum, depth_sum, acc = _Rasterize.apply(
@@ -295,8 +286,7 @@ def render_cuda(
     expected_depth = depth_sum / acc.clamp_min(1e-10)
     shape = (grid.height, grid.width)
 
-    visible = torch.zeros(n, dtype=torch.bool, device=device)
-    visible[ids.long()] = True
+    visible = counts > 0
     tile_counts = (ranges[:, 1] - ranges[:, 0]).long()
     pbf = PBF(bounds[:, 0], bounds[:, 1], bounds[:, 2], bounds[:, 3], alive, inside)
     return RenderOutput(

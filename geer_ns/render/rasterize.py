@@ -116,7 +116,7 @@ def render(
     (memory model: blend.py); the kernels need no such cap.
     """
     _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background)
-    chosen = resolve_backend(backend, means.device)
+    chosen = resolve_backend(backend, means.device, pose_grad=viewmat.requires_grad and torch.is_grad_enabled())
     if chosen != "torch":  # the kernels (CUDA), or their math compiled for the CPU
         from .cuda_backend import load_cpu_ops, render_cuda
 

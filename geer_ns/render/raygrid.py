@@ -11,7 +11,7 @@ Invalid rays (outside a fisheye circle, masked) are skipped; a tile without a va
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
@@ -35,6 +35,8 @@ class RayGrid:
     tile_theta: Tensor  # [n_tiles, 2] (lo, hi) of atan2(x, z) over the tile's valid rays
     tile_phi: Tensor  # [n_tiles, 2] (lo, hi) of atan2(y, z)
     tile_active: Tensor  # [n_tiles] bool: the tile has at least one valid ray
+    # Per-grid facts derived once and reused by every render of this grid (tile pyramids by dtype/xi).
+    _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def num_rays(self) -> int:
@@ -53,6 +55,8 @@ class RayGrid:
         return -(-self.width // self.tile_size)
 
     def to(self, device: torch.device | str) -> "RayGrid":
+        if torch.device(device) == self.dirs.device:
+            return self  # keeps the cached per-grid facts
         return RayGrid(
             self.dirs.to(device), self.valid.to(device), self.height, self.width, self.tile_size,
             self.tile_rays.to(device), self.tile_theta.to(device), self.tile_phi.to(device),
@@ -62,6 +66,16 @@ class RayGrid:
     def tile_mirror_bounds(self, xi: float = 1.0) -> tuple[Tensor, Tensor]:
         """Tile bounds in the mirror-tangent domain (Eq. D.7): ([n_tiles, 2] theta, [n_tiles, 2] phi)."""
         return mirror_tangent(self.tile_theta, xi), mirror_tangent(self.tile_phi, xi)
+
+    def tile_pyramid(self, dtype: torch.dtype | None = None, xi: float = 1.0) -> "TilePyramid":
+        """The tile pyramid the association searches (cached per dtype and xi); see TilePyramid."""
+        dtype = self.dirs.dtype if dtype is None else dtype
+        key = ("pyramid", dtype, xi)
+        if key not in self._cache:
+            theta_m, phi_m = self.tile_mirror_bounds(xi)
+            tiles = torch.cat([theta_m, phi_m], -1).to(dtype)
+            self._cache[key] = TilePyramid.build(tiles, self.tile_active, self.tiles_x, self.tiles_y)
+        return self._cache[key]
 
     # ----------------------------------------------------------------------------------- builders
     @classmethod
@@ -104,6 +118,52 @@ class RayGrid:
         centred on `center` = (theta, phi). Angles must stay inside (-pi/2, pi/2)."""
         dirs = beap_directions(width, height, fov_x, fov_y, center, dtype, device)
         return cls.from_rays(dirs, valid, tile_size)
+
+
+def pyramid_levels(tiles_x: int, tiles_y: int) -> list[tuple[int, int]]:
+    """(nx, ny) per level: level 0 the tiles, each level ceil(half) of the one below, up to a single node
+    (csrc/geer_associate.h make_tile_pyramid computes the same)."""
+    levels = [(tiles_x, tiles_y)]
+    while levels[-1][0] > 1 or levels[-1][1] > 1:
+        nx, ny = levels[-1]
+        levels.append((-(-nx // 2), -(-ny // 2)))
+    return levels
+
+
+@dataclass
+class TilePyramid:
+    """Tiles grouped into 2x2 blocks, level by level, each node carrying the union of its active tiles'
+    mirror-tangent bounds (a node with no active tile is inactive). Level 0 is the tiles themselves; the
+    single top node holds the grid's overall bounds. A Gaussian whose PBF misses a node misses every tile
+    below it, so the association only descends where it can hit (associate.py, csrc/geer_associate.h)."""
+
+    bounds: Tensor  # [n_nodes, 4] theta lo, hi, phi lo, hi (mirror domain), level after level, row-major
+    active: Tensor  # [n_nodes] bool
+    levels: list[tuple[int, int]]  # (nx, ny) per level
+    offsets: list[int]  # first node of each level
+
+    @classmethod
+    def build(cls, tiles: Tensor, active: Tensor, tiles_x: int, tiles_y: int) -> "TilePyramid":
+        levels = pyramid_levels(tiles_x, tiles_y)
+        inf = math.inf
+        empty = torch.tensor([inf, -inf, inf, -inf], dtype=tiles.dtype, device=tiles.device)
+        b = torch.where(active[:, None], tiles, empty).reshape(tiles_y, tiles_x, 4)
+        a = active.reshape(tiles_y, tiles_x)
+        all_b, all_a, offsets, off = [b.reshape(-1, 4)], [a.reshape(-1)], [0], tiles_x * tiles_y
+        for nx, ny in levels[1:]:
+            pad_y, pad_x = 2 * ny - b.shape[0], 2 * nx - b.shape[1]
+            b = torch.cat([b, empty.expand(pad_y, b.shape[1], 4)], 0)
+            b = torch.cat([b, empty.expand(b.shape[0], pad_x, 4)], 1)
+            a = torch.nn.functional.pad(a, (0, pad_x, 0, pad_y))
+            blocks = b.reshape(ny, 2, nx, 2, 4)
+            lo, hi = blocks[..., 0::2].amin((1, 3)), blocks[..., 1::2].amax((1, 3))
+            b = torch.stack([lo[..., 0], hi[..., 0], lo[..., 1], hi[..., 1]], -1)
+            a = a.reshape(ny, 2, nx, 2).any(3).any(1)
+            offsets.append(off)
+            off += nx * ny
+            all_b.append(b.reshape(-1, 4))
+            all_a.append(a.reshape(-1))
+        return cls(torch.cat(all_b).contiguous(), torch.cat(all_a).contiguous(), levels, offsets)
 
 
 def beap_directions(

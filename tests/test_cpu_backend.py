@@ -1,0 +1,101 @@
+"""backend="auto" on CPU tensors: the multi-threaded CPU build (csrc/cpu_ops.cpp), deterministic, with a loud
+fallback to the PyTorch twin when it cannot be used. Its agreement with the twin: tests/test_csrc_math.py."""
+
+from __future__ import annotations
+
+import shutil
+import warnings
+
+import pytest
+import torch
+from conftest import reference_grids, random_scene
+
+from geer_ns.render import cuda_backend, render
+from geer_ns.render.backend import _warned, resolve_backend
+
+
+@pytest.fixture(scope="module")
+def ops():
+    if shutil.which("c++") is None and shutil.which("g++") is None:
+        pytest.skip("no C++ compiler: cannot build csrc/cpu_ops.cpp")
+    return cuda_backend.load_cpu_ops()
+
+
+def _render_and_grads(grid, dtype=torch.float32, backend="auto"):
+    scene = [t.to(dtype).requires_grad_(True) for t in random_scene(300, 7, around=True)]
+    out = render(*scene, torch.eye(4, dtype=dtype), grid, background=torch.full((3,), 0.3, dtype=dtype),
+                 backend=backend)
+    (out.rgb.square().sum() + out.depth.sum() + out.accumulation.sum()).backward()
+    return [out.rgb, out.depth, out.accumulation, out.visible, out.tile_counts] + [t.grad for t in scene]
+
+
+def test_auto_uses_the_cpu_build_on_cpu_tensors(ops):
+    assert resolve_backend("auto", torch.device("cpu")) == "cpu"
+    grid = reference_grids(torch.float32)["fisheye180"]
+    for a, b in zip(_render_and_grads(grid), _render_and_grads(grid, backend="cpu")):
+        assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("grid_name", ["beap", "fisheye180", "equirect360"])
+def test_cpu_build_is_deterministic_across_threads(ops, grid_name):
+    """Bitwise equal over two runs with 2 threads and a run with 1: no order-dependent sums between threads."""
+    grid = reference_grids(torch.float32)[grid_name]
+    n = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        first, second = _render_and_grads(grid), _render_and_grads(grid)
+        torch.set_num_threads(1)
+        single = _render_and_grads(grid)
+    finally:
+        torch.set_num_threads(n)
+    assert float(first[2].detach().max()) > 0.5 and float(first[5].abs().max()) > 0  # something was rendered
+    for a, b, c in zip(first, second, single):
+        assert torch.equal(a, b) and torch.equal(a, c)
+
+
+def test_auto_falls_back_loudly_once_when_the_cpu_build_fails(ops, monkeypatch):
+    monkeypatch.delitem(cuda_backend._modules, "geer_cpu_ops")
+    monkeypatch.setitem(cuda_backend._errors, "geer_cpu_ops", RuntimeError("compiler exploded"))
+    _warned.clear()
+    with pytest.warns(RuntimeWarning, match="compiler exploded"):
+        assert resolve_backend("auto", torch.device("cpu")) == "torch"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert resolve_backend("auto", torch.device("cpu")) == "torch"  # said once
+    with pytest.raises(RuntimeError, match="cpu_ops"):
+        resolve_backend("cpu", torch.device("cpu"))  # an explicit request is an error
+
+
+def test_auto_renders_pose_gradients_with_the_twin(ops):
+    grid = reference_grids(torch.float32)["beap"]
+    scene = random_scene(50, 2, dtype=torch.float32)
+    viewmat = torch.eye(4).requires_grad_(True)
+    _warned.clear()
+    with pytest.warns(RuntimeWarning, match="pose gradients"):
+        out = render(*scene, viewmat, grid)
+    out.rgb.sum().backward()
+    assert viewmat.grad is not None and float(viewmat.grad.abs().sum()) > 0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_lists_longer_than_a_batch_match_the_twin(ops, dtype):
+    """Tile lists spanning several shared-memory batches (geer_blocks.h: 256 float32 / 128 float64 frames):
+    the batch walk front to back, the backward's walk from the block's last blended Gaussian, and the warp
+    sums of the CPU build all agree with the twin."""
+    from geer_ns.render import RayGrid
+
+    grid = RayGrid.beap(32, 32, 1.2, 1.2, tile_size=16, dtype=dtype)
+    scene = [t.to(dtype) for t in random_scene(700, 5, spread=0.3, scale_range=(0.1, 0.3), opacity_range=(0.02, 0.05))]
+    results = {}
+    for backend in ("torch", "cpu"):
+        leaves = [t.clone().requires_grad_(True) for t in scene]
+        out = render(*leaves, torch.eye(4, dtype=dtype), grid, backend=backend)
+        (out.rgb.square().sum() + out.depth.sum()).backward()
+        results[backend] = (out, [t.grad for t in leaves])
+    (ref, g_ref), (ours, g_ours) = results["torch"], results["cpu"]
+    assert int(ref.tile_counts.min()) > 256  # every tile walks two float32 batches, four float64 ones
+    tol = 1e-10 if dtype == torch.float64 else 1e-5
+    for name in ("rgb", "depth", "accumulation"):
+        assert (getattr(ours, name) - getattr(ref, name)).abs().max() <= tol * max(1.0, float(getattr(ref, name).abs().max()))
+    for a, b in zip(g_ours, g_ref):
+        assert (a - b).norm() <= (1e-8 if dtype == torch.float64 else 1e-3) * b.norm()
