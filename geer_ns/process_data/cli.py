@@ -1,0 +1,204 @@
+"""``geer-process-data``: a folder of images or a video -> a dataset ``ns-train geer --data`` reads.
+
+Stages: frames (copy / sample), masks and starting intrinsics, SIFT extraction, matching, incremental mapping
+with bundle adjustment, export, report. Each failure is raised as a ProcessDataError with its explanation.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, Literal, Optional
+
+import tyro
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from geer_ns.process_data import camera as camera_setup
+from geer_ns.process_data import export, frames, sfm
+from geer_ns.process_data.frames import ProcessDataError
+
+
+@dataclass
+class ProcessDataConfig:
+    """Structure from motion for fisheye (and other) cameras with pycolmap (no COLMAP binary): writes
+    images/, masks/, transforms.json (nerfstudio format, OPENCV_FISHEYE k1..k4), sparse/0 and points3d.ply."""
+
+    data: Path
+    """A folder of images (sub-folders allowed) or a video file."""
+    output_dir: Path
+    """Where the dataset is written (ns-train geer --data OUTPUT_DIR)."""
+    camera_model: Literal["OPENCV_FISHEYE", "OPENCV", "SIMPLE_RADIAL"] = "OPENCV_FISHEYE"
+    """Camera model refined by bundle adjustment: OPENCV_FISHEYE for fisheye lenses, OPENCV or SIMPLE_RADIAL
+    for narrow lenses. Ignored with --calibration."""
+    calibration: Optional[Path] = None
+    """Your own calibration, held fixed during mapping: a COLMAP cameras.txt (one camera, or one per folder with
+    --camera-per-folder in sorted folder order) or a nerfstudio transforms.json (its intrinsics). Scaled when the
+    images have another resolution with the same aspect ratio."""
+    camera_per_folder: bool = False
+    """One camera per sub-folder (camera rigs); by default all images share one camera."""
+    mask: Optional[Path] = None
+    """A mask image (white = use) for every camera, or a folder with <sub-folder>.png per camera. Default: the
+    fisheye image circle is detected from the images."""
+    auto_mask: bool = True
+    """Detect the image circle (black border) when no --mask is given."""
+    fov_deg: Optional[float] = None
+    """Field of view of the lens in degrees, for the starting focal length (refined by bundle adjustment).
+    Fisheye default 180 (across the image circle, or the diagonal of a full-frame fisheye)."""
+    matching: Literal["auto", "sequential", "exhaustive"] = "auto"
+    """auto: sequential for video (and more than --exhaustive-max-images images), exhaustive otherwise."""
+    exhaustive_max_images: int = 150
+    """With matching auto, larger image folders are matched sequentially (in file-name order)."""
+    sequential_overlap: int = 10
+    """Sequential matching: each frame with its next N frames (plus frames 2^k further on)."""
+    loop_keyframe_interval: int = 10
+    """Sequential matching: every N-th frame is also matched with every other such keyframe (loop closure
+    without a vocabulary tree); 0 turns it off."""
+    vocab_tree_path: Optional[Path] = None
+    """A COLMAP vocabulary tree file: adds vocabulary-tree loop-closure matching."""
+    num_frames_target: int = 300
+    """Video: number of frames to sample."""
+    blur_ratio: float = 0.5
+    """Video: a sampled frame is skipped as blurry when its sharpness is below this times its neighbours'."""
+    refine_principal_point: bool = False
+    """Also refine cx, cy in bundle adjustment."""
+    max_image_size: int = 3200
+    """Images are downscaled to this size for feature extraction only."""
+    max_reprojection_error: float = 2.0
+    """Mean reprojection error (px) above which the camera model is considered wrong and no dataset is written."""
+    min_registered_fraction: float = 0.5
+    """Fail when fewer than this fraction of the images are registered."""
+    num_threads: int = -1
+    """Threads for pycolmap (-1: all cores)."""
+    overwrite: bool = False
+    """Replace an existing dataset in output_dir."""
+    verbose: bool = False
+    """Show pycolmap's own log."""
+
+
+def _prepare_output(cfg: ProcessDataConfig) -> Path:
+    out = cfg.output_dir
+    existing = [p for p in ("images", "masks", "sparse", "colmap", "transforms.json") if (out / p).exists()]
+    if existing:
+        if not cfg.overwrite:
+            raise ProcessDataError(f"{out} already holds a dataset ({', '.join(existing)}); use --overwrite")
+        for p in existing:
+            (shutil.rmtree if (out / p).is_dir() else Path.unlink)(out / p)
+    (out / "images").mkdir(parents=True)
+    work = out / "colmap"
+    work.mkdir()
+    return work
+
+
+def run(cfg: ProcessDataConfig) -> Dict[str, object]:
+    """Run every stage; returns the report (also written to output_dir/process_data_report.json)."""
+    import pycolmap
+
+    if not cfg.verbose:
+        pycolmap.logging.minloglevel = 1  # warnings and errors only
+    if not cfg.data.exists():
+        raise ProcessDataError(f"--data {cfg.data} does not exist")
+    timings: Dict[str, float] = {}
+    extra: Dict[str, object] = {}
+    t0 = time.perf_counter()
+    work = _prepare_output(cfg)
+    images_dir = cfg.output_dir / "images"
+    video = frames.is_video(cfg.data)
+    if video:
+        group, stats = frames.sample_video(cfg.data, images_dir, cfg.num_frames_target, blur_ratio=cfg.blur_ratio)
+        groups = [group]
+        extra.update(stats)
+    elif cfg.data.is_dir():
+        groups = frames.copy_images(cfg.data, images_dir, cfg.camera_per_folder)
+    else:
+        raise ProcessDataError(f"--data {cfg.data}: neither a folder of images nor a video "
+                               f"({', '.join(sorted(frames.VIDEO_SUFFIXES))})")
+    names = [n for g in groups for n in g.image_names]
+    if len(names) < 3:
+        raise ProcessDataError(f"--data {cfg.data}: {len(names)} image(s); structure from motion needs at least 3")
+    timings["frames"] = time.perf_counter() - t0
+
+    t = time.perf_counter()
+    setups = camera_setup.setup_cameras(groups, cfg.output_dir, work, cfg.camera_model, cfg.calibration, cfg.mask,
+                                        cfg.auto_mask, cfg.fov_deg)
+    db = work / "database.db"
+    sfm.extract_features(db, images_dir, groups, setups, cfg.num_threads, cfg.max_image_size)
+    timings["features"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    sequential = cfg.matching == "sequential" or (
+        cfg.matching == "auto" and (video or len(names) > cfg.exhaustive_max_images))
+    if sequential:
+        pairs = set()
+        for g in groups:  # frames of one camera are in capture order; rig cameras are matched across folders
+            pairs |= sfm.sequential_pairs(g.image_names, cfg.sequential_overlap)
+            pairs |= sfm.loop_pairs(g.image_names, cfg.loop_keyframe_interval)
+        for a, b in zip(groups, groups[1:]):
+            pairs |= {(x, y) for x, y in zip(a.image_names, b.image_names)}
+    else:
+        pairs = sfm.exhaustive_pairs(names)
+    extra["matching"] = f"{'sequential' if sequential else 'exhaustive'}, {len(pairs)} pairs"
+    CONSOLE.print(f"Matching: {extra['matching']}")
+    sfm.match(db, work, pairs, cfg.num_threads, cfg.vocab_tree_path)
+    timings["matching"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    fixed = cfg.calibration is not None
+    mapped = sfm.incremental_mapping(db, images_dir, work, len(names), fixed, cfg.refine_principal_point,
+                                     cfg.num_threads)
+    timings["mapping"] = time.perf_counter() - t
+    model = setups[0].model
+    circle_found = any(s.circle is not None for s in setups)
+    if mapped is None:
+        stats = sfm.database_stats(db)
+        raise ProcessDataError("structure from motion failed: no initial image pair could be reconstructed.\n"
+                               + sfm.explain_failure(stats, set(), names, model, circle_found))
+    recon = mapped.reconstruction
+    sparse0 = cfg.output_dir / "sparse" / "0"
+    sparse0.mkdir(parents=True)
+    recon.write(sparse0)
+    timings["total"] = time.perf_counter() - t0
+    report = export.summary(recon, names, mapped.num_models, timings, extra)
+    (cfg.output_dir / "process_data_report.json").write_text(json.dumps(report, indent=2), encoding="utf8")
+    export.print_report(report)
+
+    registered = set(n for n in names if n not in report["unregistered_images"])
+    if len(registered) < cfg.min_registered_fraction * len(names):
+        why = sfm.explain_failure(sfm.database_stats(db), registered, names, model, circle_found)
+        split = f" (the images fell into {mapped.num_models} unconnected models)" if mapped.num_models > 1 else ""
+        raise ProcessDataError(f"too few images registered: {len(registered)} of {len(names)}{split}.\n{why}\n"
+                               f"The partial model is in {sparse0}; no transforms.json was written.")
+    if report["mean_reprojection_error_px"] > cfg.max_reprojection_error:
+        raise ProcessDataError(
+            f"mean reprojection error {report['mean_reprojection_error_px']:.2f} px > {cfg.max_reprojection_error} "
+            f"px: the camera model does not fit the lens.\n{sfm.model_hint(model, circle_found)}\n"
+            f"The model is in {sparse0}; no transforms.json was written (--max-reprojection-error to accept it).")
+    if registered != set(names):
+        CONSOLE.print(f"[yellow]{len(names) - len(registered)} image(s) were not registered and are left out of "
+                      "transforms.json:\n" + sfm.explain_failure(sfm.database_stats(db), registered, names, model,
+                                                                  circle_found))
+    masks = {}
+    for group, setup in zip(groups, setups):
+        for im in recon.images.values():
+            if im.name in group.image_names:
+                masks[int(im.camera_id)] = setup.mask_file
+    export.write_transforms(cfg.output_dir, recon, masks)
+    CONSOLE.print(f"[bold green]Dataset written to {cfg.output_dir}[/]: ns-train geer --data {cfg.output_dir}")
+    return report
+
+
+def entrypoint() -> None:
+    """Console script ``geer-process-data``."""
+    tyro.extras.set_accent_color("bright_yellow")
+    cfg = tyro.cli(tyro.conf.FlagConversionOff[ProcessDataConfig])
+    try:
+        run(cfg)
+    except ProcessDataError as e:
+        CONSOLE.print(f"[bold red]geer-process-data failed:[/] {e}")
+        raise SystemExit(1) from None
+
+
+if __name__ == "__main__":
+    entrypoint()
