@@ -80,10 +80,11 @@ def exhaustive_pairs(names: Sequence[str]) -> Set[Tuple[str, str]]:
 
 
 def match(db: Path, work_dir: Path, pairs: Set[Tuple[str, str]], num_threads: int,
-          vocab_tree: Optional[Path] = None) -> None:
+          vocab_tree: Optional[Path] = None, guided: bool = False) -> None:
     """Match and geometrically verify ``pairs`` (plus vocabulary-tree neighbours when a tree is given)."""
     mo = pycolmap.FeatureMatchingOptions()
     mo.num_threads = num_threads
+    mo.guided_matching = guided
     ordered = sorted(pairs)
     pair_file = work_dir / "pairs.txt"
     with progress() as bar:
@@ -175,6 +176,9 @@ def explain_failure(stats: Dict[str, object], registered: Set[str], names: Seque
     lonely = [n for n in names if n not in registered and per_image.get(n, 0) == 0 and n not in few]
     if lonely:
         lines.append(f"{len(lonely)} image(s) match no other image, e.g. {', '.join(lonely[:5])}")
+    if registered:
+        lines.append("more overlap between views, --guided-matching True (more matches per pair) or, for video, "
+                     "a larger --num-frames-target often registers the rest")
     lines.append(model_hint(model, circle_found))
     return "\n".join(lines)
 

@@ -1,0 +1,212 @@
+"""geer-process-data on the Blender-rendered dev fisheye room: poses and focal length against the renderer's
+ground truth (after a similarity alignment), the video path, a fixed user calibration, explained failures, and
+a few geer training steps on the output.
+
+Subsets of the 48 views keep this file fast on 2 cores; the accuracy bounds are the issue's.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from geer_ns.process_data import ProcessDataConfig, ProcessDataError, run
+from conftest import shared_data
+
+TRUE_FOCAL = 384 / math.pi  # 180-degree equidistant fisheye over 384 px (README of the shared data)
+
+
+def _dev_room() -> Path:
+    return shared_data("fisheye_room_dev")
+
+
+def _true_poses() -> dict:
+    meta = json.loads((_dev_room() / "transforms_fisheye.json").read_text())
+    return {Path(f["file_path"]).name: np.array(f["transform_matrix"]) for f in meta["frames"]}
+
+
+def _copy_frames(indices, dst: Path) -> Path:
+    dst.mkdir(parents=True)
+    for i in indices:
+        shutil.copy(_dev_room() / "images_fisheye" / f"frame_{i:05d}.jpg", dst)
+    return dst
+
+
+def _umeyama(src: np.ndarray, dst: np.ndarray):
+    """Similarity (s, R, t) minimising |s R src + t - dst|^2 (Umeyama 1991)."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    cov = (dst - mu_d).T @ (src - mu_s) / len(src)
+    u, d, vt = np.linalg.svd(cov)
+    e = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        e[2, 2] = -1
+    r = u @ e @ vt
+    s = np.trace(np.diag(d) @ e) / ((src - mu_s) ** 2).sum(1).mean()
+    return s, r, mu_d - s * r @ mu_s
+
+
+def _pose_errors(transforms: dict, truth: dict):
+    """Mean rotation error (deg) and mean position error relative to the true path's extent (both in
+    nerfstudio's OpenGL camera axes; the worlds differ by a similarity, removed by the alignment)."""
+    est = [np.array(f["transform_matrix"]) for f in transforms["frames"]]
+    ref = [truth[f["file_path"]] for f in transforms["frames"]]
+    c_est = np.array([p[:3, 3] for p in est])
+    c_ref = np.array([p[:3, 3] for p in ref])
+    s, r, t = _umeyama(c_est, c_ref)
+    pos = np.linalg.norm((s * (r @ c_est.T)).T + t - c_ref, axis=1)
+    extent = np.linalg.norm(c_ref.max(0) - c_ref.min(0))
+    rot = []
+    for a, b in zip(est, ref):
+        cos = (np.trace((r @ a[:3, :3]).T @ b[:3, :3]) - 1) / 2
+        rot.append(math.degrees(math.acos(min(1.0, max(-1.0, cos)))))
+    return float(np.mean(rot)), float(pos.mean() / extent)
+
+
+@pytest.fixture(scope="module")
+def folder_run(tmp_path_factory):
+    """16 of the 48 views (every second of the first 32), an unordered folder: exhaustive matching."""
+    root = tmp_path_factory.mktemp("process_data")
+    src = _copy_frames(range(0, 32, 2), root / "input")
+    out = root / "dataset"
+    report = run(ProcessDataConfig(data=src, output_dir=out, num_threads=2))
+    return out, report
+
+
+def test_every_image_registers_with_accurate_poses_and_focal(folder_run):
+    out, report = folder_run
+    transforms = json.loads((out / "transforms.json").read_text())
+    assert report["num_registered_images"] == report["num_input_images"] == 16
+    assert len(transforms["frames"]) == 16
+    truth = {f"images/{k}": v for k, v in _true_poses().items()}
+    rot_deg, pos_rel = _pose_errors(transforms, truth)
+    print(f"rotation error {rot_deg:.3f} deg, position error {100 * pos_rel:.3f} % of the path, "
+          f"focal {transforms['fl_x']:.3f} / {transforms['fl_y']:.3f} px (true {TRUE_FOCAL:.3f})")
+    assert rot_deg < 0.5
+    assert pos_rel < 0.01
+    assert transforms["camera_model"] == "OPENCV_FISHEYE"
+    for key in ("fl_x", "fl_y"):
+        assert abs(transforms[key] - TRUE_FOCAL) < 0.01 * TRUE_FOCAL, key
+    assert report["mean_reprojection_error_px"] < 1.0
+
+
+def test_output_is_a_complete_dataset(folder_run):
+    import pycolmap
+
+    out, _ = folder_run
+    transforms = json.loads((out / "transforms.json").read_text())
+    for key in ("k1", "k2", "k3", "k4", "applied_transform"):
+        assert key in transforms
+    assert (out / transforms["ply_file_path"]).is_file()
+    recon = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    assert recon.num_reg_images() == 16 and recon.num_points3D() > 1000
+    # The automatic mask is the lens's image circle: compare with the renderer's own circle mask.
+    mask = cv2.imread(str(out / transforms["frames"][0]["mask_path"]), cv2.IMREAD_GRAYSCALE) > 127
+    true_mask = cv2.imread(str(_dev_room() / "masks" / "fisheye_mask.png"), cv2.IMREAD_GRAYSCALE) > 127
+    assert (mask & true_mask).sum() / (mask | true_mask).sum() > 0.98
+    for frame in transforms["frames"]:
+        assert (out / frame["file_path"]).is_file()
+
+
+def test_geer_trains_on_the_output(folder_run, tmp_path):
+    from geer_ns.config import geer_method
+
+    out, _ = folder_run
+    cfg = copy.deepcopy(geer_method.config)
+    cfg.pipeline.datamanager.data = out
+    cfg.output_dir = tmp_path
+    cfg.max_num_iterations = 3
+    cfg.vis = "tensorboard"
+    cfg.viewer.quit_on_train_completion = True
+    cfg.steps_per_eval_image = cfg.steps_per_eval_all_images = 0
+    cfg.pipeline.model.num_downscales = 2
+    cfg.set_timestamp()
+    trainer = cfg.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    trainer.train()
+    model = trainer.pipeline.model
+    assert model.num_points > 1000  # seeded from points3d.ply
+    assert all(bool(p.isfinite().all()) for p in model.parameters())
+    assert any((tmp_path).rglob("step-*.ckpt"))
+
+
+def test_video_path_samples_sharp_frames_and_registers_them(tmp_path):
+    """A video of 12 views (every second of the first 24) with one blurred copy inserted: the blurred frame is
+    skipped, the others register at the true poses."""
+    indices = list(range(0, 24, 2))
+    video = tmp_path / "capture.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (384, 384))
+    writer.set(cv2.VIDEOWRITER_PROP_QUALITY, 95)
+    order = []
+    for i in indices:
+        frame = cv2.imread(str(_dev_room() / "images_fisheye" / f"frame_{i:05d}.jpg"))
+        writer.write(frame)
+        order.append(i)
+        if i == 10:
+            writer.write(cv2.GaussianBlur(frame, (0, 0), 3.0))
+            order.append(None)
+    writer.release()
+    out = tmp_path / "dataset"
+    report = run(ProcessDataConfig(data=video, output_dir=out, num_frames_target=len(order), num_threads=2))
+    assert report["matching"].startswith("sequential")
+    assert report["frames_skipped_blurry"] == 1
+    transforms = json.loads((out / "transforms.json").read_text())
+    names = [f["file_path"] for f in transforms["frames"]]
+    blurred = f"images/frame_{order.index(None):05d}.png"
+    assert blurred not in names and len(names) == len(indices)
+    truth = _true_poses()
+    truth = {f"images/frame_{k:05d}.png": truth[f"frame_{i:05d}.jpg"] for k, i in enumerate(order) if i is not None}
+    rot_deg, pos_rel = _pose_errors(transforms, truth)
+    print(f"video: rotation error {rot_deg:.3f} deg, position error {100 * pos_rel:.3f} %")
+    assert rot_deg < 0.5 and pos_rel < 0.01
+
+
+def test_user_calibration_is_held_fixed(tmp_path):
+    """--calibration with the renderer's intrinsics (nerfstudio transforms.json): the model keeps them."""
+    import pycolmap
+
+    src = _copy_frames(range(0, 24, 4), tmp_path / "input")
+    out = tmp_path / "dataset"
+    run(ProcessDataConfig(data=src, output_dir=out, calibration=_dev_room() / "transforms_fisheye.json",
+                          num_threads=2))
+    recon = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    (camera,) = recon.cameras.values()
+    assert recon.num_reg_images() == 6
+    assert camera.model.name == "OPENCV_FISHEYE"
+    np.testing.assert_allclose(camera.params, [TRUE_FOCAL, TRUE_FOCAL, 192, 192, 0, 0, 0, 0], atol=1e-9)
+
+
+def test_a_corrupt_image_is_named(tmp_path):
+    src = _copy_frames([0, 1, 2], tmp_path / "input")
+    (src / "frame_00003.jpg").write_bytes(b"\xff\xd8 truncated")
+    with pytest.raises(ProcessDataError, match=r"frame_00003\.jpg: corrupt or unreadable image"):
+        run(ProcessDataConfig(data=src, output_dir=tmp_path / "out"))
+
+
+def test_images_without_overlap_are_explained(tmp_path):
+    """Independent noise images: SIFT finds keypoints but no pair verifies."""
+    src = tmp_path / "input"
+    src.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(4):
+        noise = cv2.GaussianBlur(rng.integers(0, 256, (160, 160), dtype=np.uint8), (0, 0), 1.5)
+        cv2.imwrite(str(src / f"noise_{i}.png"), cv2.normalize(noise, None, 0, 255, cv2.NORM_MINMAX))
+    with pytest.raises(ProcessDataError, match="no overlap"):
+        run(ProcessDataConfig(data=src, output_dir=tmp_path / "out", camera_model="OPENCV", num_threads=2))
+    assert not (tmp_path / "out" / "transforms.json").exists()
+
+
+def test_help_runs_as_a_module():
+    result = subprocess.run([sys.executable, "-m", "geer_ns.process_data", "--help"], capture_output=True,
+                            text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    for flag in ("--data", "--camera-model", "--calibration", "--camera-per-folder", "--mask"):
+        assert flag in result.stdout
