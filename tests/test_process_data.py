@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from geer_ns.process_data import ProcessDataConfig, ProcessDataError, run
+from geer_ns.process_data.evaluate import pose_errors
 from conftest import shared_data
 
 TRUE_FOCAL = 384 / math.pi  # 180-degree equidistant fisheye over 384 px (README of the shared data)
@@ -41,34 +42,12 @@ def _copy_frames(indices, dst: Path) -> Path:
     return dst
 
 
-def _umeyama(src: np.ndarray, dst: np.ndarray):
-    """Similarity (s, R, t) minimising |s R src + t - dst|^2 (Umeyama 1991)."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    cov = (dst - mu_d).T @ (src - mu_s) / len(src)
-    u, d, vt = np.linalg.svd(cov)
-    e = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        e[2, 2] = -1
-    r = u @ e @ vt
-    s = np.trace(np.diag(d) @ e) / ((src - mu_s) ** 2).sum(1).mean()
-    return s, r, mu_d - s * r @ mu_s
-
-
 def _pose_errors(transforms: dict, truth: dict):
-    """Mean rotation error (deg) and mean position error relative to the true path's extent (both in
-    nerfstudio's OpenGL camera axes; the worlds differ by a similarity, removed by the alignment)."""
-    est = [np.array(f["transform_matrix"]) for f in transforms["frames"]]
-    ref = [truth[f["file_path"]] for f in transforms["frames"]]
-    c_est = np.array([p[:3, 3] for p in est])
-    c_ref = np.array([p[:3, 3] for p in ref])
-    s, r, t = _umeyama(c_est, c_ref)
-    pos = np.linalg.norm((s * (r @ c_est.T)).T + t - c_ref, axis=1)
-    extent = np.linalg.norm(c_ref.max(0) - c_ref.min(0))
-    rot = []
-    for a, b in zip(est, ref):
-        cos = (np.trace((r @ a[:3, :3]).T @ b[:3, :3]) - 1) / 2
-        rot.append(math.degrees(math.acos(min(1.0, max(-1.0, cos)))))
-    return float(np.mean(rot)), float(pos.mean() / extent)
+    """Mean rotation error (deg) and mean position error relative to the true path's extent, after the
+    similarity alignment (Umeyama) SfM cannot recover; both in nerfstudio's OpenGL camera axes."""
+    est = {f["file_path"]: np.array(f["transform_matrix"]) for f in transforms["frames"]}
+    rot, pos, _ = pose_errors(est, truth)
+    return rot, pos
 
 
 @pytest.fixture(scope="module")
@@ -117,12 +96,20 @@ def test_output_is_a_complete_dataset(folder_run):
 
 
 def test_geer_trains_on_the_output(folder_run, tmp_path):
+    """A few geer training steps on the dataset (its first 4 frames, to keep the BEAP caching short)."""
     from geer_ns.config import geer_method
 
     out, _ = folder_run
+    data = tmp_path / "data"
+    data.mkdir()
+    for name in ("images", "masks", "points3d.ply"):
+        (data / name).symlink_to(out / name)
+    transforms = json.loads((out / "transforms.json").read_text())
+    transforms["frames"] = transforms["frames"][:4]
+    (data / "transforms.json").write_text(json.dumps(transforms))
     cfg = copy.deepcopy(geer_method.config)
-    cfg.pipeline.datamanager.data = out
-    cfg.output_dir = tmp_path
+    cfg.pipeline.datamanager.data = data
+    cfg.output_dir = tmp_path / "outputs"
     cfg.max_num_iterations = 3
     cfg.vis = "tensorboard"
     cfg.viewer.quit_on_train_completion = True
@@ -135,7 +122,7 @@ def test_geer_trains_on_the_output(folder_run, tmp_path):
     model = trainer.pipeline.model
     assert model.num_points > 1000  # seeded from points3d.ply
     assert all(bool(p.isfinite().all()) for p in model.parameters())
-    assert any((tmp_path).rglob("step-*.ckpt"))
+    assert any(cfg.output_dir.rglob("step-*.ckpt"))
 
 
 def test_video_path_samples_sharp_frames_and_registers_them(tmp_path):
@@ -169,19 +156,26 @@ def test_video_path_samples_sharp_frames_and_registers_them(tmp_path):
     assert rot_deg < 0.5 and pos_rel < 0.01
 
 
-def test_user_calibration_is_held_fixed(tmp_path):
-    """--calibration with the renderer's intrinsics (nerfstudio transforms.json): the model keeps them."""
+def test_user_calibration_is_held_fixed_for_each_rig_camera(tmp_path):
+    """--calibration with the renderer's intrinsics (nerfstudio transforms.json) and --camera-per-folder on two
+    folders: two COLMAP cameras, both keep the calibration exactly; per-frame intrinsics and masks."""
     import pycolmap
 
-    src = _copy_frames(range(0, 24, 4), tmp_path / "input")
+    src = tmp_path / "input"
+    _copy_frames(range(0, 24, 8), src / "left")
+    _copy_frames(range(4, 24, 8), src / "right")
     out = tmp_path / "dataset"
     run(ProcessDataConfig(data=src, output_dir=out, calibration=_dev_room() / "transforms_fisheye.json",
-                          num_threads=2))
+                          camera_per_folder=True, num_threads=2))
     recon = pycolmap.Reconstruction(str(out / "sparse" / "0"))
-    (camera,) = recon.cameras.values()
-    assert recon.num_reg_images() == 6
-    assert camera.model.name == "OPENCV_FISHEYE"
-    np.testing.assert_allclose(camera.params, [TRUE_FOCAL, TRUE_FOCAL, 192, 192, 0, 0, 0, 0], atol=1e-9)
+    assert recon.num_reg_images() == 6 and len(recon.cameras) == 2
+    for camera in recon.cameras.values():
+        assert camera.model.name == "OPENCV_FISHEYE"
+        np.testing.assert_allclose(camera.params, [TRUE_FOCAL, TRUE_FOCAL, 192, 192, 0, 0, 0, 0], atol=1e-9)
+    transforms = json.loads((out / "transforms.json").read_text())
+    for frame in transforms["frames"]:
+        folder = frame["file_path"].split("/")[1]
+        assert frame["mask_path"] == f"masks/{folder}.png" and frame["fl_x"] == pytest.approx(TRUE_FOCAL)
 
 
 def test_a_corrupt_image_is_named(tmp_path):
@@ -210,3 +204,17 @@ def test_help_runs_as_a_module():
     assert result.returncode == 0, result.stderr[-2000:]
     for flag in ("--data", "--camera-model", "--calibration", "--camera-per-folder", "--mask"):
         assert flag in result.stdout
+
+
+def test_umeyama_recovers_a_known_similarity():
+    from geer_ns.process_data.evaluate import umeyama
+
+    rng = np.random.default_rng(1)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    rot = q * np.sign(np.linalg.det(q))  # a proper rotation
+    src = rng.normal(size=(20, 3))
+    dst = (2.5 * (rot @ src.T)).T + np.array([1.0, -2.0, 0.5])
+    s, r, t = umeyama(src, dst)
+    assert s == pytest.approx(2.5, rel=1e-12)
+    np.testing.assert_allclose(r, rot, atol=1e-12)
+    np.testing.assert_allclose(t, [1.0, -2.0, 0.5], atol=1e-12)

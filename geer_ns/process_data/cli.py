@@ -29,50 +29,43 @@ class ProcessDataConfig:
     data: Path
     """A folder of images (sub-folders allowed) or a video file."""
     output_dir: Path
-    """Where the dataset is written (ns-train geer --data OUTPUT_DIR)."""
+    """Where the dataset is written (then: ns-train geer --data OUTPUT_DIR)."""
     camera_model: Literal["OPENCV_FISHEYE", "OPENCV", "SIMPLE_RADIAL"] = "OPENCV_FISHEYE"
-    """Camera model refined by bundle adjustment: OPENCV_FISHEYE for fisheye lenses, OPENCV or SIMPLE_RADIAL
-    for narrow lenses. Ignored with --calibration."""
+    """Model refined by bundle adjustment: OPENCV_FISHEYE for fisheye lenses, OPENCV/SIMPLE_RADIAL for narrow."""
     calibration: Optional[Path] = None
-    """Your own calibration, held fixed during mapping: a COLMAP cameras.txt (one camera, or one per folder with
-    --camera-per-folder in sorted folder order) or a nerfstudio transforms.json (its intrinsics). Scaled when the
-    images have another resolution with the same aspect ratio."""
+    """Your calibration, held fixed: COLMAP cameras.txt (one camera, or one per folder) or nerfstudio .json."""
     camera_per_folder: bool = False
-    """One camera per sub-folder (camera rigs); by default all images share one camera."""
+    """One camera per sub-folder (camera rigs; cameras.txt lists them in sorted folder order)."""
     mask: Optional[Path] = None
-    """A mask image (white = use) for every camera, or a folder with <sub-folder>.png per camera. Default: the
-    fisheye image circle is detected from the images."""
+    """Mask image (white = use) for every camera, or a folder with <sub-folder>.png per camera."""
     auto_mask: bool = True
-    """Detect the image circle (black border) when no --mask is given."""
+    """Without --mask: detect the fisheye image circle (black border) and mask what lies outside it."""
     fov_deg: Optional[float] = None
-    """Field of view of the lens in degrees, for the starting focal length (refined by bundle adjustment).
-    Fisheye default 180 (across the image circle, or the diagonal of a full-frame fisheye)."""
+    """Lens field of view for the starting focal length (fisheye default 180, over the circle or diagonal)."""
     matching: Literal["auto", "sequential", "exhaustive"] = "auto"
-    """auto: sequential for video (and more than --exhaustive-max-images images), exhaustive otherwise."""
+    """auto: sequential for video and for more than --exhaustive-max-images images, else exhaustive."""
     exhaustive_max_images: int = 150
-    """With matching auto, larger image folders are matched sequentially (in file-name order)."""
+    """With --matching auto, larger image folders are matched sequentially (in file-name order)."""
     sequential_overlap: int = 10
-    """Sequential matching: each frame with its next N frames (plus frames 2^k further on)."""
+    """Sequential matching: each frame with its next N frames (and frames 2^k further on)."""
     loop_keyframe_interval: int = 10
-    """Sequential matching: every N-th frame is also matched with every other such keyframe (loop closure
-    without a vocabulary tree); 0 turns it off."""
+    """Sequential matching: every N-th frame is also matched with every other one (loop closure); 0: off."""
     vocab_tree_path: Optional[Path] = None
-    """A COLMAP vocabulary tree file: adds vocabulary-tree loop-closure matching."""
+    """COLMAP vocabulary tree file: adds vocabulary-tree loop-closure matching."""
     guided_matching: bool = False
-    """Re-match each verified pair along its epipolar geometry: more matches for wide baselines and low-resolution
-    fisheye images (about 2-4x slower matching). Try it when images are left unregistered."""
+    """Re-match pairs along their epipolar geometry: more matches (slower); try it if images stay unregistered."""
     num_frames_target: int = 300
     """Video: number of frames to sample."""
     blur_ratio: float = 0.5
-    """Video: a sampled frame is skipped as blurry when its sharpness is below this times its neighbours'."""
+    """Video: skip a sampled frame whose sharpness is below this times its neighbours'."""
     refine_principal_point: bool = False
     """Also refine cx, cy in bundle adjustment."""
     max_image_size: int = 3200
     """Images are downscaled to this size for feature extraction only."""
     max_reprojection_error: float = 2.0
-    """Mean reprojection error (px) above which the camera model is considered wrong and no dataset is written."""
+    """Mean reprojection error (px) above which the camera model is taken as wrong (no transforms.json)."""
     min_registered_fraction: float = 0.5
-    """Fail when fewer than this fraction of the images are registered."""
+    """Fail when fewer than this fraction of the images register."""
     num_threads: int = -1
     """Threads for pycolmap (-1: all cores)."""
     overwrite: bool = False
@@ -80,10 +73,12 @@ class ProcessDataConfig:
     verbose: bool = False
     """Show pycolmap's own log."""
 
-
 def _prepare_output(cfg: ProcessDataConfig) -> Path:
     out = cfg.output_dir
-    existing = [p for p in ("images", "masks", "sparse", "colmap", "transforms.json") if (out / p).exists()]
+    if cfg.data.is_dir() and out.resolve().is_relative_to(cfg.data.resolve()):
+        raise ProcessDataError(f"--output-dir {out} lies inside --data {cfg.data}; choose another folder")
+    names = ("images", "masks", "sparse", "colmap", "transforms.json", "points3d.ply", "process_data_report.json")
+    existing = [p for p in names if (out / p).exists()]
     if existing:
         if not cfg.overwrite:
             raise ProcessDataError(f"{out} already holds a dataset ({', '.join(existing)}); use --overwrite")
