@@ -64,6 +64,8 @@ class ProcessDataConfig:
     """Images are downscaled to this size for feature extraction only."""
     max_reprojection_error: float = 2.0
     """Mean reprojection error (px) above which the camera model is taken as wrong (no transforms.json)."""
+    max_focal_asymmetry: float = 0.05
+    """Relative fx/fy difference above which the camera model is taken as wrong (no transforms.json)."""
     min_registered_fraction: float = 0.5
     """Fail when fewer than this fraction of the images register."""
     num_threads: int = -1
@@ -122,6 +124,11 @@ def run(cfg: ProcessDataConfig) -> Dict[str, object]:
     setups = camera_setup.setup_cameras(groups, cfg.output_dir, work, cfg.camera_model, cfg.calibration, cfg.mask,
                                         cfg.auto_mask, cfg.fov_deg)
     db = work / "database.db"
+    model = setups[0].model
+    circle_found = any(s.circle is not None for s in setups)
+    if circle_found and not any(s.model in camera_setup.FISHEYE_MODELS for s in setups):
+        CONSOLE.print(f"[bold yellow]The images have a fisheye image circle but the camera model is {model}, "
+                      "which cannot describe rays near or beyond 90 degrees: use --camera-model OPENCV_FISHEYE")
     sfm.extract_features(db, images_dir, groups, setups, cfg.num_threads, cfg.max_image_size)
     timings["features"] = time.perf_counter() - t
 
@@ -147,8 +154,6 @@ def run(cfg: ProcessDataConfig) -> Dict[str, object]:
     mapped = sfm.incremental_mapping(db, images_dir, work, len(names), fixed, cfg.refine_principal_point,
                                      cfg.num_threads)
     timings["mapping"] = time.perf_counter() - t
-    model = setups[0].model
-    circle_found = any(s.circle is not None for s in setups)
     if mapped is None:
         stats = sfm.database_stats(db)
         raise ProcessDataError("structure from motion failed: no initial image pair could be reconstructed.\n"
@@ -173,6 +178,17 @@ def run(cfg: ProcessDataConfig) -> Dict[str, object]:
             f"mean reprojection error {report['mean_reprojection_error_px']:.2f} px > {cfg.max_reprojection_error} "
             f"px: the camera model does not fit the lens.\n{sfm.model_hint(model, circle_found)}\n"
             f"The model is in {sparse0}; no transforms.json was written (--max-reprojection-error to accept it).")
+    for cid, cam in report["cameras"].items():  # type: ignore[union-attr]
+        names_p = [n.strip() for n in cam["params_info"].split(",")]
+        if "fx" in names_p and "fy" in names_p:
+            fx, fy = cam["params"][names_p.index("fx")], cam["params"][names_p.index("fy")]
+            if abs(fx / fy - 1) > cfg.max_focal_asymmetry:
+                # Square pixels give fx ~= fy; a model that cannot describe the lens bends them apart while
+                # keeping a low reprojection error on the features it kept.
+                raise ProcessDataError(
+                    f"camera {cid}: fx = {fx:.1f} and fy = {fy:.1f} px differ by {100 * abs(fx / fy - 1):.0f} %: "
+                    f"the camera model does not fit the lens.\n{sfm.model_hint(model, circle_found)}\n"
+                    f"The model is in {sparse0}; no transforms.json was written (--max-focal-asymmetry to accept).")
     if registered != set(names):
         CONSOLE.print(f"[yellow]{len(names) - len(registered)} image(s) were not registered and are left out of "
                       "transforms.json:\n" + sfm.explain_failure(sfm.database_stats(db), registered, names, model,
