@@ -95,7 +95,7 @@ def test_output_is_a_complete_dataset(folder_run):
         assert (out / frame["file_path"]).is_file()
 
 
-def test_geer_trains_on_the_output(folder_run, tmp_path):
+def test_geer_trains_on_the_output(folder_run, tmp_path, single_thread):
     """A few geer training steps on the dataset (its first 4 frames, to keep the BEAP caching short)."""
     from geer_ns.config import geer_method
 
