@@ -44,7 +44,7 @@ def _copy_frames(indices, dst: Path) -> Path:
 
 def _pose_errors(transforms: dict, truth: dict):
     """Mean rotation error (deg) and mean position error relative to the true path's extent, after the
-    similarity alignment (Umeyama) SfM cannot recover; both in nerfstudio's OpenGL camera axes."""
+    similarity SfM cannot recover (fitted to the poses: evaluate.align_poses); OpenGL camera axes in both."""
     est = {f["file_path"]: np.array(f["transform_matrix"]) for f in transforms["frames"]}
     rot, pos, _ = pose_errors(est, truth)
     return rot, pos
@@ -228,3 +228,33 @@ def test_umeyama_recovers_a_known_similarity():
     assert s == pytest.approx(2.5, rel=1e-12)
     np.testing.assert_allclose(r, rot, atol=1e-12)
     np.testing.assert_allclose(t, [1.0, -2.0, 0.5], atol=1e-12)
+
+
+def test_align_poses_recovers_a_known_similarity_of_noisy_poses():
+    """Poses on a nearly planar path, moved by a known similarity, with 0.1 deg of rotation noise: the
+    pose-fitted alignment finds the similarity and measures about that noise."""
+    from geer_ns.process_data.evaluate import align_poses, pose_errors
+
+    rng = np.random.default_rng(2)
+
+    def rotation(axis_angle):
+        return cv2.Rodrigues(np.asarray(axis_angle, dtype=np.float64))[0]
+
+    sim_r, sim_s, sim_t = rotation([0.3, -0.2, 1.1]), 0.4, np.array([2.0, 0.0, -1.0])
+    truth, est = {}, {}
+    for i in range(30):
+        pose = np.eye(4)
+        pose[:3, :3] = rotation(rng.normal(size=3))
+        pose[:3, 3] = [i * 0.2, np.sin(i / 5), 1.6 + 0.01 * rng.normal()]
+        truth[str(i)] = pose
+        noisy = pose.copy()
+        noisy[:3, :3] = rotation(rng.normal(size=3) * math.radians(0.1) / math.sqrt(3)) @ pose[:3, :3]
+        moved = np.eye(4)  # est = similarity^-1 applied to the truth
+        moved[:3, :3] = sim_r.T @ noisy[:3, :3]
+        moved[:3, 3] = sim_r.T @ (noisy[:3, 3] - sim_t) / sim_s
+        est[str(i)] = moved
+    s, r, t = align_poses([est[k] for k in sorted(est)], [truth[k] for k in sorted(est)])
+    assert s == pytest.approx(sim_s, rel=1e-4)  # up to the rotation noise
+    np.testing.assert_allclose(r, sim_r, atol=1e-3)
+    rot, pos, _ = pose_errors(est, truth)
+    assert 0.03 < rot < 0.15 and pos < 1e-3
