@@ -1,10 +1,14 @@
 """The dataset: ``transforms.json`` (nerfstudio format), ``sparse/0``, ``points3d.ply`` and the report.
 
-Poses follow nerfstudio's COLMAP conversion (``nerfstudio.process_data.colmap_utils.colmap_to_json``): camera
-axes OpenCV -> OpenGL, world (x, y, z) -> (x, z, -y) recorded as ``applied_transform``; intrinsics come from
-nerfstudio's ``parse_colmap_camera_params`` (OPENCV_FISHEYE with k1..k4). ``colmap_to_json`` itself is not
-called: it assumes camera id 1 for a shared camera, one mask for every camera, and reads the binary model with
-its own reader.
+Poses follow nerfstudio's COLMAP conversion (``nerfstudio.process_data.colmap_utils.colmap_to_json`` with
+``keep_original_world_coordinate=True``): camera axes OpenCV -> OpenGL, the world is COLMAP's (the one of
+``sparse/0`` and ``points3d.ply``), so no ``applied_transform`` is written. Why not nerfstudio's (x, z, -y) world
+with ``applied_transform``: nerfstudio loads the PLY in the transforms.json world, but consumers that map it with
+``dataparser_transform`` (which includes ``applied_transform``; geer's datamanager seeds this way) would move the
+points a second time; one world for poses, points and the COLMAP model leaves nothing to get wrong, and
+nerfstudio's orientation step finds "up" from the cameras either way. Intrinsics come from nerfstudio's
+``parse_colmap_camera_params`` (OPENCV_FISHEYE with k1..k4). ``colmap_to_json`` itself is not called: it
+assumes camera id 1 for a shared camera and one mask for every camera, and reads the model with its own reader.
 """
 
 from __future__ import annotations
@@ -21,10 +25,6 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from plyfile import PlyData, PlyElement
 from rich.table import Table
 
-# nerfstudio's COLMAP world -> nerfstudio world (z up): (x, y, z) -> (x, z, -y).
-APPLIED_TRANSFORM = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0]])
-
-
 def camera_dict(camera: "pycolmap.Camera") -> Dict[str, object]:
     """nerfstudio intrinsics of a COLMAP camera (camera_model, fl_x, ..., k1..k4 / p1, p2)."""
     cam = SimpleNamespace(model=camera.model.name, width=int(camera.width), height=int(camera.height),
@@ -33,18 +33,18 @@ def camera_dict(camera: "pycolmap.Camera") -> Dict[str, object]:
 
 
 def nerfstudio_c2w(image: "pycolmap.Image") -> np.ndarray:
-    """4x4 camera-to-world in nerfstudio's convention (OpenGL camera axes, z-up world)."""
+    """4x4 camera-to-world in nerfstudio's convention (OpenGL camera axes), COLMAP's world."""
     w2c = np.eye(4)
     w2c[:3] = np.asarray(image.cam_from_world().matrix(), dtype=np.float64)
     c2w = np.linalg.inv(w2c)
     c2w[0:3, 1:3] *= -1
-    return np.concatenate([APPLIED_TRANSFORM @ c2w, [[0, 0, 0, 1.0]]])
+    return c2w
 
 
 def write_ply(path: Path, recon: "pycolmap.Reconstruction") -> int:
     """The sparse points (in the transforms.json world) as a binary PLY: x y z float, red green blue uchar."""
     pts = [p for _, p in sorted(recon.points3D.items())]
-    xyz = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3) @ APPLIED_TRANSFORM[:, :3].T
+    xyz = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
     rgb = np.array([p.color for p in pts], dtype=np.uint8).reshape(-1, 3)
     vertex = np.empty(len(pts), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"),
                                        ("red", "u1"), ("green", "u1"), ("blue", "u1")])
@@ -77,7 +77,6 @@ def write_transforms(out_dir: Path, recon: "pycolmap.Reconstruction", masks: Dic
             frame.update(camera_dict(recon.cameras[int(im.camera_id)]))
         frames.append(frame)
     out["frames"] = frames
-    out["applied_transform"] = APPLIED_TRANSFORM.tolist()
     write_ply(out_dir / ply_name, recon)
     out["ply_file_path"] = ply_name
     (out_dir / "transforms.json").write_text(json.dumps(out, indent=2), encoding="utf8")

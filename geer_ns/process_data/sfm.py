@@ -124,7 +124,7 @@ def incremental_mapping(db: Path, images_dir: Path, work_dir: Path, num_images: 
         opts.ba_refine_extra_params = False
         opts.mapper.abs_pose_refine_focal_length = False
         opts.mapper.abs_pose_refine_extra_params = False
-    out = work_dir / "sparse"
+    out = work_dir / "models"  # not colmap/sparse/0: nerfstudio-data treats that as a legacy COLMAP export
     out.mkdir(parents=True, exist_ok=True)
     with progress() as bar:
         task = bar.add_task("Registering images (incremental mapping)", total=num_images)
