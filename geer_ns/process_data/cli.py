@@ -180,7 +180,7 @@ def run(cfg: ProcessDataConfig) -> Dict[str, object]:
             f"The model is in {sparse0}; no transforms.json was written (--max-reprojection-error to accept it).")
     for cid, cam in report["cameras"].items():  # type: ignore[union-attr]
         names_p = [n.strip() for n in cam["params_info"].split(",")]
-        if "fx" in names_p and "fy" in names_p:
+        if not fixed and "fx" in names_p and "fy" in names_p:  # a user calibration may have fx != fy
             fx, fy = cam["params"][names_p.index("fx")], cam["params"][names_p.index("fy")]
             if abs(fx / fy - 1) > cfg.max_focal_asymmetry:
                 # Square pixels give fx ~= fy; a model that cannot describe the lens bends them apart while
