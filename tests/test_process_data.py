@@ -119,11 +119,36 @@ def test_geer_trains_on_the_output(folder_run, tmp_path, single_thread):
     cfg.set_timestamp()
     trainer = cfg.setup(local_rank=0, world_size=1)
     trainer.setup()
+    _assert_seeds_project_onto_their_keypoints(trainer.pipeline.datamanager, out)
     trainer.train()
     model = trainer.pipeline.model
     assert model.num_points > 1000  # seeded from points3d.ply
     assert all(bool(p.isfinite().all()) for p in model.parameters())
     assert any(cfg.output_dir.rglob("step-*.ckpt"))
+
+
+def _assert_seeds_project_onto_their_keypoints(datamanager, dataset: Path) -> None:
+    """The seed points geer's datamanager made from points3d.ply, seen through its first training camera,
+    land on the SIFT keypoints COLMAP measured them at (whole chain: export, nerfstudio-data, seeding)."""
+    import pycolmap
+    import torch
+
+    from geer_ns.cameras import from_nerfstudio
+
+    outputs = datamanager.train_dataparser_outputs
+    name = Path(outputs.image_filenames[0]).name
+    recon = pycolmap.Reconstruction(str(dataset / "sparse" / "0"))
+    row_of = {pid: i for i, pid in enumerate(sorted(recon.points3D))}  # points3d.ply is in point-id order
+    image = next(im for im in recon.images.values() if im.name == name)
+    obs = [(p.xy, row_of[p.point3D_id]) for p in image.points2D if p.has_point3D()]
+    keypoints = torch.tensor(np.array([xy for xy, _ in obs]), dtype=torch.float64)
+    seeds = outputs.metadata["points3D_xyz"][[row for _, row in obs]].double()
+    c2w = outputs.cameras.camera_to_worlds[0].double()
+    cam = (seeds - c2w[:, 3]) @ c2w[:, :3] * torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64)  # OpenGL->OpenCV
+    px, valid = from_nerfstudio(outputs.cameras, 0).project(cam)
+    err = (px - keypoints).norm(dim=-1)[valid]
+    assert len(obs) > 100 and bool(valid.all())
+    assert float(err.median()) < 1.0, float(err.median())
 
 
 def test_video_path_samples_sharp_frames_and_registers_them(tmp_path):
