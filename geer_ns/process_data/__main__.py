@@ -1,0 +1,3 @@
+from geer_ns.process_data.cli import entrypoint
+
+entrypoint()
