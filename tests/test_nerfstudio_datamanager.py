@@ -104,6 +104,29 @@ def test_seed_points_read_without_open3d(manager):
     assert sys.modules.get("open3d") is None
 
 
+def test_seed_points_ignore_applied_transform(tmp_path):
+    """`applied_transform` (original data -> the frame of transforms.json) says where the poses came from; the
+    PLY is in the poses' frame, so adding the key to an otherwise identical dataset moves neither the cameras
+    nor the seeds (nerfstudio's own PLY loader leaves it out too). Applying it to the seeds a second time
+    moved every ns-process-data dataset's seed cloud off its cameras."""
+    from conftest import copy_room
+
+    def seeds_and_cameras(root):
+        config = GeerDataManagerConfig(data=root, cache_images="cpu")
+        outputs = config.setup(device="cpu", test_mode="val").train_dataparser_outputs
+        return outputs.metadata["points3D_xyz"], outputs.cameras.camera_to_worlds[:, :, 3]
+
+    plain = copy_room(tmp_path / "plain", n_frames=4)
+    turned = copy_room(tmp_path / "turned", n_frames=4)
+    meta = json.loads((turned / "transforms.json").read_text())
+    meta["applied_transform"] = [[0, 1, 0, 0.5], [1, 0, 0, -0.25], [0, 0, -1, 2.0]]
+    (turned / "transforms.json").write_text(json.dumps(meta))
+    seeds, centres = seeds_and_cameras(plain)
+    seeds_t, centres_t = seeds_and_cameras(turned)
+    assert torch.allclose(centres, centres_t, atol=1e-6)
+    assert torch.allclose(seeds, seeds_t, atol=1e-5)
+
+
 def test_native_supervision_keeps_pixels(manager):
     config = GeerDataManagerConfig(data=default_scene_dir(), cache_images="cpu", supervision="native")
     native = config.setup(device="cpu", test_mode="val")

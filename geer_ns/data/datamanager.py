@@ -163,6 +163,26 @@ class GeerDataManager(FullImageDatamanager):
         rel = load_from_json(meta_path).get("ply_file_path")
         return None if rel is None else meta_path.parent / rel
 
+    def _ply_transform(self) -> torch.Tensor:
+        """[3, 4] from the PLY's frame to the dataparser's output frame.
+
+        The PLY is in the frame of transforms.json's poses (ns-process-data writes it there). nerfstudio's
+        dataparser_transform also contains `applied_transform` (original data -> that frame), which nerfstudio
+        itself leaves out when it loads the PLY; so do we, including its legacy colmap/sparse/0 default.
+        """
+        outputs = self.train_dataparser_outputs
+        transform = outputs.dataparser_transform.double()
+        data = Path(self.config.dataparser.data)
+        meta_path = data if data.suffix == ".json" else data / "transforms.json"
+        applied = load_from_json(meta_path).get("applied_transform")
+        if applied is None and (data / "colmap/sparse/0").exists():
+            applied = [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]]  # nerfstudio_dataparser's legacy value
+        if applied is None:
+            return transform
+        square = torch.eye(4, dtype=torch.float64)
+        square[:3] = torch.tensor(applied, dtype=torch.float64)
+        return transform @ torch.linalg.inv(square)
+
     def _add_seed_points(self) -> None:
         metadata = self.train_dataparser_outputs.metadata
         if "points3D_xyz" in metadata:
@@ -174,7 +194,7 @@ class GeerDataManager(FullImageDatamanager):
         xyz, rgb = read_ply_points(ply)
         outputs = self.train_dataparser_outputs
         pts = torch.from_numpy(xyz)
-        pts = torch.cat([pts, torch.ones_like(pts[:, :1])], -1) @ outputs.dataparser_transform.T.float()
+        pts = (torch.cat([pts, torch.ones_like(pts[:, :1])], -1).double() @ self._ply_transform().T).float()
         metadata["points3D_xyz"] = pts * float(outputs.dataparser_scale)
         metadata["points3D_rgb"] = torch.from_numpy(rgb)
         CONSOLE.log(f"geer: {len(xyz)} seed points from {ply}")
