@@ -47,7 +47,7 @@ scales, opac, colors = torch.full((n, 3), 0.6), torch.full((n,), 0.02), torch.ra
 grid = RayGrid.beap(32, 32, 0.5, 0.5, tile_size=16)
 leaves = [t.requires_grad_(True) for t in (means, quats, scales, opac, colors)]
 base = peak_reset()
-out = render(*leaves, torch.eye(4), grid, max_pairs=max_pairs)
+out = render(*leaves, torch.eye(4), grid, max_pairs=max_pairs, backend="torch")
 (out.rgb.sum() + out.depth.sum() + out.accumulation.sum()).backward()
 print(json.dumps({"pairs": int(out.tile_counts.sum()) * 256, "mib": (peak_kib() - base) / 1024}))
 """
@@ -84,7 +84,7 @@ def test_autograd_saves_nothing_per_pair():
             return t
 
         with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
-            render(*scene, torch.eye(4, dtype=torch.float64), grid, max_pairs=1 << 12)
+            render(*scene, torch.eye(4, dtype=torch.float64), grid, max_pairs=1 << 12, backend="torch")
         return sum(storages.values())
 
     small, large = saved_bytes(200), saved_bytes(800)
@@ -109,7 +109,7 @@ def test_pieces_equal_one_piece():
     for max_pairs in (1 << 22, 64 * 7):  # 7 Gaussians x 64 rays per piece
         leaves = [t.clone().requires_grad_(True) for t in _dense_scene(150)]
         leaves[3] = (leaves[3].detach() * 10).requires_grad_(True)  # opaque enough for early termination
-        out = render(*leaves, torch.eye(4, dtype=torch.float64), grid, max_pairs=max_pairs)
+        out = render(*leaves, torch.eye(4, dtype=torch.float64), grid, max_pairs=max_pairs, backend="torch")
         (out.rgb.square().sum() + out.depth.sum() + out.accumulation.sum()).backward()
         results.append((out, [t.grad for t in leaves]))
     (a, ga), (b, gb) = results

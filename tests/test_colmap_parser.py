@@ -664,7 +664,8 @@ def test_geer_datamanager_caches_beap_views_of_colmap_cameras(tmp_path):
 
     root = write_dataset(tmp_path, build_recon())
     manager = GeerDataManagerConfig(
-        data=root, dataparser=GeerColmapDataParserConfig(eval_mode="interval", eval_interval=3), cache_images="cpu"
+        data=root, dataparser=GeerColmapDataParserConfig(eval_mode="interval", eval_interval=3), cache_images="cpu",
+        supervision="beap",  # auto would train the thin-prism camera (rays past 90 deg) on native rays
     ).setup(device="cpu", test_mode="val")
     cameras = manager.train_dataset.cameras
     assert len(manager.cached_train) == len(cameras) >= 3
