@@ -146,22 +146,7 @@ from geer_ns.render import RayGrid, render
 torch.set_num_threads(int(sys.argv[2]))
 n = int(sys.argv[1])
 
-def status_kib(key):
-    for line in open("/proc/self/status"):
-        if line.startswith(key):
-            return int(line.split()[1])
-
-def peak_reset():
-    # Current RSS, with the peak (VmHWM) reset to it: what importing torch touched does not hide the render.
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-        return status_kib("VmRSS")
-    except OSError:  # no reset: ru_maxrss since start (over-, never under-estimates the growth)
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-
-def peak_kib():
-    return max(status_kib("VmHWM") or 0, 0)
+from benchmarks.peak_rss import peak_kib, peak_reset
 gen = torch.Generator().manual_seed(0)
 means = (torch.rand(n, 3, generator=gen) - 0.5) * torch.tensor([4.0, 4.0, 4.0]) + torch.tensor([0.0, 0.0, 4.0])
 quats = torch.randn(n, 4, generator=gen)
