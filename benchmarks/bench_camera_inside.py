@@ -36,6 +36,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from geer_ns.render import RayGrid, preprocess, render  # noqa: E402
+from benchmarks.timing import median_seconds  # noqa: E402
 
 
 def cloud(n: int, seed: int = 0):
@@ -59,15 +60,6 @@ def culled_opacities(scene, vm):
     pre = preprocess(*scene, vm)
     inside = pre.o_u.square().sum(-1) <= 2 * torch.log(255 * scene[3])
     return torch.where(inside, torch.zeros_like(scene[3]), scene[3]), inside
-
-
-def timed(fn, repeats=3):
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def part1(frames: int, step: float, n: int):
@@ -136,7 +128,7 @@ def part1(frames: int, step: float, n: int):
                 (out.rgb.square().sum() + out.depth.sum()).backward()
 
             fwd()
-            timing[(backend, rule)] = (timed(fwd, 5), timed(fwd_bwd, 3))
+            timing[(backend, rule)] = (median_seconds(fwd, 5, warmup=False), median_seconds(fwd_bwd, 3, warmup=False))
     return rows, float(diff.mean()), float(diff_max.max()), inside_counts, timing, k
 
 

@@ -14,10 +14,8 @@ from __future__ import annotations
 import argparse
 import math
 import platform
-import statistics
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +23,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from geer_ns.render import RayGrid, render, render_brute_force  # noqa: E402
+from benchmarks.timing import median_seconds  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -61,16 +60,6 @@ def fisheye_grid(size: int, tile: int) -> RayGrid:
     return RayGrid.from_rays(dirs.float(), ang <= math.pi / 2, tile_size=tile)
 
 
-def timed(fn, repeats: int) -> float:
-    fn()
-    samples = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        samples.append(time.perf_counter() - t0)
-    return statistics.median(samples)
-
-
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     mse = float(((a.double() - b.double()) ** 2).mean())
     return float("inf") if mse == 0 else -10 * math.log10(mse)
@@ -101,8 +90,8 @@ def main() -> None:
                 out = fwd()
                 out.rgb.sum().backward()
 
-            t_f = timed(lambda: torch.no_grad()(fwd)(), args.repeats)
-            t_fb = timed(fwd_bwd, args.repeats)
+            t_f = median_seconds(lambda: torch.no_grad()(fwd)(), args.repeats)
+            t_fb = median_seconds(fwd_bwd, args.repeats)
             with torch.no_grad():
                 out = fwd()
             counts = out.tile_counts[grid.tile_active].double()

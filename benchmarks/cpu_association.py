@@ -22,11 +22,9 @@ import argparse
 import json
 import math
 import platform
-import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +33,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
+from benchmarks.timing import median_seconds  # noqa: E402
 DATA = ROOT.parent / "shared" / "data"
 BEFORE_COMMIT = "51908164d68e"  # main when this benchmark was written
 
@@ -146,16 +145,6 @@ def associate_before(ops, separable_axes, bounds, alive, depth, grid):
     return ids, ranges, None if axes is not None else 2 * int(alive.sum()) * int(grid.tile_active.sum())
 
 
-def _median_time(fn, repeats):
-    fn()  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "cpu_association.md")
@@ -173,8 +162,8 @@ def main() -> None:
         ids_b, ranges_b, tests_b = associate_before(before, separable_axes, bounds, alive, depth, grid)
         if tests_b is not None:  # the binary-search path could add slack-level pairs; every-tile was exact
             assert torch.equal(ids, ids_b) and torch.equal(ranges, ranges_b), f"{name}: lists differ from before"
-        t_new = _median_time(lambda: associate_pairs(ops, bounds, alive, depth, grid), args.repeats)
-        t_old = _median_time(lambda: associate_before(before, separable_axes, bounds, alive, depth, grid),
+        t_new = median_seconds(lambda: associate_pairs(ops, bounds, alive, depth, grid), args.repeats)
+        t_old = median_seconds(lambda: associate_before(before, separable_axes, bounds, alive, depth, grid),
                              args.repeats)
         n, pairs, tests = bounds.shape[0], int(counts.sum()), int(tests.sum())
         rows.append(f"| {name} | {n} | {grid.height}x{grid.width}, {int(grid.tile_active.sum())}/{grid.num_tiles} "
