@@ -236,3 +236,25 @@ def quiet_known_warnings() -> None:
 
     for category, message in KNOWN_NOISE:
         warnings.filterwarnings("ignore", message=message, category=category)
+
+
+def report_dataset_errors_without_traceback() -> None:
+    """ns-train gives a plugin no place to catch a broken dataset, so a geer DatasetError would end the run
+    under a page of nerfstudio's stack. It ends it with its one line (file, frame, field, what to do) and exit
+    status 1 instead; every other exception keeps its traceback."""
+    import sys
+
+    previous = sys.excepthook
+    if getattr(previous, "geer_dataset_hook", False):
+        return
+
+    def hook(kind, value, traceback):
+        from geer_ns.data.dataset_checks import DatasetError
+
+        if isinstance(value, DatasetError):
+            print(value, file=sys.stderr)
+        else:
+            previous(kind, value, traceback)
+
+    hook.geer_dataset_hook = True  # type: ignore[attr-defined]
+    sys.excepthook = hook

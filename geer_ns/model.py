@@ -56,6 +56,7 @@ host_fixes.allow_nerfstudio_checkpoints()
 host_fixes.install_two_keyframe_spline_fix()  # the viewer's camera path with two keyframes (splines 0.3.0)
 host_fixes.provide_ffmpeg()  # ns-render needs an `ffmpeg` program; imageio-ffmpeg ships one
 host_fixes.quiet_known_warnings()  # host FutureWarnings that every run would print
+host_fixes.report_dataset_errors_without_traceback()  # a broken dataset ends ns-train with its one line
 
 View = Union[BeapView, NativeView]
 

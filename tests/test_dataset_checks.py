@@ -252,3 +252,20 @@ def test_all_cameras_at_one_position(dataset, tmp_path):
     assert "transforms.json: `transform_matrix`: all 4 frames have the camera position [0.5, 0.5, 0.5]" in msg
     assert "auto-scale-poses False" in msg
     check_transforms_json(dataset / "transforms.json", auto_scale_poses=False)
+
+
+def test_ns_train_ends_on_a_broken_dataset_with_its_line_not_a_traceback():
+    """What a user sees: the one line, exit status 1; other errors keep their traceback."""
+    import subprocess
+    import sys
+
+    def run(error: str) -> subprocess.CompletedProcess:
+        code = f"import geer_ns.model\nfrom geer_ns.data.dataset_checks import DatasetError\nraise {error}"
+        return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+
+    broken = run("DatasetError('geer: data/transforms.json: frames[0] (a.png): `fl_x` = 0; expected > 0')")
+    assert broken.returncode == 1
+    assert "Traceback" not in broken.stderr
+    assert broken.stderr.strip().splitlines()[-1] == "geer: data/transforms.json: frames[0] (a.png): `fl_x` = 0; expected > 0"
+    other = run("RuntimeError('a bug')")
+    assert other.returncode == 1 and "Traceback" in other.stderr and "RuntimeError: a bug" in other.stderr
