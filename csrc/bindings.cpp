@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "geer_associate.h"
+#include "geer_blocks.h"
 #include "geer_launchers.h"
 
 namespace {
@@ -220,16 +221,15 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     return {out_rgb, depth, acc, t_final, n_contrib};
 }
 
-std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
-                                        at::Tensor dirs, at::Tensor valid, at::Tensor ids,
-                                        at::Tensor ranges, int64_t height, int64_t width, int64_t tile_size,
-                                        at::Tensor t_final, at::Tensor n_contrib, at::Tensor g_rgb,
-                                        at::Tensor g_depth, at::Tensor g_acc) {
+// -> [N,16] gradient rows (geer_launchers.h RenderGradArgs::grads).
+at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities, at::Tensor dirs,
+                           at::Tensor valid, at::Tensor ids, at::Tensor ranges, int64_t height, int64_t width,
+                           int64_t tile_size, at::Tensor t_final, at::Tensor n_contrib, at::Tensor g_rgb,
+                           at::Tensor g_depth, at::Tensor g_acc) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(whiten));
     const int64_t n = whiten.size(0);
     auto opts = whiten.options();
-    auto gw = at::zeros({n, 3, 3}, opts), go = at::zeros({n, 3}, opts), gc = at::zeros({n, 3}, opts);
-    auto gs = at::zeros({n}, opts);
+    auto grads = at::zeros({n, geer::kGradValues}, opts);
     dispatch(whiten, [&](auto tag) {
         using T = decltype(tag);
         auto a = render_args<T>(whiten, o_u, rgb, opacities, dirs, valid, ids, ranges, height, width,
@@ -240,10 +240,10 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
         check_float(g_depth, whiten, "g_depth");
         check_float(g_acc, whiten, "g_acc");
         geer::RenderGradArgs<T> g{cptr<T>(t_final), cptr<int32_t>(n_contrib), cptr<T>(g_rgb), cptr<T>(g_depth),
-                                  cptr<T>(g_acc), mptr<T>(gw), mptr<T>(go), mptr<T>(gc), mptr<T>(gs)};
+                                  cptr<T>(g_acc), mptr<T>(grads)};
         geer::launch_render_backward<T>(a, g, stream());
     });
-    return {gw, go, gc, gs};
+    return grads;
 }
 
 // ------------------------------------------------------------------------------------ stage 4

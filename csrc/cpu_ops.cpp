@@ -7,8 +7,9 @@
 //
 // Multi-threaded with at::parallel_for over tiles (render) and Gaussians (preprocess, association), with
 // every float sum in a fixed order: results do not depend on the thread count or scheduling. The render
-// backward sums each (tile, Gaussian) pair's gradient over the tile's rays in the kernel's order (warp
-// tree, then warps in order) into that pair's own slot, then each Gaussian sums its pairs in list order.
+// backward sums each (tile, Gaussian) pair's gradient over the tile's rays in the kernel's order (the warp
+// reduction with its lanes in lock-step, then warps in order) into that pair's own slot, then each Gaussian
+// sums its pairs in list order.
 // ATen + pybind only (not torch/extension.h): half the compile time.
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
@@ -246,25 +247,33 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     return {out_rgb, depth, acc, t_final, n_contrib};
 }
 
-// PairGrad as 16 values: W (9), o_u (3), colour (3), opacity.
-constexpr int kGradValues = 16;
-template <typename T> T grad_value(const geer::PairGrad<T>& p, int v) {
-    return v < 9 ? p.w[v] : v < 12 ? p.o[v - 9] : v < 15 ? p.rgb[v - 12] : p.opacity;
+constexpr int kGradValues = geer::kGradValues;
+
+// One warp's reduction as render.cu runs it (geer_blocks.h): the 32 lanes in lock-step through the stages,
+// each shuffle reading what the partner lane sent at the same stage; the writer lanes then add their totals
+// to row (the kernel's atomicAdds). v: the lanes' values, left holding each lane's v[0] total.
+template <typename T> void warp_grad_sum(T (*v)[kGradValues] /* [kWarp] */, T* row /* kGradValues */) {
+    constexpr int kWarp = geer::kWarp;
+    T sent[kWarp][kGradValues / 2];
+    geer::for_each_scatter_stage([&](int mask) {
+        for (int lane = 0; lane < kWarp; ++lane) geer::scatter_send(v[lane], mask, lane, sent[lane]);
+        for (int lane = 0; lane < kWarp; ++lane) geer::scatter_keep(v[lane], mask, lane, sent[lane ^ mask]);
+    });
+    for (int lane = 0; lane < kWarp; ++lane)
+        if (geer::scatter_writer(lane)) row[geer::scatter_value(lane)] += v[lane][0];
 }
 
-std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb,
-                                           at::Tensor opacities, at::Tensor dirs, at::Tensor valid,
-                                           at::Tensor ids, at::Tensor ranges,
-                                           int64_t height, int64_t width, int64_t tile_size, at::Tensor t_final,
-                                           at::Tensor n_contrib, at::Tensor g_rgb, at::Tensor g_depth,
-                                           at::Tensor g_acc) {
+// -> [N,16] gradient rows (geer_launchers.h RenderGradArgs::grads).
+at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities, at::Tensor dirs,
+                           at::Tensor valid, at::Tensor ids, at::Tensor ranges, int64_t height, int64_t width,
+                           int64_t tile_size, at::Tensor t_final, at::Tensor n_contrib, at::Tensor g_rgb,
+                           at::Tensor g_depth, at::Tensor g_acc) {
     whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities);
     dirs = cpu(dirs); valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges); t_final = cpu(t_final);
     n_contrib = cpu(n_contrib); g_rgb = cpu(g_rgb); g_depth = cpu(g_depth); g_acc = cpu(g_acc);
     const int64_t n = whiten.size(0), m = ids.numel();
     auto opts = whiten.options();
-    auto gw = at::zeros({n, 3, 3}, opts), go = at::zeros({n, 3}, opts), gc = at::zeros({n, 3}, opts);
-    auto gs = at::zeros({n}, opts);
+    auto grads = at::zeros({n, kGradValues}, opts);
     dispatch<int>(whiten, [&](auto tag) {
         using T = decltype(tag);
         constexpr int kBatch = geer::Batch<T>::value;
@@ -291,8 +300,8 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
                 st[tid].g_acc = ok ? ptr<T>(g_acc)[ray] : T(0);
             }
             const int start = rg[2 * tile];
-            geer::PairGrad<T> p[kWarp];
-            T lanes[kWarp];
+            geer::PairGrad<T> p;
+            T v[kWarp][kGradValues];
             for (int b = 0; b < geer::batch_count(block_n, kBatch); ++b) {
                 const geer::ListBatch bt = geer::backward_batch(start, block_n, b, kBatch);
                 for (int k = 0; k < bt.size; ++k) {
@@ -304,15 +313,11 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
                         bool any = false;  // __any_sync
                         for (int lane = 0; lane < kWarp; ++lane) {
                             const int tid = w0 + lane;
-                            const bool contrib = pos < my_n[tid] && geer::ray_backward_step(st[tid], frame, blk.dir[tid], p[lane]);
-                            if (!contrib) geer::pair_grad_zero(p[lane]);
+                            const bool contrib = pos < my_n[tid] && geer::ray_backward_step(st[tid], frame, blk.dir[tid], p);
+                            geer::lane_grad_values(p, contrib, v[lane]);
                             any = any || contrib;
                         }
-                        if (!any) continue;
-                        for (int v = 0; v < kGradValues; ++v) {
-                            for (int lane = 0; lane < kWarp; ++lane) lanes[lane] = grad_value(p[lane], v);
-                            slot[v] += geer::warp_tree_sum_lanes(lanes);  // the warp's atomicAdd
-                        }
+                        if (any) warp_grad_sum(v, slot);
                     }
                 }
             }
@@ -324,21 +329,15 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
         std::vector<int64_t> pairs(m), fill(start.begin(), start.end() - 1);
         for (int64_t j = 0; j < m; ++j) pairs[fill[id[j]]++] = j;
         parallel(n, kGaussGrain, [&](int64_t g) {
-            T sum[kGradValues] = {};
+            T* row = mptr<T>(grads) + kGradValues * g;
             for (int64_t q = start[g]; q < start[g + 1]; ++q) {
                 const T* slot = pair_grad.data() + size_t(pairs[q]) * kGradValues;
-                for (int v = 0; v < kGradValues; ++v) sum[v] += slot[v];
+                for (int v = 0; v < kGradValues; ++v) row[v] += slot[v];
             }
-            for (int v = 0; v < 9; ++v) mptr<T>(gw)[9 * g + v] = sum[v];
-            for (int v = 0; v < 3; ++v) {
-                mptr<T>(go)[3 * g + v] = sum[9 + v];
-                mptr<T>(gc)[3 * g + v] = sum[12 + v];
-            }
-            mptr<T>(gs)[g] = sum[15];
         });
         return 0;
     });
-    return {gw, go, gc, gs};
+    return grads;
 }
 
 // ------------------------------------------------------------------------------------ stage 4
@@ -425,6 +424,38 @@ std::vector<at::Tensor> pair_backward(at::Tensor whiten, at::Tensor o_u, at::Ten
     return {go, gw};
 }
 
+// One warp through the backward's reduction: values [32,16] (lane, gradient-row order: W, o_u, colour,
+// opacity, as each lane's PairGrad), contrib [32] -> (the row its writer lanes add to zeros [16], every
+// lane's total afterwards [32]).
+std::vector<at::Tensor> warp_grad_sum_op(at::Tensor values, at::Tensor contrib) {
+    values = cpu(values); contrib = cpu(contrib);
+    constexpr int kWarp = geer::kWarp;
+    TORCH_CHECK(values.dim() == 2 && values.size(0) == kWarp && values.size(1) == kGradValues,
+                "geer cpu_ops: warp_grad_sum: values must be [32, 16], got ", values.sizes());
+    TORCH_CHECK(contrib.scalar_type() == at::kBool && contrib.numel() == kWarp,
+                "geer cpu_ops: warp_grad_sum: contrib must be 32 bools");
+    auto row = at::zeros({kGradValues}, values.options()), totals = at::empty({kWarp}, values.options());
+    dispatch<int>(values, [&](auto tag) {
+        using T = decltype(tag);
+        T v[kWarp][kGradValues];
+        for (int lane = 0; lane < kWarp; ++lane) {
+            const T* in = ptr<T>(values) + kGradValues * lane;
+            geer::PairGrad<T> p;
+            for (int i = 0; i < 9; ++i) p.w[i] = in[i];
+            for (int i = 0; i < 3; ++i) {
+                p.o[i] = in[9 + i];
+                p.rgb[i] = in[12 + i];
+            }
+            p.opacity = in[15];
+            geer::lane_grad_values(p, bptr(contrib)[lane] != 0, v[lane]);
+        }
+        warp_grad_sum(v, mptr<T>(row));
+        for (int lane = 0; lane < kWarp; ++lane) mptr<T>(totals)[lane] = v[lane][0];
+        return 0;
+    });
+    return {row, totals};
+}
+
 at::Tensor mirror_tangent(at::Tensor theta) {
     theta = cpu(theta);
     auto out = at::empty_like(theta);
@@ -463,6 +494,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("preprocess_backward", &preprocess_backward);
     m.def("pair_eval", &pair_eval);
     m.def("pair_backward", &pair_backward);
+    m.def("warp_grad_sum", &warp_grad_sum_op);
     m.def("mirror_tangent", &mirror_tangent);
     m.def("interval_pieces", &interval_pieces);
 }

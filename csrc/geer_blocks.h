@@ -2,7 +2,7 @@
 // (csrc/cpu_ops.cpp) so that the code deciding which ray and which Gaussian a thread touches is the code
 // the CPU tests run: the ray a thread owns, the batches a tile's list is walked in (front to back in the
 // forward, back to front from the block's last blended Gaussian in the backward), the list position of
-// each batch item, and the warp reduction's summation order.
+// each batch item, and the backward's warp reduction (its stages, summation order and output slots).
 #pragma once
 
 #include "geer_math.h"
@@ -56,16 +56,50 @@ GEER_HD ListBatch backward_batch(int start, int block_n, int b, int batch) {
 }
 GEER_HD int batch_entry(const ListBatch& bt, int k) { return bt.first + bt.step * k; }
 
-// The warp's sum as lane 0 sees it after a shuffle-down tree (offsets 16, 8, 4, 2, 1): the GPU passes
-// a shuffle, the CPU build runs warp_tree_sum_lanes over the 32 lanes' values, in the same order.
-template <typename T, typename Shfl> GEER_HD T warp_tree_sum(T v, Shfl&& shfl_down) {
-    for (int off = kWarp / 2; off > 0; off >>= 1) v += shfl_down(v, off);
-    return v;
+// ------------------------------------------------------------ the backward's warp reduction
+// Per (warp, Gaussian) the backward sums 16 values over the 32 lanes (the pairs' PairGrad, zeros where a
+// ray does not blend the Gaussian) into the Gaussian's row of the [N, kGradValues] gradient. Separate
+// shuffle trees would take 16 x 5 shuffles and leave every total in lane 0, which then issues 16 serial
+// atomics. This reduction is transposing (reduce-scatter): butterfly stages with xor masks 16, 8, 4, 2,
+// 1. At mask m >= 2 a lane holds m partial sums, keeps one half (the upper one where lane & m), adds the
+// partner lane ^ m's copy of that half, and sends the partner the other half; at mask 1 the two exchange
+// their one value. 8 + 4 + 2 + 1 + 1 = 16 shuffles; lanes 2k and 2k + 1 end with the warp's total of value
+// k (both add the same two numbers), and the even lanes issue one atomic each, in parallel, to 16
+// adjacent words. The GPU exchanges with __shfl_xor_sync (render.cu); the CPU build runs all 32 lanes in
+// lock-step and reads the partner's sent values (cpu_ops.cpp): both sum in this order.
+constexpr int kGradValues = 16;  // one gradient row: W row-major (9), o_u (3), colour (3), opacity
+
+// A lane's values: its pair gradient, or zeros where its ray does not blend the pair (p is then not read).
+template <typename T> GEER_HD void lane_grad_values(const PairGrad<T>& p, bool contrib, T* v /* kGradValues */) {
+    for (int i = 0; i < 9; ++i) v[i] = contrib ? p.w[i] : T(0);
+    for (int i = 0; i < 3; ++i) {
+        v[9 + i] = contrib ? p.o[i] : T(0);
+        v[12 + i] = contrib ? p.rgb[i] : T(0);
+    }
+    v[15] = contrib ? p.opacity : T(0);
 }
-template <typename T> GEER_HD T warp_tree_sum_lanes(T* v /* kWarp values, overwritten */) {
-    for (int off = kWarp / 2; off > 0; off >>= 1)
-        for (int lane = 0; lane < off; ++lane) v[lane] += v[lane + off];  // lanes >= off: not read by lane 0
-    return v[0];
+
+// The stages in order: f(16), f(8), f(4), f(2), f(1), the argument being the stage's xor mask.
+template <typename F> GEER_HD void for_each_scatter_stage(F&& f) {
+    for (int mask = kWarp / 2; mask > 0; mask >>= 1) f(mask);
 }
+// Values a lane sends (and keeps) at the stage with xor mask `mask`.
+GEER_HD int scatter_count(int mask) { return mask > 1 ? mask / 2 : 1; }
+// sent[i], i < scatter_count(mask): the half of v the lane gives to lane ^ mask (at mask 1: its value).
+template <typename T> GEER_HD void scatter_send(const T* v, int mask, int lane, T* sent) {
+    const int half = mask / 2;
+    const bool upper = (lane & mask) != 0;
+    for (int i = 0; i < scatter_count(mask); ++i) sent[i] = upper ? v[i] : v[i + half];
+}
+// v[i] = the kept half's value + what lane ^ mask sent (in place: each v[i] is read before it is written).
+template <typename T> GEER_HD void scatter_keep(T* v, int mask, int lane, const T* received) {
+    const int half = mask / 2;
+    const bool upper = (lane & mask) != 0;
+    for (int i = 0; i < scatter_count(mask); ++i) v[i] = (upper ? v[i + half] : v[i]) + received[i];
+}
+// After the stages the lane's v[0] is the warp's total of value scatter_value(lane); one of its two
+// holders (scatter_writer) adds it to the gradient row.
+GEER_HD int scatter_value(int lane) { return lane >> 1; }
+GEER_HD bool scatter_writer(int lane) { return (lane & 1) == 0; }
 
 }  // namespace geer

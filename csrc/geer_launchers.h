@@ -121,11 +121,9 @@ template <typename T> struct RenderGradArgs {
     const T* g_rgb;             // [R,3] dL/d(rgb), dL/d(depth sum), dL/d(accumulation)
     const T* g_depth;           // [R]
     const T* g_acc;             // [R]
-    // outputs, zeroed by the caller, accumulated with atomics
-    T* g_whiten;                // [N,9]
-    T* g_o_u;                   // [N,3]
-    T* g_colors;                // [N,3]
-    T* g_opacities;             // [N]
+    // output, zeroed by the caller, accumulated with atomics: one row per Gaussian, dL/d of W row-major (9),
+    // o_u (3), colour (3), opacity (geer_blocks.h kGradValues), so a warp's 16 totals go to adjacent words
+    T* grads;                   // [N,16]
 };
 template <typename T>
 void launch_render_backward(const RenderArgs<T>& a, const RenderGradArgs<T>& g, cudaStream_t stream);

@@ -5,8 +5,9 @@
 // (each Gaussian's ray frame is built once per tile there), every thread blends the batch into its
 // ray, and the block stops as soon as all of its rays are done (3DGS early termination).
 // Backward: same layout, the list traversed back to front from the block's last blended Gaussian;
-// per-pair gradients of (W, o_u, colour, opacity) are summed over the warp with shuffles and added
-// to the Gaussian's buffers with one atomic per warp and value.
+// per-pair gradients of (W, o_u, colour, opacity), 16 values, are summed over the warp by a transposing
+// reduction (16 shuffles; geer_blocks.h) that leaves value k's total in lanes 2k and 2k + 1, so 16 lanes
+// add them to the Gaussian's gradient row with one atomic each, in parallel.
 // Per-pair and per-ray math: geer_math.h (eval_pair, ray_forward_step, ray_backward_step); which ray and
 // which list entry a thread touches: geer_blocks.h (shared with the CPU build, so the CPU tests run it).
 #include "geer_blocks.h"
@@ -51,8 +52,14 @@ __global__ void __launch_bounds__(kMaxThreads) render_forward_kernel(const Rende
     out.n_contrib[r] = st.n_contrib;
 }
 
-template <typename T> __device__ __forceinline__ T warp_sum(T v) {
-    return warp_tree_sum(v, [](T x, int off) { return __shfl_down_sync(0xffffffffu, x, off); });
+// The warp's totals of the lanes' values (geer_blocks.h): lane ends with value scatter_value(lane)'s in v[0].
+template <typename T> __device__ __forceinline__ void warp_reduce_scatter(T* v, int lane) {
+    for_each_scatter_stage([&](int mask) {
+        T sent[kGradValues / 2];
+        scatter_send(v, mask, lane, sent);
+        for (int i = 0; i < scatter_count(mask); ++i) sent[i] = __shfl_xor_sync(0xffffffffu, sent[i], mask);
+        scatter_keep(v, mask, lane, sent);
+    });
 }
 
 template <typename T, int kMaxThreads>
@@ -98,24 +105,10 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
             PairGrad<T> p;
             const bool contrib = pos < my_n && ray_backward_step(st, frames[k], d, p);
             if (!__any_sync(0xffffffffu, contrib)) continue;
-            if (!contrib) pair_grad_zero(p);
-            const int gid = frame_ids[k];
-            // Sum the warp's contributions first: one atomic per warp and value instead of per ray.
-            T* dst_w = g.g_whiten + 9 * gid;
-            for (int i = 0; i < 9; ++i) {
-                const T v = warp_sum(p.w[i]);
-                if (lane == 0) atomicAdd(dst_w + i, v);
-            }
-            for (int i = 0; i < 3; ++i) {
-                const T vo = warp_sum(p.o[i]);
-                const T vc = warp_sum(p.rgb[i]);
-                if (lane == 0) {
-                    atomicAdd(g.g_o_u + 3 * gid + i, vo);
-                    atomicAdd(g.g_colors + 3 * gid + i, vc);
-                }
-            }
-            const T vs = warp_sum(p.opacity);
-            if (lane == 0) atomicAdd(g.g_opacities + gid, vs);
+            T v[kGradValues];
+            lane_grad_values(p, contrib, v);
+            warp_reduce_scatter(v, lane);
+            if (scatter_writer(lane)) atomicAdd(g.grads + kGradValues * frame_ids[k] + scatter_value(lane), v[0]);
         }
     }
 }

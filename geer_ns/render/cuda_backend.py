@@ -176,11 +176,12 @@ class _Rasterize(torch.autograd.Function):
         g_rgb = _zeros_if_none(g_rgb, (r, 3), whiten).contiguous()
         g_depth = _zeros_if_none(g_depth, (r,), whiten).contiguous()
         g_acc = _zeros_if_none(g_acc, (r,), whiten).contiguous()
-        gw, go, gc, gs = ctx.ops.render_backward(
+        grads = ctx.ops.render_backward(
             whiten, o_u, rgb, opacities, dirs, valid, ids, ranges, *ctx.layout, t_final, n_contrib,
             g_rgb, g_depth, g_acc,
-        )
-        return (gw, go, gc, gs) + (None,) * 8
+        )  # [N, 16] rows (csrc/geer_blocks.h kGradValues): W row-major, o_u, colour, opacity
+        gw, go, gc, gs = grads.split([9, 3, 3, 1], dim=1)
+        return (gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1)) + (None,) * 8
 
 
 def _zeros_if_none(g: Tensor | None, shape, like: Tensor) -> Tensor:

@@ -1,0 +1,71 @@
+"""The render backward's warp reduction (csrc/geer_blocks.h: transposing reduce-scatter, 16 shuffles, the even
+lanes writing one slot each), run through the CPU build, which steps the 32 lanes in lock-step through the same
+per-stage functions the kernel calls. Each slot of the gradient row is checked against a float64 numpy sum of
+the contributing lanes' values, and lanes whose ray does not blend the pair contribute nothing, not even NaN."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from geer_ns.render import cuda_backend
+
+LANES, VALUES = 32, 16
+
+
+@pytest.fixture(scope="module")
+def ops():
+    if shutil.which("c++") is None and shutil.which("g++") is None:
+        pytest.skip("no C++ compiler: cannot build csrc/cpu_ops.cpp")
+    return cuda_backend.load_cpu_ops()
+
+
+def _reference(values: np.ndarray, contrib: np.ndarray) -> np.ndarray:
+    return values.astype(np.float64)[contrib].sum(axis=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_every_slot_is_the_sum_of_the_contributing_lanes(ops, dtype):
+    rng = np.random.default_rng(3)
+    values = rng.normal(size=(LANES, VALUES)) * 10.0 ** rng.integers(-3, 4, size=(LANES, VALUES))
+    contrib = rng.random(LANES) < 0.7
+    contrib[[0, 1, 31]] = [True, False, False]  # a writer lane and its partner, and the last lane
+    values[~contrib] = np.nan  # never read: a lane that does not contribute adds exactly nothing
+    values[np.ix_(~contrib, [3])] = np.inf
+    v = torch.tensor(values, dtype=dtype)
+    row, totals = ops.warp_grad_sum(v, torch.tensor(contrib))
+    ref = _reference(v.numpy(), contrib)
+    eps = torch.finfo(dtype).eps
+    bound = LANES * eps * np.abs(v.numpy().astype(np.float64))[contrib].sum(axis=0)  # the sum's rounding
+    assert np.isfinite(row.numpy()).all()
+    assert (np.abs(row.numpy() - ref) <= bound).all(), (row.numpy(), ref)
+    # Value k's total sits in lanes 2k and 2k + 1 (the same two numbers added), and the even lane wrote it.
+    t = totals.numpy()
+    assert np.array_equal(t[0::2], t[1::2]) and np.array_equal(t[0::2], row.numpy())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_each_lane_and_value_reaches_its_own_slot_once(ops, dtype):
+    """One 1 at (lane, k), every other input 0: the row is the k-th unit vector, for all 32 x 16 inputs (a
+    dropped or doubled lane, or a value sent to the wrong slot, shows here)."""
+    contrib = torch.ones(LANES, dtype=torch.bool)
+    for lane in range(LANES):
+        for k in range(VALUES):
+            v = torch.zeros(LANES, VALUES, dtype=dtype)
+            v[lane, k] = 1.0
+            row, _ = ops.warp_grad_sum(v, contrib)
+            assert torch.equal(row, torch.eye(VALUES, dtype=dtype)[k]), (lane, k, row)
+
+
+def test_no_contributing_lane_gives_zeros(ops):
+    v = torch.full((LANES, VALUES), float("nan"))
+    row, totals = ops.warp_grad_sum(v, torch.zeros(LANES, dtype=torch.bool))
+    assert torch.equal(row, torch.zeros(VALUES)) and torch.equal(totals, torch.zeros(LANES))
+
+
+def test_wrong_shape_names_the_argument(ops):
+    with pytest.raises(RuntimeError, match=r"warp_grad_sum: values must be \[32, 16\]"):
+        ops.warp_grad_sum(torch.zeros(16, 16), torch.ones(LANES, dtype=torch.bool))
