@@ -252,12 +252,15 @@ constexpr int kGradValues = geer::kGradValues;
 // One warp's reduction as render.cu runs it (geer_blocks.h): the 32 lanes in lock-step through the stages,
 // each shuffle reading what the partner lane sent at the same stage; the writer lanes then add their totals
 // to row (the kernel's atomicAdds). v: the lanes' values, left holding each lane's v[0] total.
+// GCC 12.2 at -O3 -mavx512f miscompiles the scatter_send lane loop (some lanes send the wrong half; a
+// standalone loop of copies does the same); the extension builds at -O2, and
+// tests/test_blocks_warp_reduction.py fails on such a build.
 template <typename T> void warp_grad_sum(T (*v)[kGradValues] /* [kWarp] */, T* row /* kGradValues */) {
     constexpr int kWarp = geer::kWarp;
     T sent[kWarp][kGradValues / 2];
-    geer::for_each_scatter_stage([&](int mask) {
-        for (int lane = 0; lane < kWarp; ++lane) geer::scatter_send(v[lane], mask, lane, sent[lane]);
-        for (int lane = 0; lane < kWarp; ++lane) geer::scatter_keep(v[lane], mask, lane, sent[lane ^ mask]);
+    geer::for_each_scatter_stage([&](auto stage) {
+        for (int lane = 0; lane < kWarp; ++lane) geer::scatter_send(stage, v[lane], lane, sent[lane]);
+        for (int lane = 0; lane < kWarp; ++lane) geer::scatter_keep(stage, v[lane], lane, sent[lane ^ stage.mask]);
     });
     for (int lane = 0; lane < kWarp; ++lane)
         if (geer::scatter_writer(lane)) row[geer::scatter_value(lane)] += v[lane][0];

@@ -79,23 +79,41 @@ template <typename T> GEER_HD void lane_grad_values(const PairGrad<T>& p, bool c
     v[15] = contrib ? p.opacity : T(0);
 }
 
-// The stages in order: f(16), f(8), f(4), f(2), f(1), the argument being the stage's xor mask.
+// A stage: its xor mask, and how many values a lane sends (and keeps) there. Compile-time, so that every
+// index below is a constant and the GPU keeps the values in registers.
+template <int kMask> struct ScatterStage {
+    static constexpr int mask = kMask;
+    static constexpr int count = kMask > 1 ? kMask / 2 : 1;
+    static constexpr int half = kMask / 2;  // 0 at mask 1: the one value is both kept and sent
+};
+static_assert(kWarp == 32, "the stages below are those of a 32-lane warp");
+// The stages in order: xor masks 16, 8, 4, 2, 1.
 template <typename F> GEER_HD void for_each_scatter_stage(F&& f) {
-    for (int mask = kWarp / 2; mask > 0; mask >>= 1) f(mask);
+    f(ScatterStage<16>{});
+    f(ScatterStage<8>{});
+    f(ScatterStage<4>{});
+    f(ScatterStage<2>{});
+    f(ScatterStage<1>{});
 }
-// Values a lane sends (and keeps) at the stage with xor mask `mask`.
-GEER_HD int scatter_count(int mask) { return mask > 1 ? mask / 2 : 1; }
-// sent[i], i < scatter_count(mask): the half of v the lane gives to lane ^ mask (at mask 1: its value).
-template <typename T> GEER_HD void scatter_send(const T* v, int mask, int lane, T* sent) {
-    const int half = mask / 2;
-    const bool upper = (lane & mask) != 0;
-    for (int i = 0; i < scatter_count(mask); ++i) sent[i] = upper ? v[i] : v[i + half];
+// sent[i], i < count: the half of v the lane gives to lane ^ mask (at mask 1: its value). Both halves are
+// constant indices (a pointer to either would put the GPU's values in local memory); branches rather than
+// per-value selects let GCC vectorise the CPU build's lane loops (its backward as fast as with the tree).
+template <int kMask, typename T> GEER_HD void scatter_send(ScatterStage<kMask> s, const T* v, int lane, T* sent) {
+    const bool upper = (lane & s.mask) != 0;
+    if (upper) {
+        for (int i = 0; i < s.count; ++i) sent[i] = v[i];
+    } else {
+        for (int i = 0; i < s.count; ++i) sent[i] = v[i + s.half];
+    }
 }
 // v[i] = the kept half's value + what lane ^ mask sent (in place: each v[i] is read before it is written).
-template <typename T> GEER_HD void scatter_keep(T* v, int mask, int lane, const T* received) {
-    const int half = mask / 2;
-    const bool upper = (lane & mask) != 0;
-    for (int i = 0; i < scatter_count(mask); ++i) v[i] = (upper ? v[i + half] : v[i]) + received[i];
+template <int kMask, typename T> GEER_HD void scatter_keep(ScatterStage<kMask> s, T* v, int lane, const T* received) {
+    const bool upper = (lane & s.mask) != 0;
+    if (upper) {
+        for (int i = 0; i < s.count; ++i) v[i] = v[i + s.half] + received[i];
+    } else {
+        for (int i = 0; i < s.count; ++i) v[i] = v[i] + received[i];
+    }
 }
 // After the stages the lane's v[0] is the warp's total of value scatter_value(lane); one of its two
 // holders (scatter_writer) adds it to the gradient row.

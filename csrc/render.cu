@@ -54,11 +54,11 @@ __global__ void __launch_bounds__(kMaxThreads) render_forward_kernel(const Rende
 
 // The warp's totals of the lanes' values (geer_blocks.h): lane ends with value scatter_value(lane)'s in v[0].
 template <typename T> __device__ __forceinline__ void warp_reduce_scatter(T* v, int lane) {
-    for_each_scatter_stage([&](int mask) {
-        T sent[kGradValues / 2];
-        scatter_send(v, mask, lane, sent);
-        for (int i = 0; i < scatter_count(mask); ++i) sent[i] = __shfl_xor_sync(0xffffffffu, sent[i], mask);
-        scatter_keep(v, mask, lane, sent);
+    for_each_scatter_stage([&](auto stage) {
+        T sent[stage.count];
+        scatter_send(stage, v, lane, sent);
+        for (int i = 0; i < stage.count; ++i) sent[i] = __shfl_xor_sync(0xffffffffu, sent[i], stage.mask);
+        scatter_keep(stage, v, lane, sent);
     });
 }
 
