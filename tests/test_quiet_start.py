@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import re
 import warnings
+from dataclasses import fields
 from pathlib import Path
 
 import pytest
@@ -12,26 +13,37 @@ import torch
 
 from geer_ns import host_fixes
 from geer_ns.data import colmap_parser
-from geer_ns.model import IGNORED_OPTIONS, OWN_OPTIONS_HELP
+from geer_ns.data.datamanager import GeerDataManagerConfig, GeerDataOptions
+from geer_ns.model import IGNORED_OPTIONS, OWN_OPTIONS_HELP, GeerModelConfig, GeerOwnOptions
+from nerfstudio.models.base_model import ModelConfig
 
 from test_nerfstudio_model import make_model
 
 FIXTURE = Path(__file__).resolve().parent / "fixtures" / "t265_colmap"
 
 
-@pytest.fixture(scope="module")
-def help_text():
-    """`ns-train geer --help`, in process (ns-train's own tyro union of all methods)."""
-    import contextlib
-    import io
-
+def ns_train(*args: str):
+    """ns-train's own tyro call (the union of all methods), in process."""
     import tyro
     from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
 
+    return tyro.cli(AnnotatedBaseConfigUnion, args=list(args))
+
+
+def method_help(method: str) -> str:
+    """`ns-train METHOD --help` with the box drawing removed."""
+    import contextlib
+    import io
+
     out = io.StringIO()
     with contextlib.redirect_stdout(out), pytest.raises(SystemExit):
-        tyro.cli(AnnotatedBaseConfigUnion, args=["geer", "--help"])
+        ns_train(method, "--help")
     return re.sub(r"[│╭╮╰╯─]", " ", out.getvalue())
+
+
+@pytest.fixture(scope="module")
+def help_text():
+    return method_help("geer")
 
 
 def test_help_lists_geers_own_options_before_any_other(help_text):
@@ -40,6 +52,53 @@ def test_help_lists_geers_own_options_before_any_other(help_text):
     assert words.index("--pipeline.model.renderer-backend") < first_option
     assert words.index("--pipeline.datamanager.supervision") < first_option
     assert " ".join(OWN_OPTIONS_HELP.split())[:60] in words
+
+
+def listed_options(text: str) -> list:
+    """The option flags of a help text, in the order they are listed (each starts a line)."""
+    return re.findall(r"^\s*(--[\w.-]+)", text, re.M)
+
+
+def _flags(prefix: str, names) -> list:
+    return [f"--{prefix}.{name.replace('_', '-')}" for name in names]
+
+
+@pytest.mark.parametrize("method", ["geer", "geer-mcmc"])
+def test_help_lists_geers_own_options_first_in_their_groups(method, help_text):
+    """tyro lists a dataclass's fields base class first; geer's own options come from a base listed last
+    (GeerOwnOptions, GeerDataOptions), so they come before every inherited splatfacto / nerfstudio option."""
+    listed = listed_options(help_text if method == "geer" else method_help(method))
+    for prefix, own, config in (("pipeline.model", GeerOwnOptions, GeerModelConfig),
+                                ("pipeline.datamanager", GeerDataOptions, GeerDataManagerConfig)):
+        own_names = [f.name for f in fields(own)]
+        group = [flag for flag in listed if flag.startswith(f"--{prefix}.") and flag.count(".") == prefix.count(".") + 1]
+        assert group[: len(own_names)] == _flags(prefix, own_names), group
+        inherited = set(_flags(prefix, [f.name for f in fields(config) if f.name not in own_names]))
+        assert len(inherited & set(group)) > 10 and set(group[len(own_names):]) <= inherited
+
+
+def test_help_hides_the_ray_marching_options_no_gaussian_model_reads(help_text):
+    listed = listed_options(help_text)
+    defaults, nerfstudio = GeerModelConfig(), ModelConfig()
+    hidden = ("enable_collider", "collider_params", "loss_coefficients", "eval_num_rays_per_chunk", "prompt")
+    for name, flag in zip(hidden, _flags("pipeline.model", hidden)):
+        assert not [f for f in listed if f == flag or f.startswith(flag + ".")], flag
+        assert getattr(defaults, name) == getattr(nerfstudio, name), name  # defaults stay nerfstudio's
+
+
+def test_every_flag_the_project_uses_still_parses(help_text):
+    """Flags in README, scripts and configs, plus the ignored splatfacto ones (splatfacto command lines)."""
+    root = Path(__file__).resolve().parents[1]
+    texts = [root / "README.md", *root.glob("scripts/*"), *root.glob("configs/*")]
+    used = {flag for path in texts if path.is_file() for flag in re.findall(r"--pipeline\.[a-z.-]*[a-z]", path.read_text())}
+    listed = set(listed_options(help_text))
+    model_or_manager = [f for f in used if ".dataparser." not in f]
+    assert model_or_manager and all(f in listed for f in model_or_manager), sorted(used)
+    config = ns_train("geer", "--pipeline.model.rasterize-mode", "antialiased", "--pipeline.model.use-absgrad", "True",
+                      "--pipeline.model.renderer-backend", "torch", "--pipeline.datamanager.supervision", "native")
+    model = config.pipeline.model
+    assert (model.rasterize_mode, model.use_absgrad, model.renderer_backend) == ("antialiased", True, "torch")
+    assert config.pipeline.datamanager.supervision == "native" and ns_train("geer-mcmc").pipeline.model.strategy == "mcmc"
 
 
 def test_help_marks_the_splatfacto_options_geer_ignores(help_text):

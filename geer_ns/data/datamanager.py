@@ -47,23 +47,30 @@ VIEW_KEY = "geer_view"
 
 
 @dataclass
-class GeerDataManagerConfig(FullImageDatamanagerConfig):
+class GeerDataOptions:
+    """geer's own datamanager options, listed first in `ns-train geer --help` (see geer_ns.model.GeerOwnOptions:
+    a base after FullImageDatamanagerConfig comes first in the reversed MRO dataclasses collect fields along)."""
+
+    supervision: Supervision = "auto"
+    """Training view per camera: "auto" = BEAP (the paper's setting) unless the camera's valid rays reach 90
+    degrees off-axis, then its native pixel rays (BEAP cannot hold them); "beap" or "native" for every camera."""
+    mask_edge_fill: int = 2
+    """Pixel rings extrapolated beyond the validity mask before BEAP resampling, so that BEAP cells at the
+    edge of the image circle (whose bilinear footprint touches the first invalid pixel) stay supervised."""
+    image_circle_margin: float = 2.0
+    """Pixels kept inside an automatically detected fisheye image circle (its rim pixels are blended)."""
+    load_seed_points: bool = True
+    """Seed Gaussians from the dataset's point cloud (nerfstudio-data `ply_file_path`)."""
+
+
+@dataclass
+class GeerDataManagerConfig(FullImageDatamanagerConfig, GeerDataOptions):
     _target: Type = field(default_factory=lambda: GeerDataManager)
     dataparser: AnnotatedDataParserUnion = field(
         default_factory=lambda: GeerNerfstudioDataParserConfig(load_3D_points=False))
     """Dataset parser: nerfstudio's transforms.json parser plus per-frame camera_model (mixed rigs). Its
     load_3D_points stays off (it needs open3d); the seed points are read by this datamanager instead."""
     cache_images_type: Literal["uint8", "float32"] = "uint8"
-    supervision: Supervision = "auto"
-    """Training view per camera: "auto" = BEAP (the paper's setting) unless the camera's valid rays reach 90
-    degrees off-axis, then its native pixel rays (BEAP cannot hold them); "beap" or "native" for every camera."""
-    image_circle_margin: float = 2.0
-    """Pixels kept inside an automatically detected fisheye image circle (its rim pixels are blended)."""
-    load_seed_points: bool = True
-    """Seed Gaussians from the dataset's point cloud (nerfstudio-data `ply_file_path`)."""
-    mask_edge_fill: int = 2
-    """Pixel rings extrapolated beyond the validity mask before BEAP resampling, so that BEAP cells at the
-    edge of the image circle (whose bilinear footprint touches the first invalid pixel) stay supervised."""
 
 
 def check_data_path(config: GeerDataManagerConfig) -> None:
