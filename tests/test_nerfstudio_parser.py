@@ -92,7 +92,8 @@ def test_unknown_camera_model_names_the_file_and_frame(tmp_path):
     meta = json.loads((default_scene_dir() / "transforms_rig.json").read_text())
     meta["frames"][0]["camera_model"] = "KANNALA"
     _write_copy(meta, tmp_path)
-    with pytest.raises(ValueError, match=r"transforms\.json: frame .*frame_00000.*camera_model 'KANNALA'"):
+    # geer's parser checks the file first (geer_ns.data.dataset_checks: DatasetError, a ValueError)
+    with pytest.raises(ValueError, match=r"transforms\.json: frames\[0\] .*frame_00000.*`camera_model` 'KANNALA'"):
         _parse(GeerNerfstudioDataParserConfig(data=tmp_path))
 
 

@@ -118,17 +118,53 @@ def test_setting_an_ignored_option_is_said_once(capsys):
 
 
 def test_known_host_warnings_are_filtered_and_others_are_not():
+    """Each known message is filtered only from the host module that raises it."""
     host_fixes.quiet_known_warnings()
+    known = (
+        (FutureWarning, "`torch.jit.script` is deprecated. Please switch to `torch.compile` or `torch.export`.",
+         "torch.jit._script"),
+        (FutureWarning, "`torch.cuda.amp.custom_fwd(args...)` is deprecated. Please use ...",
+         "nerfstudio.field_components.activations"),
+        (FutureWarning, "`torch.cuda.amp.custom_bwd(args...)` is deprecated. Please use ...",
+         "nerfstudio.field_components.activations"),
+        (FutureWarning, "`torch.cuda.amp.GradScaler(args...)` is deprecated. Please use ...", "nerfstudio.engine.trainer"),
+        (UserWarning, "Converting a tensor with requires_grad=True to a scalar may lead to unexpected behavior.",
+         "nerfstudio.utils.writer"),
+    )
     with warnings.catch_warnings(record=True) as caught:
-        for category, message in (
-            (FutureWarning, "`torch.cuda.amp.GradScaler(args...)` is deprecated. Please use ..."),
-            (FutureWarning, "`torch.jit.script` is deprecated. Please switch to `torch.compile`"),
-            (UserWarning, "Converting a tensor with requires_grad=True to a scalar may lead to unexpected behavior."),
-        ):
-            warnings.warn(message, category)
-        torch.cuda.amp.GradScaler(enabled=False)  # nerfstudio's trainer does this on every run
-        warnings.warn("something else is deprecated", FutureWarning)
-    assert [str(w.message) for w in caught] == ["something else is deprecated"]
+        for category, message, module in known:
+            warnings.warn_explicit(message, category, "host.py", 1, module=module)
+            warnings.warn_explicit(message, category, "mine.py", 1, module="geer_ns.somewhere")  # shown
+        warnings.warn_explicit("something else is deprecated", FutureWarning, "host.py", 1,
+                               module="nerfstudio.field_components.activations")  # shown
+    assert [str(w.message) for w in caught] == [m for _, m, _ in known] + ["something else is deprecated"]
+
+
+def test_importing_the_plugin_prints_no_host_future_warning():
+    """The plugin's entry point, then nerfstudio's method registry (ns-train's imports): no FutureWarning; one
+    raised by other code still is."""
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    code = ("import geer_ns.config, nerfstudio.configs.method_configs, warnings; "
+            "warnings.warn('not host noise', FutureWarning)")
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    env.pop("PYTHONWARNINGS", None)
+
+    def future_warnings(code: str) -> list:
+        done = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True,
+                              timeout=300)
+        assert done.returncode == 0, done.stderr
+        return [line for line in done.stderr.splitlines() if "FutureWarning" in line]
+
+    shown = future_warnings(code)
+    assert len(shown) == 1 and "not host noise" in shown[0], shown
+    # As ns-train imports: nerfstudio's camera code, then the plugins. Only the warning raised before any
+    # plugin is imported remains (see host_fixes).
+    shown = future_warnings("import nerfstudio.configs.method_configs")
+    assert len(shown) == 1 and "`torch.jit.script` is deprecated" in shown[0], shown
 
 
 def test_colmap_dataset_is_read_once_for_both_splits(monkeypatch):
@@ -141,3 +177,41 @@ def test_colmap_dataset_is_read_once_for_both_splits(monkeypatch):
     assert len(calls) == 1
     assert len(train.image_filenames) == 5 and len(val.image_filenames) == 1
     assert not set(train.image_filenames) & set(val.image_filenames)
+
+
+def test_nerfstudio_dataset_is_checked_and_parsed_once_for_both_splits(monkeypatch):
+    """ns-train's datamanager asks its dataparser once per split; geer's parser reads, checks and parses
+    transforms.json once and gives each split its part (the same files and cameras nerfstudio gives)."""
+    from nerfstudio.data.dataparsers import nerfstudio_dataparser
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
+
+    from geer_ns.data import dataset_checks, nerfstudio_parser
+    from geer_ns.data import datamanager as dm
+    from geer_ns.data.synthetic_room import default_scene_dir
+
+    calls = {"check": 0, "json": 0, "parse": 0}
+
+    def counted(name, fn):
+        def wrapper(*args, **kwargs):
+            calls[name] += 1
+            return fn(*args, **kwargs)
+        return wrapper
+
+    monkeypatch.setattr(nerfstudio_parser, "check_transforms_json", counted("check", nerfstudio_parser.check_transforms_json))
+    monkeypatch.setattr(dataset_checks, "_load_json", counted("json", dataset_checks._load_json))
+    monkeypatch.setattr(nerfstudio_dataparser, "load_from_json", counted("json", nerfstudio_dataparser.load_from_json))
+    monkeypatch.setattr(dm, "load_from_json", counted("json", dm.load_from_json))
+    monkeypatch.setattr(Nerfstudio, "_generate_dataparser_outputs", counted("parse", Nerfstudio._generate_dataparser_outputs))
+    config = dm.GeerDataManagerConfig(data=default_scene_dir(), cache_images="cpu")
+    manager = config.setup(device="cpu", test_mode="val")
+    assert isinstance(manager.dataparser, nerfstudio_parser.GeerNerfstudio)
+    assert calls == {"check": 1, "json": 1, "parse": 1}
+    assert len(manager.train_dataset) == 21 and len(manager.eval_dataset) > 0
+    # Each split is what nerfstudio's own parser gives for it.
+    monkeypatch.undo()
+    for split, dataset in (("train", manager.train_dataset), ("val", manager.eval_dataset)):
+        ref = NerfstudioDataParserConfig(data=default_scene_dir()).setup().get_dataparser_outputs(split)
+        got = dataset._dataparser_outputs
+        assert got.image_filenames == ref.image_filenames and got.mask_filenames == ref.mask_filenames
+        assert torch.equal(got.cameras.camera_to_worlds, ref.cameras.camera_to_worlds)
+        assert torch.equal(got.cameras.fx, ref.cameras.fx) and torch.equal(got.dataparser_transform, ref.dataparser_transform)
