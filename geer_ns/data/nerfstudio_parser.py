@@ -44,7 +44,7 @@ from nerfstudio.data.utils.dataparsers_utils import (
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from geer_ns.data.dataset_checks import check_transforms_json
+from geer_ns.data.dataset_checks import DatasetError, check_transforms_json
 
 __all__ = ["CAMERA_MODELS", "CAMERA_MODEL_KEY", "CROP_RADIUS_KEY", "GeerNerfstudio", "GeerNerfstudioDataParserConfig",
            "geer_nerfstudio_dataparser", "map_to_run_frame"]
@@ -123,14 +123,17 @@ class GeerNerfstudio(Nerfstudio):
         eval_mode."""
         if split not in ("train", "val", "test"):
             raise ValueError(f"Unknown dataparser split {split}")
-        if any(k in meta for k in _SPLIT_KEYS):
-            if f"{split}_filenames" not in meta:
-                raise RuntimeError(f"The dataset's list of filenames for split {split} is missing.")
-            root = self.transforms_path().parent
-            names = {self._get_fname(Path(x), root) for x in meta[f"{split}_filenames"]}
-            unmatched = names.difference(filenames)
+        lists = [k for k in _SPLIT_KEYS if k in meta]
+        if lists:
+            path, key = self.transforms_path(), f"{split}_filenames"
+            if key not in meta:
+                raise DatasetError(f"geer: {path}: `{key}` is missing but the file lists its splits "
+                                   f"({', '.join(lists)}); add `{key}` or remove the lists to split by eval_mode")
+            names = {self._get_fname(Path(x), path.parent) for x in meta[key]}
+            unmatched = sorted(str(n) for n in names.difference(filenames))
             if unmatched:
-                raise RuntimeError(f"Some filenames for split {split} were not found: {unmatched}.")
+                raise DatasetError(f"geer: {path}: `{key}` names {len(unmatched)} file(s) that no frame has: "
+                                   f"{', '.join(unmatched[:5])}; use the frames' `file_path` values")
             return torch.tensor([i for i, name in enumerate(filenames) if name in names], dtype=torch.long)
         cfg = self.config
         splits = {
