@@ -52,9 +52,8 @@ template <typename F> void dispatch(const at::Tensor& t, F&& f) {
 
 template <typename T>
 geer::PreprocessArgs<T> preprocess_args(const at::Tensor& means_c, const at::Tensor& quats, const at::Tensor& scales,
-                                        const at::Tensor& opacities, const at::Tensor& sh, const at::Tensor& means_w,
-                                        const at::Tensor& cam_center, const at::Tensor& rot_c, int64_t sh_degree,
-                                        bool paper_lambda) {
+                                        const at::Tensor& opacities, const at::Tensor& sh, const at::Tensor& sh_dirs,
+                                        const at::Tensor& rot_c, int64_t sh_degree, bool paper_lambda) {
     check_float(means_c, means_c, "means_c");
     check_float(quats, means_c, "quats");
     check_float(scales, means_c, "scales");
@@ -69,16 +68,14 @@ geer::PreprocessArgs<T> preprocess_args(const at::Tensor& means_c, const at::Ten
     a.sh_degree = int(sh_degree);
     if (sh_degree >= 0) {
         check_float(sh, means_c, "sh");
-        check_float(means_w, means_c, "means_w");
+        check_float(sh_dirs, means_c, "sh_dirs");
         TORCH_CHECK(sh.dim() == 3 && sh.size(1) >= (sh_degree + 1) * (sh_degree + 1) && sh.size(2) == 3,
                     "geer: sh must be [N, K >= (degree+1)^2, 3]");
         a.sh = cptr<T>(sh);
         a.sh_k = int(sh.size(1));
-        a.means_w = cptr<T>(means_w);
+        a.sh_dirs = cptr<T>(sh_dirs);
     }
-    check_view_constant(cam_center, means_c, 3, "cam_center");
     check_view_constant(rot_c, means_c, 9, "rot_c");
-    a.cam_center = cptr<T>(cam_center);
     a.rot_c = cptr<T>(rot_c);
     a.paper_lambda = paper_lambda ? 1 : 0;
     return a;
@@ -86,9 +83,8 @@ geer::PreprocessArgs<T> preprocess_args(const at::Tensor& means_c, const at::Ten
 
 // ------------------------------------------------------------------------------------ stage 1
 std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats, at::Tensor scales,
-                                           at::Tensor opacities, at::Tensor sh, at::Tensor means_w,
-                                           at::Tensor cam_center, at::Tensor rot_c, int64_t sh_degree,
-                                           bool paper_lambda) {
+                                           at::Tensor opacities, at::Tensor sh, at::Tensor sh_dirs,
+                                           at::Tensor rot_c, int64_t sh_degree, bool paper_lambda) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(means_c));
     const int64_t n = means_c.size(0);
     auto opts = means_c.options();
@@ -97,8 +93,7 @@ std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats,
     auto alive = at::empty({n}, opts.dtype(at::kBool)), inside = at::empty({n}, opts.dtype(at::kBool));
     dispatch(means_c, [&](auto tag) {
         using T = decltype(tag);
-        auto a = preprocess_args<T>(means_c, quats, scales, opacities, sh, means_w, cam_center, rot_c, sh_degree,
-                                    paper_lambda);
+        auto a = preprocess_args<T>(means_c, quats, scales, opacities, sh, sh_dirs, rot_c, sh_degree, paper_lambda);
         a.whiten = mptr<T>(whiten);
         a.o_u = mptr<T>(o_u);
         a.rgb = mptr<T>(rgb);
@@ -248,28 +243,26 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
 
 // ------------------------------------------------------------------------------------ stage 4
 std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats, at::Tensor scales, at::Tensor sh,
-                                            at::Tensor means_w, at::Tensor cam_center, at::Tensor rot_c,
-                                            int64_t sh_degree, at::Tensor g_whiten, at::Tensor g_o_u,
-                                            at::Tensor g_rgb) {
+                                            at::Tensor sh_dirs, at::Tensor rot_c, int64_t sh_degree,
+                                            at::Tensor g_whiten, at::Tensor g_o_u, at::Tensor g_rgb) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(means_c));
     const int64_t n = means_c.size(0);
     auto opts = means_c.options();
     auto g_mc = at::empty({n, 3}, opts), g_q = at::empty({n, 4}, opts), g_s = at::empty({n, 3}, opts);
     auto g_sh = sh_degree >= 0 ? at::empty_like(sh) : at::empty({0}, opts);
-    auto g_mw = at::zeros({n, 3}, opts);
+    auto g_dirs = at::zeros({n, 3}, opts);
     dispatch(means_c, [&](auto tag) {
         using T = decltype(tag);
-        auto a = preprocess_args<T>(means_c, quats, scales, at::Tensor(), sh, means_w, cam_center, rot_c, sh_degree,
-                                    false);
+        auto a = preprocess_args<T>(means_c, quats, scales, at::Tensor(), sh, sh_dirs, rot_c, sh_degree, false);
         check_float(g_whiten, means_c, "g_whiten");
         check_float(g_o_u, means_c, "g_o_u");
         if (sh_degree >= 0) check_float(g_rgb, means_c, "g_rgb");
         geer::PreprocessGradArgs<T> g{cptr<T>(g_whiten), cptr<T>(g_o_u), sh_degree >= 0 ? cptr<T>(g_rgb) : nullptr,
                                       mptr<T>(g_mc),     mptr<T>(g_q),   mptr<T>(g_s),
-                                      sh_degree >= 0 ? mptr<T>(g_sh) : nullptr, mptr<T>(g_mw)};
+                                      sh_degree >= 0 ? mptr<T>(g_sh) : nullptr, mptr<T>(g_dirs)};
         geer::launch_preprocess_backward<T>(a, g, stream());
     });
-    return {g_mc, g_q, g_s, g_sh, g_mw};
+    return {g_mc, g_q, g_s, g_sh, g_dirs};
 }
 
 // ------------------------------------------------------------------------------------ checks

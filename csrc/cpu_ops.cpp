@@ -66,11 +66,10 @@ template <typename F> void parallel_dynamic(int64_t n, F&& f) {
 
 // ------------------------------------------------------------------------------------ stage 1
 std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats, at::Tensor scales,
-                                              at::Tensor opacities, at::Tensor sh, at::Tensor means_w,
-                                              at::Tensor cam_center, at::Tensor rot_c, int64_t sh_degree,
-                                              bool paper_lambda) {
+                                              at::Tensor opacities, at::Tensor sh, at::Tensor sh_dirs,
+                                              at::Tensor rot_c, int64_t sh_degree, bool paper_lambda) {
     means_c = cpu(means_c); quats = cpu(quats); scales = cpu(scales); opacities = cpu(opacities);
-    sh = cpu(sh); means_w = cpu(means_w); cam_center = cpu(cam_center); rot_c = cpu(rot_c);
+    sh = cpu(sh); sh_dirs = cpu(sh_dirs); rot_c = cpu(rot_c);
     const int64_t n = means_c.size(0);
     auto opts = means_c.options();
     auto whiten = at::zeros({n, 3, 3}, opts), o_u = at::zeros({n, 3}, opts), rgb = at::zeros({n, 3}, opts);
@@ -79,7 +78,6 @@ std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats,
     dispatch<int>(means_c, [&](auto tag) {
         using T = decltype(tag);
         const Mat3<T> rc = geer::load_mat3(ptr<T>(rot_c));
-        const Vec3<T> cam = geer::load3(ptr<T>(cam_center));
         const int64_t k = sh_degree >= 0 ? sh.size(1) : 0;
         parallel(n, kGaussGrain, [&](int64_t i) {
             auto g = geer::preprocess_gaussian(geer::load3(ptr<T>(means_c) + 3 * i), ptr<T>(quats) + 4 * i,
@@ -90,7 +88,7 @@ std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats,
             mbptr(alive)[i] = g.alive;
             mbptr(inside)[i] = g.camera_inside;
             if (sh_degree >= 0) {
-                const Vec3<T> dir = geer::load3(ptr<T>(means_w) + 3 * i) - cam;
+                const Vec3<T> dir = geer::load3(ptr<T>(sh_dirs) + 3 * i);
                 geer::store3(mptr<T>(rgb) + 3 * i, geer::sh_to_color(ptr<T>(sh) + 3 * k * i, int(sh_degree), dir));
             }
         });
@@ -345,20 +343,18 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
 
 // ------------------------------------------------------------------------------------ stage 4
 std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats, at::Tensor scales,
-                                               at::Tensor sh, at::Tensor means_w, at::Tensor cam_center,
-                                               at::Tensor rot_c, int64_t sh_degree, at::Tensor g_whiten,
-                                               at::Tensor g_o_u, at::Tensor g_rgb) {
-    means_c = cpu(means_c); quats = cpu(quats); scales = cpu(scales); sh = cpu(sh); means_w = cpu(means_w);
-    cam_center = cpu(cam_center); rot_c = cpu(rot_c); g_whiten = cpu(g_whiten); g_o_u = cpu(g_o_u);
-    g_rgb = cpu(g_rgb);
+                                               at::Tensor sh, at::Tensor sh_dirs, at::Tensor rot_c,
+                                               int64_t sh_degree, at::Tensor g_whiten, at::Tensor g_o_u,
+                                               at::Tensor g_rgb) {
+    means_c = cpu(means_c); quats = cpu(quats); scales = cpu(scales); sh = cpu(sh); sh_dirs = cpu(sh_dirs);
+    rot_c = cpu(rot_c); g_whiten = cpu(g_whiten); g_o_u = cpu(g_o_u); g_rgb = cpu(g_rgb);
     const int64_t n = means_c.size(0);
     auto opts = means_c.options();
     auto g_mc = at::zeros({n, 3}, opts), g_q = at::zeros({n, 4}, opts), g_s = at::zeros({n, 3}, opts);
-    auto g_sh = at::zeros_like(sh), g_mw = at::zeros({n, 3}, opts);
+    auto g_sh = at::zeros_like(sh), g_dirs = at::zeros({n, 3}, opts);
     dispatch<int>(means_c, [&](auto tag) {
         using T = decltype(tag);
         const Mat3<T> rc = geer::load_mat3(ptr<T>(rot_c));
-        const Vec3<T> cam = geer::load3(ptr<T>(cam_center));
         const int64_t k = sh_degree >= 0 ? sh.size(1) : 0;
         parallel(n, kGaussGrain, [&](int64_t i) {
             Vec3<T> gm;
@@ -369,14 +365,14 @@ std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats
             geer::store3(mptr<T>(g_mc) + 3 * i, gm);
             if (sh_degree < 0) return;
             Vec3<T> gd;
-            const Vec3<T> dir = geer::load3(ptr<T>(means_w) + 3 * i) - cam;
+            const Vec3<T> dir = geer::load3(ptr<T>(sh_dirs) + 3 * i);
             geer::sh_backward(ptr<T>(sh) + 3 * k * i, int(sh_degree), dir, geer::load3(ptr<T>(g_rgb) + 3 * i),
                               mptr<T>(g_sh) + 3 * k * i, gd);
-            geer::store3(mptr<T>(g_mw) + 3 * i, gd);
+            geer::store3(mptr<T>(g_dirs) + 3 * i, gd);
         });
         return 0;
     });
-    return {g_mc, g_q, g_s, g_sh, g_mw};
+    return {g_mc, g_q, g_s, g_sh, g_dirs};
 }
 
 // ------------------------------------------------------------------------------------ primitives

@@ -51,10 +51,10 @@ template <typename T> struct PreprocessArgs {
     const T* sh;         // [N,K,3] SH coefficients (null when sh_degree < 0: colours are given as RGB)
     int sh_k;            // K
     int sh_degree;       // active degree, -1 for RGB colours
-    const T* means_w;    // [N,3] world means (SH view direction = mean - camera centre)
-    // Per-view constants, read in place on the device (every thread reads the same 12 values, a broadcast):
-    // copying them to the host first would be a device-to-host sync in every forward and backward.
-    const T* cam_center; // [3] world camera centre
+    const T* sh_dirs;    // [N,3] SH view directions: mean - camera centre in world axes, unnormalised, rounded
+                         // from float64 by the caller (transforms.camera_offsets: exact far from the origin)
+    // Per-view constant, read in place on the device (every thread reads the same 9 values, a broadcast):
+    // copying it to the host first would be a device-to-host sync in every forward and backward.
     const T* rot_c;      // [9] world-to-camera rotation (viewmat[:3,:3]), row-major
     int paper_lambda;    // 1: lambda = 3 (paper); 0: opacity-aware lambda^2 = 2 ln(255 sigma)
     // outputs
@@ -138,7 +138,7 @@ template <typename T> struct PreprocessGradArgs {
     T* g_quats;          // [N,4]
     T* g_scales;         // [N,3]
     T* g_sh;             // [N,K,3] (bands above sh_degree written as 0; null when sh_degree < 0)
-    T* g_means_w;        // [N,3] through the SH view direction (0 when sh_degree < 1)
+    T* g_sh_dirs;        // [N,3] w.r.t. the SH view directions (0 when sh_degree < 1)
 };
 template <typename T>
 void launch_preprocess_backward(const PreprocessArgs<T>& a, const PreprocessGradArgs<T>& g, cudaStream_t stream);

@@ -19,7 +19,7 @@ template <typename T> __global__ void __launch_bounds__(kThreads) preprocess_for
     a.inside[i] = g.camera_inside ? 1 : 0;
     if (a.sh_degree >= 0) {
         // Only the bands up to the active degree are read.
-        const Vec3<T> dir = load3(a.means_w + 3 * i) - load3(a.cam_center);
+        const Vec3<T> dir = load3(a.sh_dirs + 3 * i);
         store3(a.rgb + 3 * i, sh_to_color(a.sh + size_t(i) * a.sh_k * 3, a.sh_degree, dir));
     }
 }

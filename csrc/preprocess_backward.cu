@@ -20,9 +20,9 @@ __global__ void __launch_bounds__(kThreads) preprocess_backward_kernel(const Pre
     const int active = num_sh_bases(a.sh_degree);
     for (int k = 3 * active; k < 3 * a.sh_k; ++k) g_sh[k] = T(0);  // bands above the active degree
     Vec3<T> g_dir;
-    const Vec3<T> dir = load3(a.means_w + 3 * i) - load3(a.cam_center);
+    const Vec3<T> dir = load3(a.sh_dirs + 3 * i);
     sh_backward(a.sh + size_t(i) * a.sh_k * 3, a.sh_degree, dir, load3(g.g_rgb + 3 * i), g_sh, g_dir);
-    store3(g.g_means_w + 3 * i, g_dir);
+    store3(g.g_sh_dirs + 3 * i, g_dir);
 }
 
 template <typename T>

@@ -218,24 +218,30 @@ def _ffmpeg_link(exe: Path) -> Path:
 
 
 # --------------------------------------------------------------------------------------------------
-# Known noise of the host stack in every run: torch deprecation FutureWarnings raised by nerfstudio's
-# own code (GradScaler, custom_fwd/bwd, torch.jit.script) and nerfstudio's writer turning loss tensors
-# into floats. Only these exact messages are filtered; those raised while nerfstudio imports its own
-# models happen before any plugin is loaded and cannot be reached from here.
+# Known noise of the host stack in every run: torch deprecation FutureWarnings raised by nerfstudio's own
+# code at import (camera_utils' torch.jit.script, activations' custom_fwd / custom_bwd) and at start-up
+# (the trainer's GradScaler), and nerfstudio turning loss tensors into floats. Each filter is exactly one
+# message, category and warning module; the same warnings from any other module are still shown.
+# Installed when geer_ns is imported (geer_ns/__init__.py), so before nerfstudio wherever geer comes first
+# (tests, `import geer_ns.config`, geer's own scripts). ns-train imports geer when it discovers dataparser
+# plugins, after nerfstudio's camera code: its torch.jit.script warning is printed before any plugin code runs.
 # --------------------------------------------------------------------------------------------------
 
-KNOWN_NOISE = (
-    (FutureWarning, r"`torch\.cuda\.amp\.(GradScaler|custom_fwd|custom_bwd)\(args\.\.\.\)` is deprecated"),
-    (FutureWarning, r"`torch\.jit\.script` is deprecated"),
-    (UserWarning, r"Converting a tensor with requires_grad=True to a scalar may lead to unexpected behavior"),
+KNOWN_NOISE = (  # (category, message, module): regular expressions matched at the start
+    (FutureWarning, r"`torch\.jit\.script` is deprecated", r"torch\.jit\._script\Z"),
+    (FutureWarning, r"`torch\.cuda\.amp\.custom_(fwd|bwd)\(args\.\.\.\)` is deprecated",
+     r"nerfstudio\.field_components\.activations\Z"),
+    (FutureWarning, r"`torch\.cuda\.amp\.GradScaler\(args\.\.\.\)` is deprecated", r"nerfstudio\.engine\.trainer\Z"),
+    (UserWarning, r"Converting a tensor with requires_grad=True to a scalar may lead to unexpected behavior",
+     r"nerfstudio\."),
 )
 
 
 def quiet_known_warnings() -> None:
     import warnings
 
-    for category, message in KNOWN_NOISE:
-        warnings.filterwarnings("ignore", message=message, category=category)
+    for category, message, module in KNOWN_NOISE:
+        warnings.filterwarnings("ignore", message=message, category=category, module=module)
 
 
 def report_dataset_errors_without_traceback() -> None:

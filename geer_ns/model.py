@@ -25,10 +25,12 @@ from gsplat.strategy import DefaultStrategy, MCMCStrategy
 from pytorch_msssim import SSIM
 from torch import Tensor
 from torchmetrics.image import PeakSignalNoiseRatio
+import tyro
 
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.model_components.lib_bilagrid import BilateralGrid
+from nerfstudio.models.base_model import ModelConfig
 from nerfstudio.models.splatfacto import (
     RGB2SH,
     SplatfactoModel,
@@ -62,10 +64,52 @@ View = Union[BeapView, NativeView]
 
 
 @dataclass
-class GeerModelConfig(SplatfactoModelConfig):
+class GeerOwnOptions:
+    """geer's own model options. GeerModelConfig lists this class after SplatfactoModelConfig among its bases:
+    dataclasses collect fields along the reversed MRO, so these come first in `ns-train geer --help`."""
+
+    strategy: Literal["default", "mcmc"] = "default"
+    """Densification: gsplat's DefaultStrategy (3DGS heuristics) or MCMCStrategy."""
+    renderer_backend: Backend = "auto"
+    """geer_ns.render backend: auto (PyTorch twin; CUDA kernels once verified on a GPU), torch, cuda (opt in
+    to the kernels) or cpu (the kernels' math compiled for the CPU: ~3x faster CPU training, JIT-built once)."""
+    lambda_mode: LambdaMode = "opacity"
+    """PBF extent rule of the renderer (geer_ns.render.pbf)."""
+    max_pairs: int = 1 << 22
+    """Renderer memory cap: (ray, Gaussian) pairs evaluated at once."""
+    central_half_angles_deg: Optional[Tuple[float, float]] = None
+    """Half-extents (theta, phi) of the 'central' eval region in degrees; None = the paper's App. G rule
+    (theta in +-w/(2 fx), phi in +-h/(2 fy))."""
+    mcmc_cap_max: int = 1_000_000
+    """strategy=mcmc: most Gaussians (gsplat MCMCStrategy cap_max)."""
+    mcmc_noise_lr: float = 5e5
+    """strategy=mcmc: learning rate of the sampling noise on the means (gsplat MCMCStrategy noise_lr)."""
+    mcmc_min_opacity: float = 0.005
+    """strategy=mcmc: Gaussians below this opacity are relocated (gsplat MCMCStrategy min_opacity)."""
+    mcmc_opacity_reg: float = 0.01
+    """strategy=mcmc: weight of the mean-opacity loss."""
+    mcmc_scale_reg: float = 0.01
+    """strategy=mcmc: weight of the mean-scale loss."""
+
+
+def _model_config_default(name: str):
+    """nerfstudio's default of a ModelConfig field, for re-declaring it hidden (defaults stay nerfstudio's)."""
+    return field(default_factory=lambda: deepcopy(getattr(ModelConfig(), name)))
+
+
+@dataclass
+class GeerModelConfig(SplatfactoModelConfig, GeerOwnOptions):
     _target: Type = field(default_factory=lambda: GeerModel)
+    # Ray-marching options of nerfstudio's ModelConfig that no Gaussian model reads: hidden from --help.
+    enable_collider: tyro.conf.Suppress[bool] = _model_config_default("enable_collider")
+    collider_params: tyro.conf.Suppress[Optional[Dict[str, float]]] = _model_config_default("collider_params")
+    loss_coefficients: tyro.conf.Suppress[Dict[str, float]] = _model_config_default("loss_coefficients")
+    eval_num_rays_per_chunk: tyro.conf.Suppress[int] = _model_config_default("eval_num_rays_per_chunk")
+    prompt: tyro.conf.Suppress[Optional[str]] = _model_config_default("prompt")
     densify_grad_thresh: float = 0.0002
     """means2d gradient threshold (BEAP pixels, after gsplat's width/2, height/2 scaling), as gsplat's default."""
+    # splatfacto options geer does not use: accepted (splatfacto command lines still parse), marked, and said
+    # once at start-up when set (IGNORED_OPTIONS).
     use_absgrad: bool = False
     """IGNORED by geer: its means2d carries the summed gradient; per-pixel absolute gradients (AbsGS) are not
     available."""
@@ -77,23 +121,6 @@ class GeerModelConfig(SplatfactoModelConfig):
     """IGNORED by geer: metrics are computed over the valid pixels, without colour correction."""
     n_split_samples: int = 2
     """IGNORED by geer: gsplat's DefaultStrategy splits a Gaussian into two."""
-    strategy: Literal["default", "mcmc"] = "default"
-    """Densification: gsplat's DefaultStrategy (3DGS heuristics) or MCMCStrategy."""
-    mcmc_cap_max: int = 1_000_000
-    mcmc_noise_lr: float = 5e5
-    mcmc_min_opacity: float = 0.005
-    mcmc_opacity_reg: float = 0.01
-    mcmc_scale_reg: float = 0.01
-    lambda_mode: LambdaMode = "opacity"
-    """PBF extent rule of the renderer (geer_ns.render.pbf)."""
-    max_pairs: int = 1 << 22
-    """Renderer memory cap: (ray, Gaussian) pairs evaluated at once."""
-    renderer_backend: Backend = "auto"
-    """geer_ns.render backend: auto (PyTorch twin; CUDA kernels once verified on a GPU), torch, cuda (opt in
-    to the kernels) or cpu (the kernels' math compiled for the CPU: ~3x faster CPU training, JIT-built once)."""
-    central_half_angles_deg: Optional[Tuple[float, float]] = None
-    """Half-extents (theta, phi) of the 'central' eval region in degrees; None = the paper's App. G rule
-    (theta in +-w/(2 fx), phi in +-h/(2 fy))."""
 
 
 # splatfacto options geer accepts (so that splatfacto command lines still parse) but does not use.

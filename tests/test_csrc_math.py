@@ -40,7 +40,7 @@ from geer_ns.render import (
 from geer_ns.render.associate import _interval_pieces
 from geer_ns.render.pbf import ALPHA_MIN
 from geer_ns.render.sh import sh_to_color
-from geer_ns.render.transforms import quat_to_rotmat, whitening
+from geer_ns.render.transforms import camera_offsets, quat_to_rotmat, whitening
 from geer_ns.render.transmittance import canonical_ray_response, half_line_sq, pair_alpha
 
 F32, F64 = torch.float32, torch.float64
@@ -120,9 +120,9 @@ def test_preprocess_forward_matches_twin(ops, kind, dtype, lambda_mode):
     n = means.shape[0]
     sh = torch.randn(n, 16, 3, generator=torch.Generator().manual_seed(1), dtype=dtype) * 0.5
     pre = preprocess(means, quats, scales, opac, sh, vm, 3, lambda_mode)
-    cam = -vm[:3, :3].T @ vm[:3, 3]
+    dirs, rot_c = camera_offsets(means, vm), vm[:3, :3].contiguous()
     w, o_u, rgb, bounds, alive, inside = ops.preprocess_forward(
-        pre.means_c, quats, scales, opac, sh, means, cam, vm[:3, :3].contiguous(), 3, lambda_mode == "paper"
+        pre.means_c, quats, scales, opac, sh, dirs, rot_c, 3, lambda_mode == "paper"
     )
     tol = 1e-5 if dtype == F32 else 1e-12
     _close(w, pre.whiten, tol, "W")
@@ -145,7 +145,7 @@ def test_pbf_wide_fov_cases_match_twin(ops):
         means = means * 0.5  # crowd the camera: more inside / full-range cases
         pre = preprocess(means, quats, scales, opac, means.new_zeros(means.shape[0], 3), vm)
         _, _, _, bounds, _, _inside = ops.preprocess_forward(
-            pre.means_c, quats, scales, opac, means.new_zeros(0), means, vm[:3, 3], vm[:3, :3].contiguous(), -1, False
+            pre.means_c, quats, scales, opac, means.new_zeros(0), means, vm[:3, :3].contiguous(), -1, False
         )
         ref = torch.stack([pre.pbf.theta_lo, pre.pbf.theta_hi, pre.pbf.phi_lo, pre.pbf.phi_hi], -1)
         _close(bounds, ref, 1e-11, "PBF bounds")
@@ -272,11 +272,11 @@ def test_preprocess_backward_matches_autograd(ops, degree):
         assert bool((rgb == 0).any()), "the clamp at 0 is not exercised"
         loss = loss + (g_rgb * rgb).sum()
     ref = torch.autograd.grad(loss, leaves, allow_unused=True)
-    ours = ops.preprocess_backward(means_c.detach(), quats, scales, sh if degree >= 0 else sh[:, :0], means, cam,
+    ours = ops.preprocess_backward(means_c.detach(), quats, scales, sh if degree >= 0 else sh[:, :0], means - cam,
                                    rot_c.contiguous(), degree, g_w, g_o, g_rgb)
-    for name, a, b in zip(("means_c", "quats", "scales", "sh", "means_w"), ours, ref):
+    for name, a, b in zip(("means_c", "quats", "scales", "sh", "sh_dirs"), ours, ref):
         if b is None:
-            assert degree < 1 or name != "means_w"
+            assert degree < 1 or name != "sh_dirs"
             continue
         err = (a - b).norm(dim=-1).flatten(1).norm(dim=-1) if a.ndim == 3 else (a - b).norm(dim=-1)
         mag = b.norm(dim=-1).flatten(1).norm(dim=-1) if b.ndim == 3 else b.norm(dim=-1)
@@ -443,7 +443,7 @@ def test_early_termination_and_alpha_clamp(ops):
     pre = preprocess(*scene, vm)
     with torch.no_grad():
         w, o_u, _rgb, bounds, alive, _inside = ops.preprocess_forward(
-            pre.means_c, scene[1], scene[2], scene[3], scene[4][:, None], scene[0], vm[:3, 3], vm[:3, :3].contiguous(), -1, False)
+            pre.means_c, scene[1], scene[2], scene[3], scene[4][:, None], scene[0], vm[:3, :3].contiguous(), -1, False)
         ids, ranges, _, _ = cuda_backend.associate_pairs(ops, bounds, alive, pre.depth, grid)
         _, _, _acc, t_final, n_contrib = ops.render_forward(w, o_u, scene[4], scene[3], grid.dirs, grid.valid,
                                                            ids, ranges, grid.height, grid.width, grid.tile_size)

@@ -92,7 +92,8 @@ def test_unknown_camera_model_names_the_file_and_frame(tmp_path):
     meta = json.loads((default_scene_dir() / "transforms_rig.json").read_text())
     meta["frames"][0]["camera_model"] = "KANNALA"
     _write_copy(meta, tmp_path)
-    with pytest.raises(ValueError, match=r"transforms\.json: frame .*frame_00000.*camera_model 'KANNALA'"):
+    # geer's parser checks the file first (geer_ns.data.dataset_checks: DatasetError, a ValueError)
+    with pytest.raises(ValueError, match=r"transforms\.json: frames\[0\] .*frame_00000.*`camera_model` 'KANNALA'"):
         _parse(GeerNerfstudioDataParserConfig(data=tmp_path))
 
 
@@ -117,3 +118,25 @@ def test_poses_map_into_another_runs_frame(tmp_path):
     assert torch.allclose(mapped.cameras.camera_to_worlds, run_test.cameras.camera_to_worlds, atol=1e-5)
     assert torch.allclose(mapped.dataparser_transform, run_test.dataparser_transform)
     assert mapped.dataparser_scale == pytest.approx(run_test.dataparser_scale)
+
+
+def test_split_lists_naming_no_frame_or_missing_name_the_file_and_field(tmp_path):
+    from geer_ns.data.dataset_checks import DatasetError
+
+    room = default_scene_dir()
+    meta = json.loads((room / "transforms_rig.json").read_text())
+    meta.pop("ply_file_path", None)
+    for f in meta["frames"]:
+        f["file_path"], f["mask_path"] = str(room / f["file_path"]), str(room / f["mask_path"])
+    for key in ("train_filenames", "val_filenames", "test_filenames"):
+        if key in meta:
+            meta[key] = [str(room / name) for name in meta[key]]
+    assert "val_filenames" in meta
+    meta["val_filenames"].append(str(room / "images" / "not_a_frame.png"))
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match=r"transforms\.json: `val_filenames` names 1 file\(s\) .*not_a_frame\.png"):
+        _parse(GeerNerfstudioDataParserConfig(data=tmp_path), "val")
+    del meta["val_filenames"]
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match=r"transforms\.json: `val_filenames` is missing"):
+        _parse(GeerNerfstudioDataParserConfig(data=tmp_path), "val")

@@ -45,6 +45,23 @@ def test_float32_far_from_the_origin_matches_float64(offset, backend):
     assert float((got.accumulation.double() - ref.accumulation).abs().max()) < 1e-4
 
 
+@pytest.mark.parametrize("backend", ["torch", "cpu"])  # cpu: the CUDA kernels' SH code compiled for the CPU
+@pytest.mark.parametrize("offset", [0.0, 1e4])
+def test_float32_sh_colours_far_from_the_origin_match_float64(offset, backend):
+    """View-dependent colour: the SH direction (mean - camera centre) must not lose float32's ~1e-3 at 1e4."""
+    (means, quats, scales, opacities, _rgb, viewmat), grid = _far_scene(offset)
+    gen = torch.Generator().manual_seed(7)
+    sh = torch.randn(means.shape[0], 16, 3, generator=gen, dtype=torch.float64) * 0.5
+    sh[:, 0] = 1.0 + 0.3 * sh[:, 0]  # colours well above the clamp at 0, where the direction matters everywhere
+    got = render(means, quats, scales, opacities, sh.float(), viewmat, grid, sh_degree=3, backend=backend)
+    ref = render_brute_force(*(t.double() for t in (means, quats, scales, opacities, sh.float(), viewmat)), grid,
+                             sh_degree=3)
+    assert float(ref.accumulation.max()) > 0.5
+    assert float(ref.rgb.std()) > 0.05  # the colours vary with the view direction, not just the DC term
+    err = (got.rgb.double() - ref.rgb).abs().max()
+    assert float(err) < 1e-4, float(err)
+
+
 def test_view_transform_is_correctly_rounded_in_float32():
     gen = torch.Generator().manual_seed(0)
     means = (1e4 + torch.randn(1000, 3, generator=gen, dtype=torch.float64)).float()

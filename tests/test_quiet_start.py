@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import re
 import warnings
+from dataclasses import fields
 from pathlib import Path
 
 import pytest
@@ -12,26 +13,37 @@ import torch
 
 from geer_ns import host_fixes
 from geer_ns.data import colmap_parser
-from geer_ns.model import IGNORED_OPTIONS, OWN_OPTIONS_HELP
+from geer_ns.data.datamanager import GeerDataManagerConfig, GeerDataOptions
+from geer_ns.model import IGNORED_OPTIONS, OWN_OPTIONS_HELP, GeerModelConfig, GeerOwnOptions
+from nerfstudio.models.base_model import ModelConfig
 
 from test_nerfstudio_model import make_model
 
 FIXTURE = Path(__file__).resolve().parent / "fixtures" / "t265_colmap"
 
 
-@pytest.fixture(scope="module")
-def help_text():
-    """`ns-train geer --help`, in process (ns-train's own tyro union of all methods)."""
-    import contextlib
-    import io
-
+def ns_train(*args: str):
+    """ns-train's own tyro call (the union of all methods), in process."""
     import tyro
     from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
 
+    return tyro.cli(AnnotatedBaseConfigUnion, args=list(args))
+
+
+def method_help(method: str) -> str:
+    """`ns-train METHOD --help` with the box drawing removed."""
+    import contextlib
+    import io
+
     out = io.StringIO()
     with contextlib.redirect_stdout(out), pytest.raises(SystemExit):
-        tyro.cli(AnnotatedBaseConfigUnion, args=["geer", "--help"])
+        ns_train(method, "--help")
     return re.sub(r"[│╭╮╰╯─]", " ", out.getvalue())
+
+
+@pytest.fixture(scope="module")
+def help_text():
+    return method_help("geer")
 
 
 def test_help_lists_geers_own_options_before_any_other(help_text):
@@ -40,6 +52,53 @@ def test_help_lists_geers_own_options_before_any_other(help_text):
     assert words.index("--pipeline.model.renderer-backend") < first_option
     assert words.index("--pipeline.datamanager.supervision") < first_option
     assert " ".join(OWN_OPTIONS_HELP.split())[:60] in words
+
+
+def listed_options(text: str) -> list:
+    """The option flags of a help text, in the order they are listed (each starts a line)."""
+    return re.findall(r"^\s*(--[\w.-]+)", text, re.M)
+
+
+def _flags(prefix: str, names) -> list:
+    return [f"--{prefix}.{name.replace('_', '-')}" for name in names]
+
+
+@pytest.mark.parametrize("method", ["geer", "geer-mcmc"])
+def test_help_lists_geers_own_options_first_in_their_groups(method, help_text):
+    """tyro lists a dataclass's fields base class first; geer's own options come from a base listed last
+    (GeerOwnOptions, GeerDataOptions), so they come before every inherited splatfacto / nerfstudio option."""
+    listed = listed_options(help_text if method == "geer" else method_help(method))
+    for prefix, own, config in (("pipeline.model", GeerOwnOptions, GeerModelConfig),
+                                ("pipeline.datamanager", GeerDataOptions, GeerDataManagerConfig)):
+        own_names = [f.name for f in fields(own)]
+        group = [flag for flag in listed if flag.startswith(f"--{prefix}.") and flag.count(".") == prefix.count(".") + 1]
+        assert group[: len(own_names)] == _flags(prefix, own_names), group
+        inherited = set(_flags(prefix, [f.name for f in fields(config) if f.name not in own_names]))
+        assert len(inherited & set(group)) > 10 and set(group[len(own_names):]) <= inherited
+
+
+def test_help_hides_the_ray_marching_options_no_gaussian_model_reads(help_text):
+    listed = listed_options(help_text)
+    defaults, nerfstudio = GeerModelConfig(), ModelConfig()
+    hidden = ("enable_collider", "collider_params", "loss_coefficients", "eval_num_rays_per_chunk", "prompt")
+    for name, flag in zip(hidden, _flags("pipeline.model", hidden)):
+        assert not [f for f in listed if f == flag or f.startswith(flag + ".")], flag
+        assert getattr(defaults, name) == getattr(nerfstudio, name), name  # defaults stay nerfstudio's
+
+
+def test_every_flag_the_project_uses_still_parses(help_text):
+    """Flags in README, scripts and configs, plus the ignored splatfacto ones (splatfacto command lines)."""
+    root = Path(__file__).resolve().parents[1]
+    texts = [root / "README.md", *root.glob("scripts/*"), *root.glob("configs/*")]
+    used = {flag for path in texts if path.is_file() for flag in re.findall(r"--pipeline\.[a-z.-]*[a-z]", path.read_text())}
+    listed = set(listed_options(help_text))
+    model_or_manager = [f for f in used if ".dataparser." not in f]
+    assert model_or_manager and all(f in listed for f in model_or_manager), sorted(used)
+    config = ns_train("geer", "--pipeline.model.rasterize-mode", "antialiased", "--pipeline.model.use-absgrad", "True",
+                      "--pipeline.model.renderer-backend", "torch", "--pipeline.datamanager.supervision", "native")
+    model = config.pipeline.model
+    assert (model.rasterize_mode, model.use_absgrad, model.renderer_backend) == ("antialiased", True, "torch")
+    assert config.pipeline.datamanager.supervision == "native" and ns_train("geer-mcmc").pipeline.model.strategy == "mcmc"
 
 
 def test_help_marks_the_splatfacto_options_geer_ignores(help_text):
@@ -59,17 +118,53 @@ def test_setting_an_ignored_option_is_said_once(capsys):
 
 
 def test_known_host_warnings_are_filtered_and_others_are_not():
+    """Each known message is filtered only from the host module that raises it."""
     host_fixes.quiet_known_warnings()
+    known = (
+        (FutureWarning, "`torch.jit.script` is deprecated. Please switch to `torch.compile` or `torch.export`.",
+         "torch.jit._script"),
+        (FutureWarning, "`torch.cuda.amp.custom_fwd(args...)` is deprecated. Please use ...",
+         "nerfstudio.field_components.activations"),
+        (FutureWarning, "`torch.cuda.amp.custom_bwd(args...)` is deprecated. Please use ...",
+         "nerfstudio.field_components.activations"),
+        (FutureWarning, "`torch.cuda.amp.GradScaler(args...)` is deprecated. Please use ...", "nerfstudio.engine.trainer"),
+        (UserWarning, "Converting a tensor with requires_grad=True to a scalar may lead to unexpected behavior.",
+         "nerfstudio.utils.writer"),
+    )
     with warnings.catch_warnings(record=True) as caught:
-        for category, message in (
-            (FutureWarning, "`torch.cuda.amp.GradScaler(args...)` is deprecated. Please use ..."),
-            (FutureWarning, "`torch.jit.script` is deprecated. Please switch to `torch.compile`"),
-            (UserWarning, "Converting a tensor with requires_grad=True to a scalar may lead to unexpected behavior."),
-        ):
-            warnings.warn(message, category)
-        torch.cuda.amp.GradScaler(enabled=False)  # nerfstudio's trainer does this on every run
-        warnings.warn("something else is deprecated", FutureWarning)
-    assert [str(w.message) for w in caught] == ["something else is deprecated"]
+        for category, message, module in known:
+            warnings.warn_explicit(message, category, "host.py", 1, module=module)
+            warnings.warn_explicit(message, category, "mine.py", 1, module="geer_ns.somewhere")  # shown
+        warnings.warn_explicit("something else is deprecated", FutureWarning, "host.py", 1,
+                               module="nerfstudio.field_components.activations")  # shown
+    assert [str(w.message) for w in caught] == [m for _, m, _ in known] + ["something else is deprecated"]
+
+
+def test_importing_the_plugin_prints_no_host_future_warning():
+    """The plugin's entry point, then nerfstudio's method registry (ns-train's imports): no FutureWarning; one
+    raised by other code still is."""
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    code = ("import geer_ns.config, nerfstudio.configs.method_configs, warnings; "
+            "warnings.warn('not host noise', FutureWarning)")
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    env.pop("PYTHONWARNINGS", None)
+
+    def future_warnings(code: str) -> list:
+        done = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True,
+                              timeout=300)
+        assert done.returncode == 0, done.stderr
+        return [line for line in done.stderr.splitlines() if "FutureWarning" in line]
+
+    shown = future_warnings(code)
+    assert len(shown) == 1 and "not host noise" in shown[0], shown
+    # As ns-train imports: nerfstudio's camera code, then the plugins. Only the warning raised before any
+    # plugin is imported remains (see host_fixes).
+    shown = future_warnings("import nerfstudio.configs.method_configs")
+    assert len(shown) == 1 and "`torch.jit.script` is deprecated" in shown[0], shown
 
 
 def test_colmap_dataset_is_read_once_for_both_splits(monkeypatch):
@@ -82,3 +177,41 @@ def test_colmap_dataset_is_read_once_for_both_splits(monkeypatch):
     assert len(calls) == 1
     assert len(train.image_filenames) == 5 and len(val.image_filenames) == 1
     assert not set(train.image_filenames) & set(val.image_filenames)
+
+
+def test_nerfstudio_dataset_is_checked_and_parsed_once_for_both_splits(monkeypatch):
+    """ns-train's datamanager asks its dataparser once per split; geer's parser reads, checks and parses
+    transforms.json once and gives each split its part (the same files and cameras nerfstudio gives)."""
+    from nerfstudio.data.dataparsers import nerfstudio_dataparser
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
+
+    from geer_ns.data import dataset_checks, nerfstudio_parser
+    from geer_ns.data import datamanager as dm
+    from geer_ns.data.synthetic_room import default_scene_dir
+
+    calls = {"check": 0, "json": 0, "parse": 0}
+
+    def counted(name, fn):
+        def wrapper(*args, **kwargs):
+            calls[name] += 1
+            return fn(*args, **kwargs)
+        return wrapper
+
+    monkeypatch.setattr(nerfstudio_parser, "check_transforms_json", counted("check", nerfstudio_parser.check_transforms_json))
+    monkeypatch.setattr(dataset_checks, "_load_json", counted("json", dataset_checks._load_json))
+    monkeypatch.setattr(nerfstudio_dataparser, "load_from_json", counted("json", nerfstudio_dataparser.load_from_json))
+    monkeypatch.setattr(dm, "load_from_json", counted("json", dm.load_from_json))
+    monkeypatch.setattr(Nerfstudio, "_generate_dataparser_outputs", counted("parse", Nerfstudio._generate_dataparser_outputs))
+    config = dm.GeerDataManagerConfig(data=default_scene_dir(), cache_images="cpu")
+    manager = config.setup(device="cpu", test_mode="val")
+    assert isinstance(manager.dataparser, nerfstudio_parser.GeerNerfstudio)
+    assert calls == {"check": 1, "json": 1, "parse": 1}
+    assert len(manager.train_dataset) == 21 and len(manager.eval_dataset) > 0
+    # Each split is what nerfstudio's own parser gives for it.
+    monkeypatch.undo()
+    for split, dataset in (("train", manager.train_dataset), ("val", manager.eval_dataset)):
+        ref = NerfstudioDataParserConfig(data=default_scene_dir()).setup().get_dataparser_outputs(split)
+        got = dataset._dataparser_outputs
+        assert got.image_filenames == ref.image_filenames and got.mask_filenames == ref.mask_filenames
+        assert torch.equal(got.cameras.camera_to_worlds, ref.cameras.camera_to_worlds)
+        assert torch.equal(got.cameras.fx, ref.cameras.fx) and torch.equal(got.dataparser_transform, ref.dataparser_transform)

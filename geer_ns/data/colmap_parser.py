@@ -416,6 +416,7 @@ class GeerColmapDataParserConfig(DataParserConfig):
 
 
 class _Parsed(NamedTuple):
+    key: tuple  # (resolved model file, modification time) of cameras and images
     model_dir: Path
     recon: object
     names: List[str]
@@ -519,12 +520,16 @@ class GeerColmapDataParser(DataParser):
     # --- main -----------------------------------------------------------------------------------------
     def _parse_all(self) -> "_Parsed":
         """Everything that does not depend on the split, read once per parser (nerfstudio asks once per
-        split): the model, the cameras and poses of all images, the image and mask files."""
-        if getattr(self, "_parsed", None) is not None:
-            return self._parsed
+        split): the model, the cameras and poses of all images, the image and mask files. Memoised on the
+        parser by the model files' resolved paths and modification times."""
+        model_dir = self._model_dir()
+        files = [_model_file(model_dir, stem) for stem in ("cameras", "images")]
+        key = tuple((p.resolve(), p.stat().st_mtime_ns if p.is_file() else None) for p in files)
+        parsed = getattr(self, "_parsed", None)
+        if parsed is not None and parsed.key == key:
+            return parsed
         cfg = self.config
         data = Path(cfg.data)
-        model_dir = self._model_dir()
         recon = _read_reconstruction(model_dir)
 
         images = [im for im in recon.images.values() if im.has_pose]
@@ -625,12 +630,14 @@ class GeerColmapDataParser(DataParser):
             NS_INTRINSICS_KEY: torch.stack([getattr(cams, k)[:, 0].double() for k in ("fx", "fy", "cx", "cy")], -1),
         }
 
-        self._parsed = _Parsed(model_dir, recon, names, cams, specs, c2w, transform, scale, image_files, mask_files, df)
+        self._parsed = _Parsed(key, model_dir, recon, names, cams, specs, c2w, transform, scale, image_files,
+                               mask_files, df)
         return self._parsed
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         cfg = self.config
-        model_dir, recon, names, cams, specs, c2w, transform, scale, image_files, mask_files, df = self._parse_all()
+        parsed = self._parse_all()
+        _key, model_dir, recon, names, cams, specs, c2w, transform, scale, image_files, mask_files, df = parsed
         # Split (after orienting / scaling with all images, like nerfstudio).
         idx = self._split_indices(names, split)
         idx_t = torch.as_tensor(idx, dtype=torch.long)

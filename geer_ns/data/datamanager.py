@@ -37,7 +37,7 @@ from geer_ns.cameras import CameraModel
 from geer_ns.data.beap import resample_to_beap
 from geer_ns.data.dataset_checks import check_transforms_json
 from geer_ns.data.image_circle import detect_image_circle_from_files
-from geer_ns.data.nerfstudio_parser import CROP_RADIUS_KEY, GeerNerfstudioDataParserConfig
+from geer_ns.data.nerfstudio_parser import CROP_RADIUS_KEY, GeerNerfstudio, GeerNerfstudioDataParserConfig
 from geer_ns.data.supervision import Supervision, SupervisionReport, beap_covered, choose_view
 from geer_ns.data.views import beap_view, camera_kind, camera_model, native_view
 from geer_ns.host_fixes import pin_if_possible, read_ply_points
@@ -47,23 +47,30 @@ VIEW_KEY = "geer_view"
 
 
 @dataclass
-class GeerDataManagerConfig(FullImageDatamanagerConfig):
+class GeerDataOptions:
+    """geer's own datamanager options, listed first in `ns-train geer --help` (see geer_ns.model.GeerOwnOptions:
+    a base after FullImageDatamanagerConfig comes first in the reversed MRO dataclasses collect fields along)."""
+
+    supervision: Supervision = "auto"
+    """Training view per camera: "auto" = BEAP (the paper's setting) unless the camera's valid rays reach 90
+    degrees off-axis, then its native pixel rays (BEAP cannot hold them); "beap" or "native" for every camera."""
+    mask_edge_fill: int = 2
+    """Pixel rings extrapolated beyond the validity mask before BEAP resampling, so that BEAP cells at the
+    edge of the image circle (whose bilinear footprint touches the first invalid pixel) stay supervised."""
+    image_circle_margin: float = 2.0
+    """Pixels kept inside an automatically detected fisheye image circle (its rim pixels are blended)."""
+    load_seed_points: bool = True
+    """Seed Gaussians from the dataset's point cloud (nerfstudio-data `ply_file_path`)."""
+
+
+@dataclass
+class GeerDataManagerConfig(FullImageDatamanagerConfig, GeerDataOptions):
     _target: Type = field(default_factory=lambda: GeerDataManager)
     dataparser: AnnotatedDataParserUnion = field(
         default_factory=lambda: GeerNerfstudioDataParserConfig(load_3D_points=False))
     """Dataset parser: nerfstudio's transforms.json parser plus per-frame camera_model (mixed rigs). Its
     load_3D_points stays off (it needs open3d); the seed points are read by this datamanager instead."""
     cache_images_type: Literal["uint8", "float32"] = "uint8"
-    supervision: Supervision = "auto"
-    """Training view per camera: "auto" = BEAP (the paper's setting) unless the camera's valid rays reach 90
-    degrees off-axis, then its native pixel rays (BEAP cannot hold them); "beap" or "native" for every camera."""
-    image_circle_margin: float = 2.0
-    """Pixels kept inside an automatically detected fisheye image circle (its rim pixels are blended)."""
-    load_seed_points: bool = True
-    """Seed Gaussians from the dataset's point cloud (nerfstudio-data `ply_file_path`)."""
-    mask_edge_fill: int = 2
-    """Pixel rings extrapolated beyond the validity mask before BEAP resampling, so that BEAP cells at the
-    edge of the image circle (whose bilinear footprint touches the first invalid pixel) stay supervised."""
 
 
 def check_data_path(config: GeerDataManagerConfig) -> None:
@@ -78,7 +85,8 @@ def check_data_path(config: GeerDataManagerConfig) -> None:
                 f"geer: --data {path} has no transforms.json (nerfstudio-data format expected; "
                 "for a COLMAP reconstruction choose the colmap dataparser)"
             )
-    if isinstance(config.dataparser, NerfstudioDataParserConfig):
+    if isinstance(config.dataparser, NerfstudioDataParserConfig) and not isinstance(
+            config.dataparser, GeerNerfstudioDataParserConfig):  # geer's parser checks the file in its one parse
         # Broken files: one line naming file, frame and field, before anything is parsed or cached.
         check_transforms_json(path if path.suffix == ".json" else path / "transforms.json",
                               config.dataparser.auto_scale_poses)
@@ -155,12 +163,17 @@ class GeerDataManager(FullImageDatamanager):
             self._add_seed_points()
 
     # ---------------------------------------------------------------------------------- seed points
-    def _ply_path(self) -> Optional[Path]:
+    def _transforms_meta(self) -> Tuple[Path, Optional[dict]]:
+        """transforms.json and its contents (geer's parser's one read; None when there is no such file)."""
         data = Path(self.config.dataparser.data)
         meta_path = data if data.suffix == ".json" else data / "transforms.json"
-        if not meta_path.is_file():
-            return None
-        rel = load_from_json(meta_path).get("ply_file_path")
+        if isinstance(self.dataparser, GeerNerfstudio):
+            return meta_path, self.dataparser.parse_once().meta
+        return meta_path, load_from_json(meta_path) if meta_path.is_file() else None
+
+    def _ply_path(self) -> Optional[Path]:
+        meta_path, meta = self._transforms_meta()
+        rel = None if meta is None else meta.get("ply_file_path")
         return None if rel is None else meta_path.parent / rel
 
     def _ply_transform(self) -> torch.Tensor:
@@ -173,8 +186,7 @@ class GeerDataManager(FullImageDatamanager):
         outputs = self.train_dataparser_outputs
         transform = outputs.dataparser_transform.double()
         data = Path(self.config.dataparser.data)
-        meta_path = data if data.suffix == ".json" else data / "transforms.json"
-        applied = load_from_json(meta_path).get("applied_transform")
+        applied = self._transforms_meta()[1].get("applied_transform")
         if applied is None and (data / "colmap/sparse/0").exists():
             applied = [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]]  # nerfstudio_dataparser's legacy value
         if applied is None:

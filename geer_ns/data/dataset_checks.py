@@ -145,8 +145,9 @@ def _load_json(path: Path) -> Any:
         raise DatasetError(f"geer: {path}:{e.lineno}:{e.colno}: not valid JSON ({e.msg}); fix the syntax there") from None
 
 
-def check_transforms_json(path: Path, auto_scale_poses: bool = True) -> None:
+def check_transforms_json(path: Path, auto_scale_poses: bool = True) -> Dict[str, Any]:
     """Check a nerfstudio-data transforms.json and the files it names; DatasetError on the first problem.
+    Returns the file's contents.
 
     auto_scale_poses: the dataparser's option; it divides by the spread of the camera positions."""
     path = Path(path)
@@ -175,6 +176,7 @@ def check_transforms_json(path: Path, auto_scale_poses: bool = True) -> None:
                 f"{centres[0].tolist()}; nerfstudio's pose scaling divides by their spread (zero): fix the poses, "
                 "or set --pipeline.datamanager.dataparser.auto-scale-poses False for a rotation-only capture"
             )
+    return meta
 
 
 def _check_frame(path: Path, root: Path, meta: dict, i: int, frame: Any, seen: Dict[str, int], problems: _Problems) -> None:

@@ -20,21 +20,31 @@ transforms file of the same scene (geer_ns.eval_views).
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple, Type
+from typing import Dict, List, NamedTuple, Optional, Tuple, Type
 
 import torch
 
 from nerfstudio.cameras import camera_utils
 from nerfstudio.cameras.cameras import CAMERA_MODEL_TO_TYPE, Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
+from nerfstudio.data.dataparsers import nerfstudio_dataparser
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
+from nerfstudio.data.utils.dataparsers_utils import (
+    get_train_eval_split_all,
+    get_train_eval_split_filename,
+    get_train_eval_split_fraction,
+    get_train_eval_split_interval,
+)
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
-from nerfstudio.utils.io import load_from_json
 from nerfstudio.utils.rich_utils import CONSOLE
+
+from geer_ns.data.dataset_checks import DatasetError, check_transforms_json
 
 __all__ = ["CAMERA_MODELS", "CAMERA_MODEL_KEY", "CROP_RADIUS_KEY", "GeerNerfstudio", "GeerNerfstudioDataParserConfig",
            "geer_nerfstudio_dataparser", "map_to_run_frame"]
@@ -58,16 +68,87 @@ class GeerNerfstudioDataParserConfig(NerfstudioDataParserConfig):
     centring and scaling them) to render that run's model at these cameras."""
 
 
+_SPLIT_KEYS = ("train_filenames", "val_filenames", "test_filenames")
+
+
+class _Parse(NamedTuple):
+    key: tuple  # (resolved transforms.json, its modification time)
+    meta: dict  # the checked file
+    everything: DataparserOutputs  # every image; each split is a subset
+
+
 @dataclass
 class GeerNerfstudio(Nerfstudio):
-    """nerfstudio's parser, then per-frame cameras (see the module docstring)."""
+    """nerfstudio's parser, then per-frame cameras (see the module docstring). The file is read, checked and
+    parsed once per run, though nerfstudio asks once per split."""
 
     config: GeerNerfstudioDataParserConfig
+    _parsed: Optional[_Parse] = field(default=None, init=False, repr=False)
+
+    def transforms_path(self) -> Path:
+        return self.config.data if self.config.data.suffix == ".json" else self.config.data / "transforms.json"
 
     def _generate_dataparser_outputs(self, split="train", **kwargs) -> DataparserOutputs:
-        outputs = super()._generate_dataparser_outputs(split, **kwargs)
-        path = self.config.data if self.config.data.suffix == ".json" else self.config.data / "transforms.json"
-        meta = load_from_json(path)
+        parsed = self.parse_once()
+        return _subset(parsed.everything, self._split_indices(parsed.everything.image_filenames, parsed.meta, split))
+
+    def parse_once(self) -> _Parse:
+        """transforms.json checked (geer_ns.data.dataset_checks: one line naming file, frame and field) and
+        parsed, memoised on the parser by the file's resolved path and modification time."""
+        path = self.transforms_path()
+        try:
+            key = (path.resolve(), path.stat().st_mtime_ns)
+        except OSError:
+            key = (path, None)  # check_transforms_json says what is wrong
+        if self._parsed is None or self._parsed.key != key:
+            meta = check_transforms_json(path, self.config.auto_scale_poses)
+            self._parsed = _Parse(key, meta, self._finish(self._nerfstudio_parse_all(meta), meta))
+        return self._parsed
+
+    def _nerfstudio_parse_all(self, meta: dict) -> DataparserOutputs:
+        """nerfstudio's parse of every image. It orients, centres and scales with every pose whatever the split,
+        so each split is a subset of this one parse. nerfstudio reads the file itself: it is handed the checked
+        contents instead, without the split lists, and eval_mode "all" keeps every image."""
+        everything = {k: v for k, v in meta.items() if k not in _SPLIT_KEYS}
+        own, read = self.config, nerfstudio_dataparser.load_from_json
+        self.config = dataclasses.replace(own, eval_mode="all")
+        nerfstudio_dataparser.load_from_json = lambda _path: copy.deepcopy(everything)
+        try:
+            return super()._generate_dataparser_outputs("train")
+        finally:
+            self.config, nerfstudio_dataparser.load_from_json = own, read
+
+    def _split_indices(self, filenames: List[Path], meta: dict, split: str) -> torch.Tensor:
+        """nerfstudio's split of the sorted images (nerfstudio_dataparser): the file's split lists, else
+        eval_mode."""
+        if split not in ("train", "val", "test"):
+            raise ValueError(f"Unknown dataparser split {split}")
+        lists = [k for k in _SPLIT_KEYS if k in meta]
+        if lists:
+            path, key = self.transforms_path(), f"{split}_filenames"
+            if key not in meta:
+                raise DatasetError(f"geer: {path}: `{key}` is missing but the file lists its splits "
+                                   f"({', '.join(lists)}); add `{key}` or remove the lists to split by eval_mode")
+            names = {self._get_fname(Path(x), path.parent) for x in meta[key]}
+            unmatched = sorted(str(n) for n in names.difference(filenames))
+            if unmatched:
+                raise DatasetError(f"geer: {path}: `{key}` names {len(unmatched)} file(s) that no frame has: "
+                                   f"{', '.join(unmatched[:5])}; use the frames' `file_path` values")
+            return torch.tensor([i for i, name in enumerate(filenames) if name in names], dtype=torch.long)
+        cfg = self.config
+        splits = {
+            "fraction": lambda: get_train_eval_split_fraction(filenames, cfg.train_split_fraction),
+            "filename": lambda: get_train_eval_split_filename(filenames),
+            "interval": lambda: get_train_eval_split_interval(filenames, cfg.eval_interval),
+            "all": lambda: get_train_eval_split_all(filenames),
+        }
+        if cfg.eval_mode not in splits:
+            raise ValueError(f"Unknown eval mode {cfg.eval_mode}")
+        i_train, i_eval = splits[cfg.eval_mode]()
+        return torch.as_tensor(i_train if split == "train" else i_eval, dtype=torch.long)
+
+    def _finish(self, outputs: DataparserOutputs, meta: dict) -> DataparserOutputs:
+        path = self.transforms_path()
         frames = self._frames_of(outputs.image_filenames, meta, path)
         outputs.cameras = self._per_frame_cameras(outputs.cameras, meta, frames, path)
         if self.config.dataparser_transforms is not None:
@@ -144,6 +225,20 @@ def _frame_camera(meta: dict, frame: dict, path: Path) -> Tuple[str, List[float]
     else:
         dist = camera_utils.get_distortion_params(**{k: float(source.get(k, 0.0)) for k in _DISTORTION_KEYS})
     return name, intrinsics, dist, get("fisheye_crop_radius")
+
+
+def _subset(outputs: DataparserOutputs, idx: torch.Tensor) -> DataparserOutputs:
+    """The images `idx` of a parse: their files, cameras and depth files; the rest is shared."""
+    keep = idx.tolist()
+
+    def pick(files):
+        return None if files is None else [files[i] for i in keep]
+
+    metadata = dict(outputs.metadata)
+    if metadata.get("depth_filenames") is not None:
+        metadata["depth_filenames"] = pick(metadata["depth_filenames"])
+    return dataclasses.replace(outputs, image_filenames=pick(outputs.image_filenames), cameras=outputs.cameras[idx],
+                               mask_filenames=pick(outputs.mask_filenames), metadata=metadata)
 
 
 def map_to_run_frame(outputs: DataparserOutputs, transforms_json: Path, meta: dict, path: Path) -> None:

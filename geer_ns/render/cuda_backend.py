@@ -40,7 +40,7 @@ from torch import Tensor
 
 from .pbf import PBF, LambdaMode
 from .raygrid import RayGrid
-from .transforms import view_transform
+from .transforms import camera_offsets, view_transform
 
 # The kernels compile and their math is checked on the CPU (tests/test_csrc_math.py), but they have not yet
 # run on a GPU against the twin. backend="auto" must keep choosing the PyTorch twin while this is False; a
@@ -127,14 +127,14 @@ def extension_available() -> bool:
 
 # ----------------------------------------------------------------------------------------- autograd
 class _Preprocess(torch.autograd.Function):
-    """Per Gaussian: (means_c, quats, scales, SH, world means) -> (W, o_u, colour) + PBF (no grad)."""
+    """Per Gaussian: (means_c, quats, scales, SH, SH view directions) -> (W, o_u, colour) + PBF (no grad)."""
 
     @staticmethod
-    def forward(ctx, means_c, quats, scales, sh, means_w, opacities, rot_c, cam_center, sh_degree, paper, ops):
+    def forward(ctx, means_c, quats, scales, sh, sh_dirs, opacities, rot_c, sh_degree, paper, ops):
         whiten, o_u, rgb, bounds, alive, inside = ops.preprocess_forward(
-            means_c, quats, scales, opacities, sh, means_w, cam_center, rot_c, sh_degree, paper
+            means_c, quats, scales, opacities, sh, sh_dirs, rot_c, sh_degree, paper
         )
-        ctx.save_for_backward(means_c, quats, scales, sh, means_w, rot_c, cam_center)
+        ctx.save_for_backward(means_c, quats, scales, sh, sh_dirs, rot_c)
         ctx.sh_degree = sh_degree
         ctx.ops = ops
         ctx.mark_non_differentiable(bounds, alive, inside)
@@ -143,16 +143,16 @@ class _Preprocess(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_whiten, g_o_u, g_rgb, *_):
-        means_c, quats, scales, sh, means_w, rot_c, cam_center = ctx.saved_tensors
+        means_c, quats, scales, sh, sh_dirs, rot_c = ctx.saved_tensors
         n = means_c.shape[0]
         g_whiten = _zeros_if_none(g_whiten, (n, 3, 3), means_c)
         g_o_u = _zeros_if_none(g_o_u, (n, 3), means_c)
         g_rgb = _zeros_if_none(g_rgb, (n, 3), means_c)
-        g_mc, g_q, g_s, g_sh, g_mw = ctx.ops.preprocess_backward(
-            means_c, quats, scales, sh, means_w, cam_center, rot_c, ctx.sh_degree, g_whiten, g_o_u, g_rgb
+        g_mc, g_q, g_s, g_sh, g_dirs = ctx.ops.preprocess_backward(
+            means_c, quats, scales, sh, sh_dirs, rot_c, ctx.sh_degree, g_whiten, g_o_u, g_rgb
         )
         has_sh = ctx.sh_degree >= 0
-        return (g_mc, g_q, g_s, g_sh if has_sh else None, g_mw if has_sh else None) + (None,) * 6
+        return (g_mc, g_q, g_s, g_sh if has_sh else None, g_dirs if has_sh else None) + (None,) * 5
 
 
 class _Rasterize(torch.autograd.Function):
@@ -255,21 +255,20 @@ def render_cuda(
     n = means.shape[0]
     grid = grid.to(device)
     dirs = grid.dirs.to(dtype).contiguous()
-    # The pose goes to the Gaussians' device (no host round trip); the kernels read rot_c and cam_center there.
-    # Stage 1. View transform in PyTorch (transforms.view_transform, float64 inside), the rest per Gaussian
-    # in the kernel.
+    # The pose goes to the Gaussians' device (no host round trip); the kernels read rot_c there.
+    # Stage 1. View transform and SH view directions in PyTorch (transforms.view_transform and camera_offsets,
+    # float64 inside, as the twin), the rest per Gaussian in the kernel.
     viewmat = viewmat.detach().to(device=device)
     means_c = view_transform(means, viewmat)
-    viewmat = viewmat.to(dtype)
-    rot_c, t_c = viewmat[:3, :3], viewmat[:3, 3]
+    degree = _sh_setup(colors, sh_degree)
+    sh_dirs = camera_offsets(means, viewmat) if degree >= 0 else means.new_zeros(n, 3)
+    rot_c = viewmat.to(dtype)[:3, :3]
     if means_c.requires_grad:
         means_c.retain_grad()
-    degree = _sh_setup(colors, sh_degree)
-    cam_center = (-rot_c.T @ t_c).contiguous()
     sh = colors.contiguous() if degree >= 0 else means.new_zeros(n, 0, 3)
     whiten, o_u, rgb_sh, bounds, alive, inside = _Preprocess.apply(
-        means_c.contiguous(), quats.contiguous(), scales.contiguous(), sh, means.contiguous(),
-        opacities.detach().contiguous(), rot_c.contiguous(), cam_center, degree, lambda_mode == "paper", ops,
+        means_c.contiguous(), quats.contiguous(), scales.contiguous(), sh, sh_dirs.contiguous(),
+        opacities.detach().contiguous(), rot_c.contiguous(), degree, lambda_mode == "paper", ops,
     )
     rgb = colors.contiguous() if degree < 0 else rgb_sh
 
