@@ -22,7 +22,7 @@ for backend in torch cpu; do
   .venv/bin/ns-train geer --data "$DATA" --output-dir "$OUT/runs" --max-num-iterations "$STEPS" \
     --vis tensorboard --viewer.quit-on-train-completion True --steps-per-eval-all-images 0 \
     --steps-per-eval-image 1000000 --pipeline.model.num-downscales 1 --pipeline.model.resolution-schedule 1000000 \
-    --pipeline.model.warmup-length 100 --pipeline.model.refine-every 50 --pipeline.model.stop-split-at 601 \
+    --pipeline.model.warmup-length 100 --pipeline.model.refine-every 50 --pipeline.model.stop-split-at 251 \
     --pipeline.model.renderer-backend "$backend" > "$log" 2>&1
   secs=$(grep -oP 'Trainer.train_iteration: \K[0-9.]+' "$log")
   rows="$rows$backend $secs"$'\n'
@@ -41,7 +41,7 @@ cat > benchmarks/cpu_training.md <<MD
   seed points as Gaussians (kNN scales, opacity 0.1: the large, faint Gaussians of a training start),
   render + masked L1 + backward + Adam, median of $ROOM_STEPS steps after a warm-up step.
 - synthetic room rows: ns-train on the embedded synthetic room (21 training views, 4000 seed Gaussians,
-  refinement every 50 steps from 100 to 600 as in scripts/demo.sh), nerfstudio's profiler mean of
+  refinement every 50 steps, splits from 100 to 250 as in scripts/demo.sh), nerfstudio's profiler mean of
   Trainer.train_iteration over $STEPS steps.
 
 | case | backend | s per training step | speed-up over torch | final loss |

@@ -24,16 +24,17 @@ else
   # CPU: rendered by the kernels' code built for the CPU (backend auto; built once here, outside the
   # training time, and loudly replaced by the PyTorch renderer if it cannot be built). BEAP supervision
   # at half resolution (48 x 48 cells) for the first half, full resolution after; refinement every 50
-  # steps from step 100 to 600 at most (each refinement grows the Gaussian count, and with it the time per step).
+  # steps, splitting from step 100 to 250 only: each refinement nearly doubles the Gaussians early on, and
+  # ~25k of them fit 96 x 96 views (more only cost time per step; benchmarks/demo_schedule.md).
   echo "[demo] no GPU: CPU schedule (renderer: csrc/cpu_ops.cpp, built on first use)"
   "$PY" -c 'from geer_ns.render.backend import resolve_backend; import torch; print("[demo] renderer backend:", resolve_backend("auto", torch.device("cpu")))'
-  STEPS=${GEER_DEMO_STEPS:-400}
+  STEPS=${GEER_DEMO_STEPS:-800}
   SCHEDULE=(
     --pipeline.model.num-downscales 1
     --pipeline.model.resolution-schedule $((STEPS / 2))
     --pipeline.model.warmup-length 100
     --pipeline.model.refine-every 50
-    --pipeline.model.stop-split-at 601
+    --pipeline.model.stop-split-at 251
     --steps-per-eval-image 200
     --steps-per-eval-all-images 0
   )

@@ -50,6 +50,20 @@ def _K(meta: dict) -> np.ndarray:
     return np.array([[meta["fl_x"], 0, meta["cx"] - 0.5], [0, meta["fl_y"], meta["cy"] - 0.5], [0, 0, 1.0]])
 
 
+def _subpixel_offsets() -> np.ndarray:
+    """[S*S, 2] (du, dv) offsets from a pixel's top-left corner of the generator's sensor samples: each pixel
+    is the mean over a uniform S x S grid of points in its square (a box filter, S = sr.SUPERSAMPLE)."""
+    s = sr.SUPERSAMPLE
+    g = (np.arange(s) + 0.5) / s
+    du, dv = np.meshgrid(g, g, indexing="xy")
+    return np.stack([du.ravel(), dv.ravel()], -1)
+
+
+def _box_filtered(rgb_of_pixel_points) -> np.ndarray:
+    """Mean over the sub-pixel samples of rgb_of_pixel_points((du, dv)) -> [P, 3]: the sensor's pixel value."""
+    return np.mean([rgb_of_pixel_points(off) for off in _subpixel_offsets()], axis=0)
+
+
 # ----------------------------------------------------------------------------------------------
 # Determinism and layout
 # ----------------------------------------------------------------------------------------------
@@ -178,12 +192,22 @@ def test_kb220_variant_matches_opencv_and_the_kb_polynomial(dataset):
     xy = cv2.fisheye.undistortPoints(np.stack([j, i], -1).reshape(-1, 1, 2).astype(np.float64), _K(kb), k)
     xy = xy.reshape(SIZE, SIZE, 2)
     near = theta_d < np.deg2rad(70)
-    d_near = np.concatenate([xy[near], np.ones((int(near.sum()), 1))], 1)
     frame = kb["frames"][5]
     c2w = _pose_cv(frame)
     img = _read_rgb(dataset / frame["file_path"])
-    rgb, _, _ = sr.render_room_rays(np.broadcast_to(c2w[:3, 3], d_near.shape), d_near @ c2w[:3, :3].T)
+
+    def near_rgb(off: np.ndarray) -> np.ndarray:  # OpenCV pixel coordinates: the pixel's corner is at -0.5
+        pts = np.stack([j[near] - 0.5 + off[0], i[near] - 0.5 + off[1]], -1).reshape(-1, 1, 2).astype(np.float64)
+        xy_s = cv2.fisheye.undistortPoints(pts, _K(kb), k).reshape(-1, 2)
+        d_s = np.concatenate([xy_s, np.ones((xy_s.shape[0], 1))], 1)
+        return sr.render_room_rays(np.broadcast_to(c2w[:3, 3], d_s.shape), d_s @ c2w[:3, :3].T)[0]
+
+    rgb = _box_filtered(near_rgb)
     assert np.percentile(np.abs(img[near] - rgb).max(1), 95) <= 1e-2
+    # Not a point sample: the pixel-centre ray alone misses the box filter on texture edges.
+    d_c = np.concatenate([xy[near], np.ones((int(near.sum()), 1))], 1)
+    centre, _, _ = sr.render_room_rays(np.broadcast_to(c2w[:3, 3], d_c.shape), d_c @ c2w[:3, :3].T)
+    assert np.mean(np.abs(img[near] - centre).max(1) > 0.05) > 2 * np.mean(np.abs(img[near] - rgb).max(1) > 0.05)
     # Beyond 90 degrees: sample angles, project with the KB polynomial, compare the pixel there.
     rng = np.random.default_rng(0)
     th, az = rng.uniform(np.deg2rad(92), np.deg2rad(108), 400), rng.uniform(-np.pi, np.pi, 400)
@@ -228,13 +252,17 @@ def test_fisheye_pixels_match_opencv_unprojection(dataset):
     i, j = np.mgrid[0:SIZE, 0:SIZE]
     theta = np.hypot(j + 0.5 - fe["cx"], i + 0.5 - fe["cy"]) / fe["fl_x"]
     sel = theta < np.deg2rad(80)  # undistortPoints returns tan(theta): stay clear of 90 deg
-    pts = np.stack([j[sel], i[sel]], -1).astype(np.float64).reshape(-1, 1, 2)  # OpenCV pixel coords
-    xy = cv2.fisheye.undistortPoints(pts, K, D).reshape(-1, 2)
-    d_cam = np.concatenate([xy, np.ones((xy.shape[0], 1))], 1)
     for k in (0, 5, 13):
         frame = fe["frames"][k]
         c2w = _pose_cv(frame)
-        rgb, _, _ = sr.render_room_rays(np.broadcast_to(c2w[:3, 3], d_cam.shape), d_cam @ c2w[:3, :3].T)
+
+        def rgb_at(off: np.ndarray) -> np.ndarray:  # OpenCV pixel coordinates: the pixel's corner is at -0.5
+            pts = np.stack([j[sel] - 0.5 + off[0], i[sel] - 0.5 + off[1]], -1).astype(np.float64).reshape(-1, 1, 2)
+            xy = cv2.fisheye.undistortPoints(pts, K, D).reshape(-1, 2)
+            d_cam = np.concatenate([xy, np.ones((xy.shape[0], 1))], 1)
+            return sr.render_room_rays(np.broadcast_to(c2w[:3, 3], d_cam.shape), d_cam @ c2w[:3, :3].T)[0]
+
+        rgb = _box_filtered(rgb_at)
         img = _read_rgb(dataset / frame["file_path"])[sel]
         err = np.abs(img - rgb).max(1)
         assert np.percentile(err, 95) <= 1e-2, k
@@ -280,15 +308,15 @@ def test_fisheye_and_pinhole_images_agree(dataset):
         img_ph = _read_rgb(dataset / ph["frames"][k]["file_path"])
         warped = cv2.remap(img_fe, mx, my, interpolation=cv2.INTER_LINEAR)
         err = np.abs(warped - img_ph).max(-1)
-        # The fisheye is coarser than the pinhole near the centre, so texture edges get blurred
-        # by the interpolation: only robust statistics are meaningful.
-        assert np.median(err) < 0.05 and np.percentile(err, 75) < 0.15, (k, np.median(err))
+        # The fisheye is coarser than the pinhole near the centre (each camera box-filters over its own, larger,
+        # pixel footprint) and the interpolation blurs texture edges: only robust statistics are meaningful.
+        assert np.median(err) < 0.06 and np.percentile(err, 75) < 0.15, (k, np.median(err))
         medians.append(np.median(err))
         # Discriminative: the next view's fisheye image does not match this pinhole view.
         other = _read_rgb(dataset / fe["frames"][(k + 1) % N_VIEWS]["file_path"]).astype(np.float32)
         bad = cv2.remap(other, mx, my, interpolation=cv2.INTER_LINEAR)
         assert np.median(np.abs(bad - img_ph).max(-1)) > 0.1
-    assert np.mean(medians) < 0.015
+    assert np.mean(medians) < 0.025
 
 
 # ----------------------------------------------------------------------------------------------
@@ -320,11 +348,18 @@ def test_nerfstudio_rays_reproduce_images(dataset, name):
     if fisheye:
         assert out.mask_filenames is not None and len(out.mask_filenames) == len(out.image_filenames)
     cams = out.cameras
+    h, w = int(cams.height[0]), int(cams.width[0])
+    rows, cols = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64),
+                                indexing="ij")
     for idx in (0, 4, 11):
-        bundle = cams.generate_rays(camera_indices=idx)
-        o = bundle.origins.reshape(-1, 3).double().numpy()
-        d = bundle.directions.reshape(-1, 3).double().numpy()
-        rgb, _, _ = sr.render_room_rays(o, d)
+        def rgb_at(off: np.ndarray) -> np.ndarray:  # nerfstudio's coords: (row, col), pixel corner at 0
+            coords = torch.stack([rows + off[1], cols + off[0]], -1).float()
+            bundle = cams.generate_rays(camera_indices=idx, coords=coords)
+            o = bundle.origins.reshape(-1, 3).double().numpy()
+            d = bundle.directions.reshape(-1, 3).double().numpy()
+            return sr.render_room_rays(o, d)[0]
+
+        rgb = _box_filtered(rgb_at)
         img = _read_rgb(out.image_filenames[idx]).reshape(-1, 3)
         err = np.abs(img - rgb).max(1)
         if fisheye:

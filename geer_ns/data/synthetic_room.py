@@ -1,8 +1,9 @@
 """Procedural synthetic room rendered by analytic ray casting (numpy only).
 
 The scene is the ground truth for tests and the demo training run. It is independent of any
-Gaussian renderer: every pixel colour is the shaded albedo at the nearest analytic ray hit, so
-any renderer/camera model can be checked against :func:`render_room_rays` for arbitrary rays.
+Gaussian renderer: a ray's colour is the shaded albedo at its nearest analytic hit, and a pixel is
+the mean of SUPERSAMPLE^2 rays spread uniformly over its square (a sensor's box filter), so any
+renderer/camera model can be checked against :func:`render_room_rays` for arbitrary rays.
 
 World frame: metres, +z up. The room is an axis-aligned box seen from the inside; inside it sit
 spheres and boxes (axis-aligned and rotated) with procedural textures mixing high-frequency
@@ -67,7 +68,7 @@ __all__ = [
     "opencv_to_nerfstudio_c2w",
 ]
 
-SCENE_VERSION = 2  # 2: + the 220-degree KB fisheye, the panorama and the mixed rig
+SCENE_VERSION = 3  # 2: + the 220-degree KB fisheye, the panorama and the mixed rig; 3: box-filtered pixels
 MARKER_NAME = ".geer_ns_synthetic_room.json"
 
 # Room interior (an axis-aligned box, 5 x 4 x 2.4 m).
@@ -402,12 +403,21 @@ def opencv_to_nerfstudio_c2w(c2w_cv: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def _render_view(c2w_cv: np.ndarray, dirs_cam: np.ndarray) -> np.ndarray:
-    h, w, _ = dirs_cam.shape
+# Sub-pixel rays per pixel side: a sensor integrates light over each pixel's footprint (a box filter), so
+# each pixel is the mean of SUPERSAMPLE^2 rays on a uniform sub-pixel grid, not one ray through its centre
+# (which would alias the fine checkers into patterns no 3D scene reproduces from another viewpoint).
+SUPERSAMPLE = 4
+
+
+def _render_view(c2w_cv: np.ndarray, dirs_cam: np.ndarray, supersample: int = 1) -> np.ndarray:
+    """Image of rays ``dirs_cam`` [h*s, w*s, 3] (sub-pixel grid of an h x w camera whose intrinsics scale
+    with the image size), box-averaged to [h, w, 3]."""
+    hs, ws, _ = dirs_cam.shape
     d = dirs_cam.reshape(-1, 3) @ c2w_cv[:3, :3].T
     o = np.broadcast_to(c2w_cv[:3, 3], d.shape)
     rgb, _, _ = render_room_rays(o, d)
-    return rgb.reshape(h, w, 3)
+    s = supersample
+    return rgb.reshape(hs // s, s, ws // s, s, 3).mean(axis=(1, 3))
 
 
 def _to_u8(img: np.ndarray) -> np.ndarray:
@@ -476,15 +486,18 @@ def _variant_meta(camera_model: str, intrinsics: Dict[str, float], frames: List[
 def _write_dataset(root: Path, n_views: int, size: int, seed: int) -> None:
     rng = np.random.default_rng(seed + 1_000_003)  # separate stream from the pose jitter
     poses_cv = camera_poses(n_views, seed)
-    fe_dirs, fe_mask = fisheye_pixel_dirs(size)
-    kb_dirs, kb_mask = kb220_pixel_dirs(size)
-    # (image folder, ray directions, circle mask or None): the 180-degree fisheye, the pinhole, the 220-degree
-    # KB fisheye and the panorama, all from the same poses.
+    _, fe_mask = fisheye_pixel_dirs(size)
+    _, kb_mask = kb220_pixel_dirs(size)
+    # Every camera's intrinsics scale with the image size, so the pixel-centre rays of the image SUPERSAMPLE
+    # times larger are the uniform sub-pixel rays of this one. The circle masks stay per pixel centre.
+    s = SUPERSAMPLE
+    # (image folder, sub-pixel ray directions, circle mask or None): the 180-degree fisheye, the pinhole, the
+    # 220-degree KB fisheye and the panorama, all from the same poses.
     cameras = {
-        "fisheye": ("images_fisheye", fe_dirs, fe_mask),
-        "pinhole": ("images_pinhole", pinhole_pixel_dirs(size), None),
-        "fisheye220": ("images_fisheye220", kb_dirs, kb_mask),
-        "equirect": ("images_equirect", equirect_pixel_dirs(size), None),
+        "fisheye": ("images_fisheye", fisheye_pixel_dirs(size * s)[0], fe_mask),
+        "pinhole": ("images_pinhole", pinhole_pixel_dirs(size * s), None),
+        "fisheye220": ("images_fisheye220", kb220_pixel_dirs(size * s)[0], kb_mask),
+        "equirect": ("images_equirect", equirect_pixel_dirs(size * s), None),
     }
     masks = {"fisheye": "masks/fisheye_mask.png", "fisheye220": "masks/fisheye220_mask.png",
              "pinhole": "masks/pinhole_mask.png"}
@@ -497,7 +510,7 @@ def _write_dataset(root: Path, n_views: int, size: int, seed: int) -> None:
     for name, (folder, dirs, mask) in cameras.items():
         (root / folder).mkdir()
         for i, c2w in enumerate(poses_cv):
-            img = _render_view(c2w, dirs)
+            img = _render_view(c2w, dirs, s)
             if mask is not None:
                 img[~mask] = 0.0  # outside the image circle: no light, as on a real fisheye sensor
             path = f"{folder}/frame_{i:05d}.png"
@@ -603,7 +616,7 @@ def generate_room(out_dir: Path, n_views: int = 24, image_size: int = 96, seed: 
 
 
 def default_scene_dir() -> Path:
-    """Cached default dataset (``$GEER_NS_CACHE`` or ``~/.cache/geer_ns``)/synthetic_room_v1,
+    """Cached default dataset (``$GEER_NS_CACHE`` or ``~/.cache/geer_ns``)/synthetic_room_v<SCENE_VERSION>,
     generated on first use (or if a previous cached copy is from another version)."""
     root = Path(os.environ.get("GEER_NS_CACHE", "~/.cache/geer_ns")).expanduser()
     path = root / f"synthetic_room_v{SCENE_VERSION}"
