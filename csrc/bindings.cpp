@@ -165,28 +165,39 @@ std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tenso
 // ------------------------------------------------------------------------------------ stage 3
 template <typename T>
 geer::RenderArgs<T> render_args(const at::Tensor& whiten, const at::Tensor& o_u, const at::Tensor& rgb,
-                                const at::Tensor& opacities, const at::Tensor& dirs,
-                                const at::Tensor& valid, const at::Tensor& ids, const at::Tensor& ranges,
-                                int64_t height, int64_t width, int64_t tile_size) {
+                                const at::Tensor& opacities, const at::Tensor& pbf_pieces, const at::Tensor& dirs,
+                                const at::Tensor& ray_bounds, const at::Tensor& warp_bounds, const at::Tensor& valid,
+                                const at::Tensor& ids, const at::Tensor& ranges, int64_t height, int64_t width,
+                                int64_t tile_size) {
     check_float(whiten, whiten, "whiten");
     check_float(o_u, whiten, "o_u");
     check_float(rgb, whiten, "rgb");
     check_float(opacities, whiten, "opacities");
+    check_float(pbf_pieces, whiten, "pbf_pieces");
     check_float(dirs, whiten, "dirs");
+    check_float(ray_bounds, whiten, "ray_bounds");
+    check_float(warp_bounds, whiten, "warp_bounds");
     check_kind(valid, at::kBool, "valid");
     check_kind(ids, at::kInt, "ids");
     check_kind(ranges, at::kInt, "ranges");
     TORCH_CHECK(tile_size >= 1 && tile_size <= 32, "geer: tile_size must be in 1..32 (one thread per ray)");
     TORCH_CHECK(dirs.size(0) == height * width, "geer: dirs must hold height * width rays");
+    TORCH_CHECK(pbf_pieces.numel() == 8 * whiten.size(0), "geer: pbf_pieces must be [N,8]");
+    TORCH_CHECK(ray_bounds.numel() == 4 * dirs.size(0), "geer: ray_bounds must be [R,4]");
     const int64_t n_tiles = ((height + tile_size - 1) / tile_size) * ((width + tile_size - 1) / tile_size);
     TORCH_CHECK(ranges.size(0) == n_tiles, "geer: ranges must hold one row per tile");
+    TORCH_CHECK(warp_bounds.numel() == 4 * n_tiles * geer::warps_per_tile(int(tile_size)),
+                "geer: warp_bounds must be [tiles * warps per tile, 4]");
     geer::RenderArgs<T> a{};
     a.n = int(whiten.size(0));
     a.whiten = cptr<T>(whiten);
     a.o_u = cptr<T>(o_u);
     a.rgb = cptr<T>(rgb);
     a.opacities = cptr<T>(opacities);
+    a.pbf_pieces = cptr<T>(pbf_pieces);
     a.dirs = cptr<T>(dirs);
+    a.ray_bounds = cptr<T>(ray_bounds);
+    a.warp_bounds = cptr<T>(warp_bounds);
     a.valid = bptr(valid);
     a.ids = cptr<int32_t>(ids);
     a.ranges = cptr<int32_t>(ranges);
@@ -197,7 +208,8 @@ geer::RenderArgs<T> render_args(const at::Tensor& whiten, const at::Tensor& o_u,
 }
 
 std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
-                                       at::Tensor dirs, at::Tensor valid, at::Tensor ids,
+                                       at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
+                                       at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids,
                                        at::Tensor ranges, int64_t height, int64_t width, int64_t tile_size) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(whiten));
     const int64_t r = height * width;
@@ -207,8 +219,8 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     auto n_contrib = at::empty({r}, opts.dtype(at::kInt));
     dispatch(whiten, [&](auto tag) {
         using T = decltype(tag);
-        auto a = render_args<T>(whiten, o_u, rgb, opacities, dirs, valid, ids, ranges, height, width,
-                                tile_size);
+        auto a = render_args<T>(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
+                                ranges, height, width, tile_size);
         geer::RenderOutputs<T> out{mptr<T>(out_rgb), mptr<T>(depth), mptr<T>(acc), mptr<T>(t_final),
                                    mptr<int32_t>(n_contrib)};
         geer::launch_render_forward<T>(a, out, stream());
@@ -217,7 +229,8 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
 }
 
 // -> [N,16] gradient rows (geer_launchers.h RenderGradArgs::grads).
-at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities, at::Tensor dirs,
+at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
+                           at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds, at::Tensor warp_bounds,
                            at::Tensor valid, at::Tensor ids, at::Tensor ranges, int64_t height, int64_t width,
                            int64_t tile_size, at::Tensor t_final, at::Tensor n_contrib, at::Tensor g_rgb,
                            at::Tensor g_depth, at::Tensor g_acc) {
@@ -227,8 +240,8 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
     auto grads = at::zeros({n, geer::kGradValues}, opts);
     dispatch(whiten, [&](auto tag) {
         using T = decltype(tag);
-        auto a = render_args<T>(whiten, o_u, rgb, opacities, dirs, valid, ids, ranges, height, width,
-                                tile_size);
+        auto a = render_args<T>(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
+                                ranges, height, width, tile_size);
         check_float(t_final, whiten, "t_final");
         check_kind(n_contrib, at::kInt, "n_contrib");
         check_float(g_rgb, whiten, "g_rgb");

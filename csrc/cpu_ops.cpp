@@ -16,6 +16,7 @@
 #include <torch/csrc/utils/pybind.h>
 
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <vector>
 
@@ -172,37 +173,52 @@ std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tenso
 // ------------------------------------------------------------------------------------ stage 3
 template <typename T>
 std::vector<GaussFrame<T>> frames(const at::Tensor& whiten, const at::Tensor& o_u, const at::Tensor& rgb,
-                                  const at::Tensor& opac) {
+                                  const at::Tensor& opac, const at::Tensor& pbf_pieces) {
     const int64_t n = whiten.size(0);
+    TORCH_CHECK(pbf_pieces.numel() == 8 * n, "geer: pbf_pieces must be [N,8]");
     std::vector<GaussFrame<T>> f(n);
     parallel(n, kGaussGrain, [&](int64_t i) {
-        geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, ptr<T>(rgb) + 3 * i, ptr<T>(opac)[i], f[i]);
+        geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, ptr<T>(rgb) + 3 * i, ptr<T>(opac)[i],
+                         ptr<T>(pbf_pieces) + 8 * i, f[i]);
     });
     return f;
 }
 
-// One tile's block as render.cu launches it: its threads' ray slots, validity and directions.
+// One tile's block as render.cu launches it: its threads' ray slots, validity, directions and cull bounds.
 template <typename T> struct Block {
     int threads;
     std::vector<geer::RaySlot> slot;
     std::vector<uint8_t> valid;
     std::vector<Vec3<T>> dir;
+    const T* all_ray_bounds;
+    const T* warp_bounds;   // the block's first warp's; then one row of 4 per warp
 
-    Block(int tile, int64_t height, int64_t width, int64_t ts, const uint8_t* ray_valid, const T* dirs)
-        : threads(geer::threads_per_tile(int(ts))), slot(threads), valid(threads), dir(threads) {
+    Block(int tile, int64_t height, int64_t width, int64_t ts, const uint8_t* ray_valid, const T* dirs,
+          const T* ray_bounds, const T* all_warp_bounds)
+        : threads(geer::threads_per_tile(int(ts))), slot(threads), valid(threads), dir(threads),
+          all_ray_bounds(ray_bounds), warp_bounds(geer::warp_bounds_of(all_warp_bounds, int(ts), tile, 0)) {
         for (int tid = 0; tid < threads; ++tid) {
             slot[tid] = geer::ray_slot(int(height), int(width), int(ts), tile, tid);
             valid[tid] = slot[tid].in_image && ray_valid[slot[tid].ray] != 0;
             dir[tid] = valid[tid] ? geer::load3(dirs + 3 * slot[tid].ray) : Vec3<T>{T(0), T(0), T(0)};
         }
     }
+    const T* ray_bounds(int tid) const { return geer::ray_bounds_of(all_ray_bounds, slot[tid].ray); }
+    const T* warp_bounds_of(int tid) const { return warp_bounds + 4 * (tid / geer::kWarp); }
 };
 
 std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb,
-                                          at::Tensor opacities, at::Tensor dirs, at::Tensor valid, at::Tensor ids,
+                                          at::Tensor opacities, at::Tensor pbf_pieces, at::Tensor dirs,
+                                          at::Tensor ray_bounds, at::Tensor warp_bounds, at::Tensor valid,
+                                          at::Tensor ids,
                                           at::Tensor ranges, int64_t height, int64_t width, int64_t tile_size) {
-    whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities);
-    dirs = cpu(dirs); valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges);
+    whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities); pbf_pieces = cpu(pbf_pieces);
+    dirs = cpu(dirs); ray_bounds = cpu(ray_bounds); warp_bounds = cpu(warp_bounds);
+    valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges);
+    TORCH_CHECK(ray_bounds.numel() == 4 * height * width, "geer: ray_bounds must be [R,4]");
+    TORCH_CHECK(warp_bounds.numel() == 4 * geer::tile_count(int(height), int(width), int(tile_size)) *
+                                           geer::warps_per_tile(int(tile_size)),
+                "geer: warp_bounds must be [tiles * warps per tile, 4]");
     const int64_t r = height * width;
     auto opts = whiten.options();
     auto out_rgb = at::zeros({r, 3}, opts), depth = at::zeros({r}, opts), acc = at::zeros({r}, opts);
@@ -211,11 +227,12 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     dispatch<int>(whiten, [&](auto tag) {
         using T = decltype(tag);
         constexpr int kBatch = geer::Batch<T>::value;
-        const auto f = frames<T>(whiten, o_u, rgb, opacities);
+        const auto f = frames<T>(whiten, o_u, rgb, opacities, pbf_pieces);
         const int32_t* id = ids.data_ptr<int32_t>();
         const int32_t* rg = ranges.data_ptr<int32_t>();
         parallel_dynamic(geer::tile_count(int(height), int(width), int(tile_size)), [&](int64_t tile) {
-            const Block<T> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs));
+            const Block<T> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs), ptr<T>(ray_bounds),
+                                    ptr<T>(warp_bounds));
             std::vector<geer::RayForward<T>> st(blk.threads);
             for (int tid = 0; tid < blk.threads; ++tid) geer::ray_forward_init(st[tid], blk.valid[tid] != 0);
             const int start = rg[2 * tile], end = rg[2 * tile + 1];
@@ -226,8 +243,12 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
                 const geer::ListBatch bt = geer::forward_batch(start, end, b, kBatch);
                 for (int k = 0; k < bt.size; ++k) {
                     const int j = geer::batch_entry(bt, k);
-                    for (int tid = 0; tid < blk.threads; ++tid)
-                        geer::ray_forward_step(st[tid], f[id[j]], blk.dir[tid], j - start);
+                    const GaussFrame<T>& frame = f[id[j]];
+                    for (int w0 = 0; w0 < blk.threads; w0 += geer::kWarp) {
+                        if (!geer::ray_meets_pbf(frame, blk.warp_bounds_of(w0))) continue;
+                        for (int tid = w0; tid < w0 + geer::kWarp; ++tid)
+                            geer::ray_forward_step(st[tid], frame, blk.dir[tid], blk.ray_bounds(tid), j - start);
+                    }
                 }
             }
             for (int tid = 0; tid < blk.threads; ++tid) {
@@ -264,13 +285,64 @@ template <typename T> void warp_grad_sum(T (*v)[kGradValues] /* [kWarp] */, T* r
         if (geer::scatter_writer(lane)) row[geer::scatter_value(lane)] += v[lane][0];
 }
 
+// The same sums as warp_grad_sum, bit for bit, without visiting the lanes that add zeros. The butterfly adds,
+// for every value, the partial sums of lanes differing in bit 4 first (mask 16) and bit 0 last (mask 1): a fixed
+// binary tree over the lanes. Float addition is commutative and x + 0 == x exactly, so leaving out the
+// non-contributing leaves (and subtrees without a contributing lane) changes no result; on the CPU that is most
+// lanes of most warps. tests/test_blocks_warp_reduction.py compares the two on random warps.
+template <typename T>
+bool lanes_tree_sum(uint32_t contrib /* bit l: lane l */, int low, int bit, const geer::PairGrad<T>* p,
+                    T* out /* kGradValues */) {
+    // The subtree of lanes l with l mod 2^bit == low.
+    uint32_t lanes = 0;
+    for (int l = low; l < geer::kWarp; l += 1 << bit) lanes |= 1u << l;
+    if (!(contrib & lanes)) return false;
+    if (bit == 5) {
+        geer::lane_grad_values(p[low], true, out);
+        return true;
+    }
+    const bool has_a = lanes_tree_sum(contrib, low, bit + 1, p, out);
+    T b[kGradValues];
+    const bool has_b = lanes_tree_sum(contrib, low | (1 << bit), bit + 1, p, b);
+    if (!has_b) return has_a;
+    for (int i = 0; i < kGradValues; ++i) out[i] = has_a ? out[i] + b[i] : b[i];
+    return true;
+}
+
+template <typename T> void warp_grad_sum_sparse(uint32_t contrib, const geer::PairGrad<T>* p, T* row) {
+    if (!contrib) return;
+    T total[kGradValues];
+    const int first = __builtin_ctz(contrib);
+    const uint32_t rest = contrib & (contrib - 1);
+    if (!(rest & (rest - 1))) {  // one or two lanes: the tree adds at most one pair, a + b == b + a
+        geer::lane_grad_values(p[first], true, total);
+        if (rest) {
+            T b[kGradValues];
+            geer::lane_grad_values(p[__builtin_ctz(rest)], true, b);
+            for (int i = 0; i < kGradValues; ++i) total[i] += b[i];
+        }
+    } else {
+        lanes_tree_sum(contrib, 0, 0, p, total);
+    }
+    for (int i = 0; i < kGradValues; ++i) row[i] += total[i];  // the writer lanes' atomicAdds
+}
+
 // -> [N,16] gradient rows (geer_launchers.h RenderGradArgs::grads).
-at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities, at::Tensor dirs,
-                           at::Tensor valid, at::Tensor ids, at::Tensor ranges, int64_t height, int64_t width,
-                           int64_t tile_size, at::Tensor t_final, at::Tensor n_contrib, at::Tensor g_rgb,
-                           at::Tensor g_depth, at::Tensor g_acc) {
-    whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities);
-    dirs = cpu(dirs); valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges); t_final = cpu(t_final);
+at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
+                           at::Tensor pbf_pieces,
+                           at::Tensor dirs, at::Tensor ray_bounds, at::Tensor warp_bounds, at::Tensor valid,
+                           at::Tensor ids, at::Tensor ranges,
+                           int64_t height, int64_t width, int64_t tile_size, at::Tensor t_final,
+                           at::Tensor n_contrib, at::Tensor g_rgb, at::Tensor g_depth, at::Tensor g_acc,
+                           bool ray_cull) {
+    whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities); pbf_pieces = cpu(pbf_pieces);
+    dirs = cpu(dirs); ray_bounds = cpu(ray_bounds); warp_bounds = cpu(warp_bounds);
+    valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges);
+    t_final = cpu(t_final);
+    TORCH_CHECK(ray_bounds.numel() == 4 * height * width, "geer: ray_bounds must be [R,4]");
+    TORCH_CHECK(warp_bounds.numel() == 4 * geer::tile_count(int(height), int(width), int(tile_size)) *
+                                           geer::warps_per_tile(int(tile_size)),
+                "geer: warp_bounds must be [tiles * warps per tile, 4]");
     n_contrib = cpu(n_contrib); g_rgb = cpu(g_rgb); g_depth = cpu(g_depth); g_acc = cpu(g_acc);
     const int64_t n = whiten.size(0), m = ids.numel();
     auto opts = whiten.options();
@@ -279,13 +351,14 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
         using T = decltype(tag);
         constexpr int kBatch = geer::Batch<T>::value;
         constexpr int kWarp = geer::kWarp;
-        const auto f = frames<T>(whiten, o_u, rgb, opacities);
+        const auto f = frames<T>(whiten, o_u, rgb, opacities, pbf_pieces);
         const int32_t* id = ids.data_ptr<int32_t>();
         const int32_t* rg = ranges.data_ptr<int32_t>();
         const int32_t* nc = n_contrib.data_ptr<int32_t>();
         std::vector<T> pair_grad(size_t(m) * kGradValues, T(0));  // one slot per (tile, Gaussian) pair
         parallel_dynamic(geer::tile_count(int(height), int(width), int(tile_size)), [&](int64_t tile) {
-            const Block<T> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs));
+            const Block<T> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs), ptr<T>(ray_bounds),
+                                    ptr<T>(warp_bounds));
             std::vector<geer::RayBackward<T>> st(blk.threads);
             std::vector<int> my_n(blk.threads);
             int block_n = 0;
@@ -301,8 +374,7 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
                 st[tid].g_acc = ok ? ptr<T>(g_acc)[ray] : T(0);
             }
             const int start = rg[2 * tile];
-            geer::PairGrad<T> p;
-            T v[kWarp][kGradValues];
+            geer::PairGrad<T> p[kWarp];
             for (int b = 0; b < geer::batch_count(block_n, kBatch); ++b) {
                 const geer::ListBatch bt = geer::backward_batch(start, block_n, b, kBatch);
                 for (int k = 0; k < bt.size; ++k) {
@@ -311,14 +383,16 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
                     const GaussFrame<T>& frame = f[id[j]];
                     T* slot = pair_grad.data() + size_t(j) * kGradValues;
                     for (int w0 = 0; w0 < blk.threads; w0 += kWarp) {
-                        bool any = false;  // __any_sync
+                        if (!geer::ray_meets_pbf(frame, blk.warp_bounds_of(w0))) continue;
+                        uint32_t contrib = 0;  // __ballot_sync
                         for (int lane = 0; lane < kWarp; ++lane) {
                             const int tid = w0 + lane;
-                            const bool contrib = pos < my_n[tid] && geer::ray_backward_step(st[tid], frame, blk.dir[tid], p);
-                            geer::lane_grad_values(p, contrib, v[lane]);
-                            any = any || contrib;
+                            if (pos < my_n[tid] &&
+                                geer::ray_backward_step(st[tid], frame, blk.dir[tid],
+                                                        ray_cull ? blk.ray_bounds(tid) : nullptr, p[lane]))
+                                contrib |= 1u << lane;
                         }
-                        if (any) warp_grad_sum(v, slot);
+                        warp_grad_sum_sparse(contrib, p, slot);
                     }
                 }
             }
@@ -339,6 +413,17 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
         return 0;
     });
     return grads;
+}
+
+// The backward as the GPU runs it, without the per-ray cull (geer_math.h ray_backward_step): the tests check
+// that it gives the same bits as the CPU path.
+at::Tensor render_backward_gpu_path(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
+                                    at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
+                                    at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids, at::Tensor ranges,
+                                    int64_t height, int64_t width, int64_t tile_size, at::Tensor t_final,
+                                    at::Tensor n_contrib, at::Tensor g_rgb, at::Tensor g_depth, at::Tensor g_acc) {
+    return render_backward(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges,
+                           height, width, tile_size, t_final, n_contrib, g_rgb, g_depth, g_acc, false);
 }
 
 // ------------------------------------------------------------------------------------ stage 4
@@ -377,6 +462,12 @@ std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats
 
 // ------------------------------------------------------------------------------------ primitives
 // Per-pair response of K pairs (Gaussian k with ray k): D^2, t*, q (half-line), alpha (0 where not kept).
+// A PBF that every ray meets, for the single-pair probes (they test the pair math, not the cull).
+template <typename T> std::array<T, 8> full_range_pieces() {
+    const T inf = geer::Limits<T>::inf();
+    return {-inf, inf, inf, -inf, -inf, inf, inf, -inf};
+}
+
 std::vector<at::Tensor> pair_eval(at::Tensor whiten, at::Tensor o_u, at::Tensor opac, at::Tensor dirs) {
     whiten = cpu(whiten); o_u = cpu(o_u); opac = cpu(opac); dirs = cpu(dirs);
     const int64_t k = whiten.size(0);
@@ -387,7 +478,7 @@ std::vector<at::Tensor> pair_eval(at::Tensor whiten, at::Tensor o_u, at::Tensor 
         const T zero[3] = {T(0), T(0), T(0)};
         for (int64_t i = 0; i < k; ++i) {
             GaussFrame<T> f;
-            geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, zero, ptr<T>(opac)[i], f);
+            geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, zero, ptr<T>(opac)[i], full_range_pieces<T>().data(), f);
             auto e = geer::eval_pair(f, geer::load3(ptr<T>(dirs) + 3 * i));
             mptr<T>(d2)[i] = e.dist_sq;
             mptr<T>(ts)[i] = e.t_star;
@@ -410,7 +501,7 @@ std::vector<at::Tensor> pair_backward(at::Tensor whiten, at::Tensor o_u, at::Ten
         const T zero[3] = {T(0), T(0), T(0)};
         for (int64_t i = 0; i < k; ++i) {
             GaussFrame<T> f;
-            geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, zero, T(1), f);
+            geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, zero, T(1), full_range_pieces<T>().data(), f);
             const Vec3<T> d = geer::load3(ptr<T>(dirs) + 3 * i);
             auto e = geer::eval_pair(f, d);
             Vec3<T> g;
@@ -425,7 +516,7 @@ std::vector<at::Tensor> pair_backward(at::Tensor whiten, at::Tensor o_u, at::Ten
 
 // One warp through the backward's reduction: values [32,16] (lane, gradient-row order: W, o_u, colour,
 // opacity, as each lane's PairGrad), contrib [32] -> (the row its writer lanes add to zeros [16], every
-// lane's total afterwards [32]).
+// lane's total afterwards [32], the row of warp_grad_sum_sparse, which the CPU backward runs).
 std::vector<at::Tensor> warp_grad_sum_op(at::Tensor values, at::Tensor contrib) {
     values = cpu(values); contrib = cpu(contrib);
     constexpr int kWarp = geer::kWarp;
@@ -434,25 +525,29 @@ std::vector<at::Tensor> warp_grad_sum_op(at::Tensor values, at::Tensor contrib) 
     TORCH_CHECK(contrib.scalar_type() == at::kBool && contrib.numel() == kWarp,
                 "geer cpu_ops: warp_grad_sum: contrib must be 32 bools");
     auto row = at::zeros({kGradValues}, values.options()), totals = at::empty({kWarp}, values.options());
+    auto row_sparse = at::zeros({kGradValues}, values.options());
     dispatch<int>(values, [&](auto tag) {
         using T = decltype(tag);
         T v[kWarp][kGradValues];
+        geer::PairGrad<T> p[kWarp];
+        uint32_t mask = 0;
         for (int lane = 0; lane < kWarp; ++lane) {
             const T* in = ptr<T>(values) + kGradValues * lane;
-            geer::PairGrad<T> p;
-            for (int i = 0; i < 9; ++i) p.w[i] = in[i];
+            for (int i = 0; i < 9; ++i) p[lane].w[i] = in[i];
             for (int i = 0; i < 3; ++i) {
-                p.o[i] = in[9 + i];
-                p.rgb[i] = in[12 + i];
+                p[lane].o[i] = in[9 + i];
+                p[lane].rgb[i] = in[12 + i];
             }
-            p.opacity = in[15];
-            geer::lane_grad_values(p, bptr(contrib)[lane] != 0, v[lane]);
+            p[lane].opacity = in[15];
+            geer::lane_grad_values(p[lane], bptr(contrib)[lane] != 0, v[lane]);
+            if (bptr(contrib)[lane]) mask |= 1u << lane;
         }
         warp_grad_sum(v, mptr<T>(row));
         for (int lane = 0; lane < kWarp; ++lane) mptr<T>(totals)[lane] = v[lane][0];
+        warp_grad_sum_sparse(mask, p, mptr<T>(row_sparse));
         return 0;
     });
-    return {row, totals};
+    return {row, totals, row_sparse};
 }
 
 at::Tensor mirror_tangent(at::Tensor theta) {
@@ -489,7 +584,15 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("preprocess_forward", &preprocess_forward);
     m.def("associate", &associate);
     m.def("render_forward", &render_forward);
-    m.def("render_backward", &render_backward);
+    m.def("render_backward", [](at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
+                                 at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds, at::Tensor warp_bounds,
+                                 at::Tensor valid, at::Tensor ids, at::Tensor ranges, int64_t height, int64_t width,
+                                 int64_t tile_size, at::Tensor t_final, at::Tensor n_contrib, at::Tensor g_rgb,
+                                 at::Tensor g_depth, at::Tensor g_acc) {
+        return render_backward(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
+                               ranges, height, width, tile_size, t_final, n_contrib, g_rgb, g_depth, g_acc, true);
+    });
+    m.def("render_backward_gpu_path", &render_backward_gpu_path);
     m.def("preprocess_backward", &preprocess_backward);
     m.def("pair_eval", &pair_eval);
     m.def("pair_backward", &pair_backward);

@@ -18,32 +18,6 @@
 
 namespace geer {
 
-// associate._interval_pieces: unwrapped [lo, hi] split at the +-pi seam into two mirror-tangent pieces.
-// The second piece is empty (lo = +inf, hi = -inf) when there is no wrap.
-template <typename T> struct MirrorPieces {
-    T a_lo, a_hi, b_lo, b_hi;
-};
-
-template <typename T> GEER_HD MirrorPieces<T> interval_pieces(T lo, T hi) {
-    const T pi = T(kPi), two_pi = T(2 * kPi);
-    const T a_lo = g_min(g_max(lo, -pi), pi), a_hi = g_min(g_max(hi, -pi), pi);
-    const bool wraps_up = hi > pi, wraps_down = lo < -pi;
-    const T b_lo = wraps_up ? -pi : lo + two_pi;
-    const T b_hi = wraps_up ? hi - two_pi : pi;
-    const bool has_b = wraps_up || wraps_down;
-    MirrorPieces<T> p;
-    p.a_lo = mirror_tangent(a_lo);
-    p.a_hi = mirror_tangent(a_hi);
-    p.b_lo = has_b ? mirror_tangent(b_lo) : Limits<T>::inf();
-    p.b_hi = has_b ? mirror_tangent(b_hi) : -Limits<T>::inf();
-    return p;
-}
-
-// associate._overlaps for one tile interval [t_lo, t_hi] (mirror domain).
-template <typename T> GEER_HD bool pieces_overlap(const MirrorPieces<T>& p, T t_lo, T t_hi) {
-    return (p.a_lo <= t_hi && t_lo <= p.a_hi) || (p.b_lo <= t_hi && t_lo <= p.b_hi);
-}
-
 // ---------------------------------------------------------------------------------- tile pyramid
 constexpr int kMaxPyramidLevels = 17;  // up to 2^16 tiles along an axis
 
@@ -80,18 +54,9 @@ template <typename T> struct PyramidNodes {
     const uint8_t* active;
 };
 
-template <typename T> struct PbfPieces {
-    MirrorPieces<T> theta, phi;
-};
-
-template <typename T> GEER_HD PbfPieces<T> pbf_pieces(const T* pbf_bounds) {
-    return PbfPieces<T>{interval_pieces(pbf_bounds[0], pbf_bounds[1]), interval_pieces(pbf_bounds[2], pbf_bounds[3])};
-}
-
 template <typename T> GEER_HD bool node_hit(const PbfPieces<T>& p, const PyramidNodes<T>& nodes, int node) {
     if (!nodes.active[node]) return false;
-    const T* b = nodes.bounds + 4 * node;
-    return pieces_overlap(p.theta, b[0], b[1]) && pieces_overlap(p.phi, b[2], b[3]);
+    return pbf_overlaps(p, nodes.bounds + 4 * node);
 }
 
 // Inclusive tile-coordinate box of a Gaussian's hits, packed in 64 bits (16 bits per coordinate).

@@ -37,6 +37,17 @@ GEER_HD RaySlot ray_slot(int height, int width, int tile_size, int tile, int tid
     return s;
 }
 
+GEER_HD int warps_per_tile(int tile_size) { return threads_per_tile(tile_size) / kWarp; }
+// The cull bounds of a warp (RayGrid.warp_cull_bounds [tiles * warps_per_tile, 4]): the union of its rays'.
+// A list entry whose PBF they miss is skipped by the whole warp at once (warp-uniform, no divergence).
+template <typename T> GEER_HD const T* warp_bounds_of(const T* warp_bounds, int tile_size, int tile, int tid) {
+    return warp_bounds + 4 * (tile * warps_per_tile(tile_size) + tid / kWarp);
+}
+
+// The cull bounds of a ray (RayGrid.ray_cull_bounds [R,4]; empty for an invalid ray, which never reaches
+// the cull: done in the forward, no blended prefix in the backward). Read where used, not held in registers.
+template <typename T> GEER_HD const T* ray_bounds_of(const T* ray_bounds, int ray) { return ray_bounds + 4 * ray; }
+
 // A batch of a tile's list: item k (0 <= k < size) is list entry first + step * k, at list position
 // (within the tile) first + step * k - start.
 struct ListBatch {

@@ -100,7 +100,10 @@ template <typename T> struct RenderArgs {
     const T* o_u;            // [N,3]
     const T* rgb;            // [N,3]
     const T* opacities;      // [N]
+    const T* pbf_pieces;     // [N,8] PBF pieces, mirror domain (cuda_backend.pbf_cull_pieces)
     const T* dirs;           // [R,3] unit ray directions (camera frame)
+    const T* ray_bounds;     // [R,4] each ray's cull bounds, mirror domain (RayGrid.ray_cull_bounds)
+    const T* warp_bounds;    // [T * warps per tile, 4] each warp's (RayGrid.warp_cull_bounds)
     const uint8_t* valid;    // [R]
     const int32_t* ids;      // [M] Gaussian ids sorted by (tile, rank)
     const int32_t* ranges;   // [T,2]

@@ -258,6 +258,46 @@ template <typename T> GEER_HD T mirror_tangent(T theta) {
     return g_tan(T(0.5) * theta);
 }
 
+// associate._interval_pieces: unwrapped [lo, hi] split at the +-pi seam into two mirror-tangent pieces.
+// The second piece is empty (lo = +inf, hi = -inf) when there is no wrap.
+template <typename T> struct MirrorPieces {
+    T a_lo, a_hi, b_lo, b_hi;
+};
+
+template <typename T> GEER_HD MirrorPieces<T> interval_pieces(T lo, T hi) {
+    const T pi = T(kPi), two_pi = T(2 * kPi);
+    const T a_lo = g_min(g_max(lo, -pi), pi), a_hi = g_min(g_max(hi, -pi), pi);
+    const bool wraps_up = hi > pi, wraps_down = lo < -pi;
+    const T b_lo = wraps_up ? -pi : lo + two_pi;
+    const T b_hi = wraps_up ? hi - two_pi : pi;
+    const bool has_b = wraps_up || wraps_down;
+    MirrorPieces<T> p;
+    p.a_lo = mirror_tangent(a_lo);
+    p.a_hi = mirror_tangent(a_hi);
+    p.b_lo = has_b ? mirror_tangent(b_lo) : Limits<T>::inf();
+    p.b_hi = has_b ? mirror_tangent(b_hi) : -Limits<T>::inf();
+    return p;
+}
+
+// associate._overlaps for one tile interval [t_lo, t_hi] (mirror domain).
+template <typename T> GEER_HD bool pieces_overlap(const MirrorPieces<T>& p, T t_lo, T t_hi) {
+    return (p.a_lo <= t_hi && t_lo <= p.a_hi) || (p.b_lo <= t_hi && t_lo <= p.b_hi);
+}
+
+// A PBF as the association tests it: theta and phi pieces (mirror domain).
+template <typename T> struct PbfPieces {
+    MirrorPieces<T> theta, phi;
+};
+
+template <typename T> GEER_HD PbfPieces<T> pbf_pieces(const T* pbf_bounds) {
+    return PbfPieces<T>{interval_pieces(pbf_bounds[0], pbf_bounds[1]), interval_pieces(pbf_bounds[2], pbf_bounds[3])};
+}
+
+// Whether a ray (or a tile) with mirror-domain bounds b = (theta lo, hi, phi lo, hi) meets the PBF.
+template <typename T> GEER_HD bool pbf_overlaps(const PbfPieces<T>& p, const T* b) {
+    return pieces_overlap(p.theta, b[0], b[1]) && pieces_overlap(p.phi, b[2], b[3]);
+}
+
 // Everything the preprocess stage produces for one Gaussian.
 template <typename T> struct GaussianForward {
     Mat3<T> w;        // whitening matrix
@@ -386,12 +426,17 @@ template <typename T> struct alignas(16) GaussFrame {
     T q_max;      // 2 ln(255 sigma): alpha >= 1/255 exactly when q <= q_max (-inf for sigma = 0)
     T rgb[3];
     T opacity;
+    PbfPieces<T> pbf;  // the per-ray cull (ray_meets_pbf)
     T pad[2];
 };
-static_assert(sizeof(GaussFrame<float>) == 128 && alignof(GaussFrame<float>) == 16, "GaussFrame<float>: 8 x 16 B");
-static_assert(sizeof(GaussFrame<double>) == 256, "GaussFrame<double>: 16 x 16 B");
+static_assert(sizeof(GaussFrame<float>) == 160 && alignof(GaussFrame<float>) == 16, "GaussFrame<float>: 10 x 16 B");
+static_assert(sizeof(GaussFrame<double>) == 320, "GaussFrame<double>: 20 x 16 B");
 
-template <typename T> GEER_HD void make_frame(const T* w, const T* o_u, const T* rgb, T opacity, GaussFrame<T>& f) {
+// pieces: the Gaussian's PBF as the association tests it, [8] = theta (a_lo, a_hi, b_lo, b_hi), phi (same)
+// in the mirror domain (cuda_backend.pbf_cull_pieces; made once per Gaussian and view, not per tile: the
+// tangents would cost the render kernels registers).
+template <typename T>
+GEER_HD void make_frame(const T* w, const T* o_u, const T* rgb, T opacity, const T* pieces, GaussFrame<T>& f) {
     const Vec3<T> o = load3(o_u);
     for (int i = 0; i < 9; ++i) f.w[i] = w[i];
     for (int j = 0; j < 3; ++j) {
@@ -404,7 +449,17 @@ template <typename T> GEER_HD void make_frame(const T* w, const T* o_u, const T*
     f.o_sq = x_dot(o, o);
     f.q_max = T(2.0) * g_log(T(255.0) * opacity);  // transmittance.alpha_level_sq
     f.opacity = opacity;
+    f.pbf.theta = MirrorPieces<T>{pieces[0], pieces[1], pieces[2], pieces[3]};
+    f.pbf.phi = MirrorPieces<T>{pieces[4], pieces[5], pieces[6], pieces[7]};
     f.pad[0] = f.pad[1] = T(0);
+}
+
+// Per-ray cull before any per-pair arithmetic: a ray whose own mirror-domain bounds (RayGrid.ray_cull_bounds:
+// its BEAP angles, widened by a slack far above the PBF's rounding) miss the Gaussian's PBF has alpha < 1/255,
+// so eval_pair would not keep it either (the association's tile test, one ray at a time). On a tile's list
+// most rays lie outside most PBFs (~3/4 of the pairs on the dev room's 256^2 BEAP view).
+template <typename T> GEER_HD bool ray_meets_pbf(const GaussFrame<T>& g, const T* ray_bounds) {
+    return pbf_overlaps(g.pbf, ray_bounds);
 }
 
 template <typename T> struct PairEval {
@@ -466,8 +521,9 @@ template <typename T> GEER_HD void ray_forward_init(RayForward<T>& s, bool valid
 
 // Blend the Gaussian at list position `pos` (composite.composite: stop before T < T_MIN).
 template <typename T>
-GEER_HD void ray_forward_step(RayForward<T>& s, const GaussFrame<T>& g, const Vec3<T>& d, int pos) {
-    if (s.done) return;
+GEER_HD void ray_forward_step(RayForward<T>& s, const GaussFrame<T>& g, const Vec3<T>& d, const T* ray_bounds,
+                              int pos) {
+    if (s.done || !ray_meets_pbf(g, ray_bounds)) return;
     const PairEval<T> e = eval_pair(g, d);
     if (!e.keep) return;
     const T t_after = s.trans * (T(1) - e.alpha);
@@ -549,13 +605,18 @@ template <typename T> GEER_HD void pair_grad_zero(PairGrad<T>& p) {
 }
 
 // One Gaussian of the ray's blended prefix, back to front. Returns false (p untouched) when the pair
-// was skipped (q > q_max), which is what the forward skipped too. Subgradients at the clamps:
+// was skipped (q > q_max), which is what the forward skipped too. ray_bounds: the per-ray cull first (the CPU
+// build), or nullptr (the GPU, whose 1024-thread float32 build has no registers to spare for it; it skips whole
+// warps, which is where a GPU gains); the cull only skips pairs eval_pair rejects, so both give the same bits
+// (tests/test_cpu_backend.py runs the CPU build both ways). Subgradients at the clamps:
 //   alpha = min(raw, 0.99)  the derivative of raw where raw <= 0.99, none where raw > 0.99;
 //   skip (q <= q_max) and stop (T_after >= 1e-4)  piecewise constant: a blended pair gets its ordinary
 //                           derivative (also exactly on a threshold, where it is blended), others none;
 //   max(t*, 0)              half_line_backward.
 template <typename T>
-GEER_HD bool ray_backward_step(RayBackward<T>& s, const GaussFrame<T>& g, const Vec3<T>& d, PairGrad<T>& p) {
+GEER_HD bool ray_backward_step(RayBackward<T>& s, const GaussFrame<T>& g, const Vec3<T>& d, const T* ray_bounds,
+                               PairGrad<T>& p) {
+    if (ray_bounds != nullptr && !ray_meets_pbf(g, ray_bounds)) return false;
     const PairEval<T> e = eval_pair(g, d);
     if (!e.keep) return false;
     const T one_minus = T(1) - e.alpha;

@@ -17,7 +17,7 @@
 namespace geer {
 
 template <typename T> __device__ __forceinline__ void load_frame(const RenderArgs<T>& a, int g, GaussFrame<T>& f) {
-    make_frame(a.whiten + 9 * g, a.o_u + 3 * g, a.rgb + 3 * g, a.opacities[g], f);
+    make_frame(a.whiten + 9 * g, a.o_u + 3 * g, a.rgb + 3 * g, a.opacities[g], a.pbf_pieces + 8 * g, f);
 }
 
 // kMaxThreads: the largest block this build is launched with (kSmallTileThreads or kLargeTileThreads).
@@ -25,11 +25,16 @@ template <typename T, int kMaxThreads>
 __global__ void __launch_bounds__(kMaxThreads) render_forward_kernel(const RenderArgs<T> a, const RenderOutputs<T> out) {
     constexpr int kBatch = Batch<T>::value;
     __shared__ GaussFrame<T> frames[kBatch];
+    __shared__ T warp_b[4 * kMaxThreads / kWarp];
     const int tile = blockIdx.x;
     const int tid = threadIdx.x;
     const RaySlot slot = ray_slot(a.height, a.width, a.tile_size, tile, tid);
     const bool valid = slot.in_image && a.valid[slot.ray] != 0;
     const Vec3<T> d = valid ? load3(a.dirs + 3 * slot.ray) : Vec3<T>{T(0), T(0), T(0)};
+    const T* rb = ray_bounds_of(a.ray_bounds, slot.ray);
+    const int lane = tid % kWarp;
+    if (lane < 4) warp_b[4 * (tid / kWarp) + lane] = warp_bounds_of(a.warp_bounds, a.tile_size, tile, tid)[lane];
+    const T* wb = warp_b + 4 * (tid / kWarp);  // read after the loop's first barrier
     RayForward<T> st;
     ray_forward_init(st, valid);
 
@@ -41,7 +46,8 @@ __global__ void __launch_bounds__(kMaxThreads) render_forward_kernel(const Rende
         const ListBatch bt = forward_batch(start, end, b, kBatch);
         for (int k = tid; k < bt.size; k += blockDim.x) load_frame(a, a.ids[batch_entry(bt, k)], frames[k]);
         __syncthreads();
-        for (int k = 0; k < bt.size && !st.done; ++k) ray_forward_step(st, frames[k], d, batch_entry(bt, k) - start);
+        for (int k = 0; k < bt.size && !st.done; ++k)
+            if (ray_meets_pbf(frames[k], wb)) ray_forward_step(st, frames[k], d, rb, batch_entry(bt, k) - start);
     }
     if (!slot.in_image) return;
     const int r = slot.ray;
@@ -67,6 +73,7 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
     constexpr int kBatch = Batch<T>::value;
     __shared__ GaussFrame<T> frames[kBatch];
     __shared__ int frame_ids[kBatch];
+    __shared__ T warp_b[4 * kMaxThreads / kWarp];
     __shared__ int block_n;
     const int tile = blockIdx.x;
     const int tid = threadIdx.x;
@@ -75,6 +82,8 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
     const bool valid = slot.in_image && a.valid[slot.ray] != 0;
     const int r = slot.ray;
     const Vec3<T> d = valid ? load3(a.dirs + 3 * r) : Vec3<T>{T(0), T(0), T(0)};
+    if (lane < 4) warp_b[4 * (tid / kWarp) + lane] = warp_bounds_of(a.warp_bounds, a.tile_size, tile, tid)[lane];
+    const T* wb = warp_b + 4 * (tid / kWarp);  // read after the barriers below
     const int my_n = valid ? g.n_contrib[r] : 0;
     RayBackward<T> st;
     st.trans = valid ? g.t_final[r] : T(1);
@@ -101,9 +110,10 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
         }
         __syncthreads();
         for (int k = 0; k < bt.size; ++k) {
+            if (!ray_meets_pbf(frames[k], wb)) continue;  // the same for every lane of the warp
             const int pos = batch_entry(bt, k) - start;  // list position within the tile
             PairGrad<T> p;
-            const bool contrib = pos < my_n && ray_backward_step(st, frames[k], d, p);
+            const bool contrib = pos < my_n && ray_backward_step(st, frames[k], d, static_cast<const T*>(nullptr), p);
             if (!__any_sync(0xffffffffu, contrib)) continue;
             T v[kGradValues];
             lane_grad_values(p, contrib, v);

@@ -135,3 +135,61 @@ def test_complete_with_the_camera_inside_gaussians():
     full = (pre.pbf.theta_lo == -math.pi) & (pre.pbf.theta_hi == math.pi)
     full &= (pre.pbf.phi_lo == -math.pi) & (pre.pbf.phi_hi == math.pi)
     assert bool(full[inside].all()) and torch.equal(pre.pbf.camera_inside[inside], inside[inside])
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The kernels' per-ray and per-warp cull (csrc/geer_math.h ray_meets_pbf on RayGrid.ray_cull_bounds and
+# warp_cull_bounds): a (ray, Gaussian) pair it skips must have alpha < 1/255 by the float64 reference.
+
+
+def _check_cull_complete(grid, scene, dtype):
+    from geer_ns.render.associate import _interval_pieces, _overlaps
+
+    means, quats, scales, opac, colors = (t.to(dtype) for t in scene)
+    viewmat = torch.eye(4, dtype=dtype)
+    pre = preprocess(means, quats, scales, opac, colors, viewmat)
+    theta_p = _interval_pieces(pre.pbf.theta_lo, pre.pbf.theta_hi, 1.0)
+    phi_p = _interval_pieces(pre.pbf.phi_lo, pre.pbf.phi_hi, 1.0)
+    s64 = [t.double() for t in scene]
+    ref = _reference_pairs(s64[0], quat_to_rotmat(s64[1]), s64[2], s64[3], grid.dirs.double())
+    ref &= grid.valid[:, None] & pre.pbf.alive[None]
+
+    def meets(b):  # [K, 4] bounds -> [K, N] the PBF test of ray_meets_pbf
+        return (_overlaps(b[:, 0, None], b[:, 1, None], tuple(p[None] for p in theta_p))
+                & _overlaps(b[:, 2, None], b[:, 3, None], tuple(p[None] for p in phi_p)))
+
+    ray_ok = meets(grid.ray_cull_bounds(dtype))
+    # Each ray's warp: thread tid of tile t (grid.tile_rays[t, tid]) is in warp t * warps + tid // 32.
+    warps = -(-grid.tile_rays.shape[1] // 32)
+    warp_of = torch.full((grid.num_rays,), -1, dtype=torch.long)
+    tid = torch.arange(grid.tile_rays.shape[1])
+    for t in range(grid.num_tiles):
+        r = grid.tile_rays[t]
+        warp_of[r[r >= 0]] = t * warps + tid[r >= 0] // 32
+    warp_ok = meets(grid.warp_cull_bounds(dtype))[warp_of]
+    culled_visible = ref & ~(ray_ok & warp_ok)
+    return int(ref.sum()), int(culled_visible.sum()), float(ray_ok[grid.valid].float().mean())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("case", ["beap", "fisheye_200", "equirect_360", "camera_inside"])
+def test_ray_and_warp_cull_skip_only_invisible_pairs(case, dtype):
+    if case == "beap":
+        scene = random_scene(400, 0, scale_range=(0.005, 0.5))
+        grid = RayGrid.beap(96, 64, math.radians(150), math.radians(120), tile_size=16, dtype=dtype)
+    elif case == "fisheye_200":
+        scene = random_scene(500, 1, around=True, scale_range=(0.005, 0.6))
+        dirs, valid = equidistant_fisheye_rays(96, 200.0, dtype=dtype)
+        grid = RayGrid.from_rays(dirs, valid, tile_size=16)
+    elif case == "equirect_360":
+        scene = random_scene(500, 2, around=True, scale_range=(0.005, 0.6))
+        grid = RayGrid.from_rays(equirect_rays(128, 64, dtype=dtype), None, tile_size=16)
+    else:
+        means, quats, scales, opac, colors = random_scene(300, 8, around=True, scale_range=(0.05, 0.8))
+        scene = (means * 0.3, quats, scales, opac, colors)
+        grid = RayGrid.from_rays(equirect_rays(96, 48, dtype=dtype), None, tile_size=16)
+    n_visible, culled_visible, meet_fraction = _check_cull_complete(grid, scene, dtype)
+    assert n_visible > 1000 and culled_visible == 0
+    # And the cull does skip: most (ray, Gaussian) pairs miss the PBF (fewer when the camera sits inside many
+    # Gaussians, whose PBFs are the whole sphere).
+    assert meet_fraction < (0.8 if case == "camera_inside" else 0.5)

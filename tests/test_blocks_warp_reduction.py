@@ -36,7 +36,7 @@ def test_every_slot_is_the_sum_of_the_contributing_lanes(ops, dtype):
     values[~contrib] = np.nan  # never read: a lane that does not contribute adds exactly nothing
     values[np.ix_(~contrib, [3])] = np.inf
     v = torch.tensor(values, dtype=dtype)
-    row, totals = ops.warp_grad_sum(v, torch.tensor(contrib))
+    row, totals, _ = ops.warp_grad_sum(v, torch.tensor(contrib))
     ref = _reference(v.numpy(), contrib)
     eps = torch.finfo(dtype).eps
     bound = LANES * eps * np.abs(v.numpy().astype(np.float64))[contrib].sum(axis=0)  # the sum's rounding
@@ -56,16 +56,42 @@ def test_each_lane_and_value_reaches_its_own_slot_once(ops, dtype):
         for k in range(VALUES):
             v = torch.zeros(LANES, VALUES, dtype=dtype)
             v[lane, k] = 1.0
-            row, _ = ops.warp_grad_sum(v, contrib)
+            row, _, _ = ops.warp_grad_sum(v, contrib)
             assert torch.equal(row, torch.eye(VALUES, dtype=dtype)[k]), (lane, k, row)
 
 
 def test_no_contributing_lane_gives_zeros(ops):
     v = torch.full((LANES, VALUES), float("nan"))
-    row, totals = ops.warp_grad_sum(v, torch.zeros(LANES, dtype=torch.bool))
+    row, totals, _ = ops.warp_grad_sum(v, torch.zeros(LANES, dtype=torch.bool))
     assert torch.equal(row, torch.zeros(VALUES)) and torch.equal(totals, torch.zeros(LANES))
 
 
 def test_wrong_shape_names_the_argument(ops):
     with pytest.raises(RuntimeError, match=r"warp_grad_sum: values must be \[32, 16\]"):
         ops.warp_grad_sum(torch.zeros(16, 16), torch.ones(LANES, dtype=torch.bool))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_cpu_backwards_sparse_sum_is_the_butterflys_bit_for_bit(ops, dtype):
+    """The CPU backward sums only the contributing lanes (cpu_ops.cpp warp_grad_sum_sparse); it must give the
+    lock-step butterfly's bits (the GPU's summation order), for any set of lanes and magnitudes where rounding
+    order shows: mixed scales, cancellation, signed zeros, subnormals."""
+    rng = np.random.default_rng(11)
+    tiny = float(torch.finfo(dtype).tiny)
+    differs_from_sequential = 0
+    for trial in range(400):
+        k = int(rng.integers(0, LANES + 1))
+        contrib = np.zeros(LANES, dtype=bool)
+        contrib[rng.choice(LANES, size=k, replace=False)] = True
+        values = rng.normal(size=(LANES, VALUES)) * 10.0 ** rng.integers(-8, 9, size=(LANES, VALUES))
+        values[rng.random((LANES, VALUES)) < 0.1] = -0.0
+        values[rng.random((LANES, VALUES)) < 0.05] = tiny / 3
+        v = torch.tensor(values, dtype=dtype)
+        row, _, sparse = ops.warp_grad_sum(v, torch.tensor(contrib))
+        assert torch.equal(row.view(torch.int64 if dtype == torch.float64 else torch.int32),
+                           sparse.view(torch.int64 if dtype == torch.float64 else torch.int32)) or \
+            torch.equal(row, sparse), (trial, k)
+        sequential = v[torch.tensor(contrib)].sum(0) if k else torch.zeros(VALUES, dtype=dtype)
+        differs_from_sequential += int(not torch.equal(row, sequential))
+    # The order matters: a plain left-to-right sum gives other bits for many of these warps.
+    assert differs_from_sequential > 50

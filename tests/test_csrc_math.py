@@ -37,7 +37,7 @@ from geer_ns.render import (
     preprocess,
     render,
 )
-from geer_ns.render.associate import _interval_pieces
+from geer_ns.render.associate import _interval_pieces, pbf_cull_pieces
 from geer_ns.render.pbf import ALPHA_MIN
 from geer_ns.render.sh import sh_to_color
 from geer_ns.render.transforms import camera_offsets, quat_to_rotmat, whitening
@@ -445,8 +445,10 @@ def test_early_termination_and_alpha_clamp(ops):
         w, o_u, _rgb, bounds, alive, _inside = ops.preprocess_forward(
             pre.means_c, scene[1], scene[2], scene[3], scene[4][:, None], scene[0], vm[:3, :3].contiguous(), -1, False)
         ids, ranges, _, _ = cuda_backend.associate_pairs(ops, bounds, alive, pre.depth, grid)
-        _, _, _acc, t_final, n_contrib = ops.render_forward(w, o_u, scene[4], scene[3], grid.dirs, grid.valid,
-                                                           ids, ranges, grid.height, grid.width, grid.tile_size)
+        _, _, _acc, t_final, n_contrib = ops.render_forward(
+            w, o_u, scene[4], scene[3], pbf_cull_pieces(bounds), grid.dirs, grid.ray_cull_bounds(F64),
+            grid.warp_cull_bounds(F64),
+            grid.valid, ids, ranges, grid.height, grid.width, grid.tile_size)
     assert float(t_final.min()) >= 1e-4 and float(t_final.min()) < 1e-2
     assert bool((n_contrib < (ranges[:, 1] - ranges[:, 0]).max()).any())
     ref_g = _grads(lambda *a: render(*a, vm, grid, backend="torch"), scene, 3, F64)

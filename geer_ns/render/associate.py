@@ -49,6 +49,14 @@ def _interval_pieces(lo: Tensor, hi: Tensor, xi: float) -> tuple[Tensor, Tensor,
     return m(a_lo), m(a_hi), b_lo_m, b_hi_m
 
 
+def pbf_cull_pieces(bounds: Tensor, xi: float = 1.0) -> Tensor:
+    """[N, 8] the PBFs' pieces as the render kernels' per-ray cull reads them (csrc/geer_math.h GaussFrame.pbf):
+    theta (a_lo, a_hi, b_lo, b_hi), phi (the same), mirror domain; bounds [N, 4] (theta lo, hi, phi lo, hi)."""
+    theta = _interval_pieces(bounds[:, 0], bounds[:, 1], xi)
+    phi = _interval_pieces(bounds[:, 2], bounds[:, 3], xi)
+    return torch.stack(theta + phi, -1).contiguous()
+
+
 def _overlaps(lo: Tensor, hi: Tensor, pieces: tuple[Tensor, Tensor, Tensor, Tensor]) -> Tensor:
     """Whether intervals [lo, hi] overlap either piece (all broadcast together)."""
     a_lo, a_hi, b_lo, b_hi = pieces

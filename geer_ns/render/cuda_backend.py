@@ -38,6 +38,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .associate import pbf_cull_pieces
 from .pbf import PBF, LambdaMode
 from .raygrid import RayGrid
 from .transforms import camera_offsets, view_transform
@@ -159,11 +160,15 @@ class _Rasterize(torch.autograd.Function):
     """Per tile / ray: (W, o_u, colour, opacity) -> (rgb sum, depth sum, accumulation) per ray."""
 
     @staticmethod
-    def forward(ctx, whiten, o_u, rgb, opacities, dirs, valid, ids, ranges, height, width, tile_size, ops):
+    def forward(ctx, whiten, o_u, rgb, opacities, pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height,
+                width, tile_size, ops):
+        # pieces [N,8] (associate.pbf_cull_pieces), ray_bounds [R,4] and warp_bounds (RayGrid.ray/warp_cull_bounds):
+        # the cull.
+        geometry = (pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges)
         out_rgb, depth, acc, t_final, n_contrib = ops.render_forward(
-            whiten, o_u, rgb, opacities, dirs, valid, ids, ranges, height, width, tile_size
+            whiten, o_u, rgb, opacities, *geometry, height, width, tile_size
         )
-        ctx.save_for_backward(whiten, o_u, rgb, opacities, dirs, valid, ids, ranges, t_final, n_contrib)
+        ctx.save_for_backward(whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib)
         ctx.layout = (height, width, tile_size)
         ctx.ops = ops
         return out_rgb, depth, acc
@@ -171,17 +176,16 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_rgb, g_depth, g_acc):
-        whiten, o_u, rgb, opacities, dirs, valid, ids, ranges, t_final, n_contrib = ctx.saved_tensors
-        r = dirs.shape[0]
+        whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib = ctx.saved_tensors
+        r = geometry[1].shape[0]
         g_rgb = _zeros_if_none(g_rgb, (r, 3), whiten).contiguous()
         g_depth = _zeros_if_none(g_depth, (r,), whiten).contiguous()
         g_acc = _zeros_if_none(g_acc, (r,), whiten).contiguous()
         grads = ctx.ops.render_backward(
-            whiten, o_u, rgb, opacities, dirs, valid, ids, ranges, *ctx.layout, t_final, n_contrib,
-            g_rgb, g_depth, g_acc,
+            whiten, o_u, rgb, opacities, *geometry, *ctx.layout, t_final, n_contrib, g_rgb, g_depth, g_acc,
         )  # [N, 16] rows (csrc/geer_blocks.h kGradValues): W row-major, o_u, colour, opacity
         gw, go, gc, gs = grads.split([9, 3, 3, 1], dim=1)
-        return (gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1)) + (None,) * 8
+        return (gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1)) + (None,) * 11
 
 
 def _zeros_if_none(g: Tensor | None, shape, like: Tensor) -> Tensor:
@@ -277,8 +281,8 @@ def render_cuda(
 
     # Stage 3. Per tile / ray.
     rgb_sum, depth_sum, acc = _Rasterize.apply(
-        whiten, o_u, rgb, opacities.contiguous(), dirs, grid.valid.contiguous(), ids, ranges,
-        grid.height, grid.width, grid.tile_size, ops,
+        whiten, o_u, rgb, opacities.contiguous(), pbf_cull_pieces(bounds), dirs, grid.ray_cull_bounds(dtype),
+        grid.warp_cull_bounds(dtype), grid.valid.contiguous(), ids, ranges, grid.height, grid.width, grid.tile_size, ops,
     )
     out_rgb = rgb_sum
     if background is not None:

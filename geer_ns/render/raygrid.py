@@ -22,6 +22,9 @@ from .pbf import mirror_tangent
 _TILE_BOUND_SLACK = 1e-6
 # Rays this close to the axis of a bounding plane family have an undefined angle in that plane.
 _AXIAL_EPS = 1e-7
+# Extra slack (radians) of each ray's own bounds for the kernels' per-ray PBF cull: far above the PBF's
+# float32 rounding, so the cull only skips pairs whose alpha is below 1/255 anyway (a pixel spans > 1e-3).
+_RAY_CULL_SLACK = 1e-4
 
 
 @dataclass
@@ -75,6 +78,39 @@ class RayGrid:
             theta_m, phi_m = self.tile_mirror_bounds(xi)
             tiles = torch.cat([theta_m, phi_m], -1).to(dtype)
             self._cache[key] = TilePyramid.build(tiles, self.tile_active, self.tiles_x, self.tiles_y)
+        return self._cache[key]
+
+    def ray_cull_bounds(self, dtype: torch.dtype | None = None, xi: float = 1.0) -> Tensor:
+        """[R, 4] each ray's own bounds (theta lo, hi, phi lo, hi; mirror domain, the tile bounds of a one-ray
+        tile widened by _RAY_CULL_SLACK), cached: the kernels skip a (ray, Gaussian) pair of a tile's list whose
+        ray bounds miss the Gaussian's PBF (csrc/geer_math.h ray_meets_pbf). Invalid rays: empty intervals."""
+        dtype = self.dirs.dtype if dtype is None else dtype
+        key = ("ray_cull", dtype, xi)
+        if key not in self._cache:
+            x, y, z = (c[:, None] for c in self.dirs.unbind(-1))
+            ok = self.valid[:, None]
+            widen = self.dirs.new_tensor([-_RAY_CULL_SLACK, _RAY_CULL_SLACK])
+            theta = mirror_tangent(_tile_angle_bounds(x, z, ok) + widen, xi)
+            phi = mirror_tangent(_tile_angle_bounds(y, z, ok) + widen, xi)
+            self._cache[key] = torch.cat([theta, phi], -1).to(dtype).contiguous()
+        return self._cache[key]
+
+    def warp_cull_bounds(self, dtype: torch.dtype | None = None, xi: float = 1.0) -> Tensor:
+        """[n_tiles * warps per tile, 4] the union of ray_cull_bounds over each warp's rays (threads 32 w to
+        32 w + 31 of a tile's block, csrc/geer_blocks.h ray_slot; empty where a warp has no valid ray), cached:
+        the kernels skip a whole warp for a list entry whose PBF its bounds miss, before any ray's test."""
+        dtype = self.dirs.dtype if dtype is None else dtype
+        key = ("warp_cull", dtype, xi)
+        if key not in self._cache:
+            rays = self.ray_cull_bounds(dtype, xi)
+            per_tile = self.tile_rays.shape[1]
+            warps = -(-per_tile // 32)
+            idx = torch.nn.functional.pad(self.tile_rays, (0, 32 * warps - per_tile), value=-1)
+            empty = rays.new_tensor([math.inf, -math.inf, math.inf, -math.inf])
+            b = torch.where((idx >= 0)[..., None], rays[idx.clamp_min(0)], empty)  # [T, 32 W, 4]
+            b = b.unflatten(1, (warps, 32))
+            lo, hi = b[..., 0::2].amin(2), b[..., 1::2].amax(2)  # [T, W, 2] each: theta, phi
+            self._cache[key] = torch.stack([lo[..., 0], hi[..., 0], lo[..., 1], hi[..., 1]], -1).flatten(0, 1).contiguous()
         return self._cache[key]
 
     # ----------------------------------------------------------------------------------- builders
