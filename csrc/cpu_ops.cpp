@@ -285,46 +285,33 @@ template <typename T> void warp_grad_sum(T (*v)[kGradValues] /* [kWarp] */, T* r
         if (geer::scatter_writer(lane)) row[geer::scatter_value(lane)] += v[lane][0];
 }
 
-// The same sums as warp_grad_sum, bit for bit, without visiting the lanes that add zeros. The butterfly adds,
-// for every value, the partial sums of lanes differing in bit 4 first (mask 16) and bit 0 last (mask 1): a fixed
-// binary tree over the lanes. Float addition is commutative and x + 0 == x exactly, so leaving out the
-// non-contributing leaves (and subtrees without a contributing lane) changes no result; on the CPU that is most
-// lanes of most warps. tests/test_blocks_warp_reduction.py compares the two on random warps.
-template <typename T>
-bool lanes_tree_sum(uint32_t contrib /* bit l: lane l */, int low, int bit, const geer::PairGrad<T>* p,
-                    T* out /* kGradValues */) {
-    // The subtree of lanes l with l mod 2^bit == low.
-    uint32_t lanes = 0;
-    for (int l = low; l < geer::kWarp; l += 1 << bit) lanes |= 1u << l;
-    if (!(contrib & lanes)) return false;
-    if (bit == 5) {
-        geer::lane_grad_values(p[low], true, out);
-        return true;
-    }
-    const bool has_a = lanes_tree_sum(contrib, low, bit + 1, p, out);
-    T b[kGradValues];
-    const bool has_b = lanes_tree_sum(contrib, low | (1 << bit), bit + 1, p, b);
-    if (!has_b) return has_a;
-    for (int i = 0; i < kGradValues; ++i) out[i] = has_a ? out[i] + b[i] : b[i];
-    return true;
-}
-
+// The same sums as warp_grad_sum, bit for bit, without visiting the lanes that add zeros. For every value the
+// butterfly adds the partial sums of lanes differing in bit 4 first (mask 16), bit 0 last (mask 1): a fixed
+// binary tree over the lanes. Float addition is commutative and x + 0 == x exactly, so combining only the
+// partials that hold a contributing lane (moving a lone one up unchanged) gives the same bits; on the CPU most
+// lanes of most warps contribute nothing. tests/test_blocks_warp_reduction.py compares the two on random warps.
 template <typename T> void warp_grad_sum_sparse(uint32_t contrib, const geer::PairGrad<T>* p, T* row) {
     if (!contrib) return;
-    T total[kGradValues];
-    const int first = __builtin_ctz(contrib);
-    const uint32_t rest = contrib & (contrib - 1);
-    if (!(rest & (rest - 1))) {  // one or two lanes: the tree adds at most one pair, a + b == b + a
-        geer::lane_grad_values(p[first], true, total);
-        if (rest) {
-            T b[kGradValues];
-            geer::lane_grad_values(p[__builtin_ctz(rest)], true, b);
-            for (int i = 0; i < kGradValues; ++i) total[i] += b[i];
-        }
-    } else {
-        lanes_tree_sum(contrib, 0, 0, p, total);
+    T vals[geer::kWarp][kGradValues];
+    T* part[geer::kWarp];  // part[l]: the partial sum of lane l's subtree at the current stage
+    for (uint32_t m = contrib; m; m &= m - 1) {
+        const int l = __builtin_ctz(m);
+        geer::lane_grad_values(p[l], true, vals[l]);
+        part[l] = vals[l];
     }
-    for (int i = 0; i < kGradValues; ++i) row[i] += total[i];  // the writer lanes' atomicAdds
+    uint32_t present = contrib;
+    for (int mask = geer::kWarp / 2; mask >= 1; mask >>= 1) {
+        for (uint32_t upper = (present >> mask) & ((1u << mask) - 1); upper; upper &= upper - 1) {
+            const int l = __builtin_ctz(upper);
+            if ((present >> l) & 1u) {
+                for (int i = 0; i < kGradValues; ++i) part[l][i] += part[l + mask][i];
+            } else {
+                part[l] = part[l + mask];
+            }
+        }
+        present = (present | (present >> mask)) & ((1u << mask) - 1);
+    }
+    for (int i = 0; i < kGradValues; ++i) row[i] += part[0][i];  // the writer lanes' atomicAdds
 }
 
 // -> [N,16] gradient rows (geer_launchers.h RenderGradArgs::grads).
