@@ -224,7 +224,8 @@ def _ffmpeg_link(exe: Path) -> Path:
 # message, category and warning module; the same warnings from any other module are still shown.
 # Installed when geer_ns is imported (geer_ns/__init__.py), so before nerfstudio wherever geer comes first
 # (tests, `import geer_ns.config`, geer's own scripts). ns-train imports geer when it discovers dataparser
-# plugins, after nerfstudio's camera code: its torch.jit.script warning is printed before any plugin code runs.
+# plugins, after nerfstudio's camera code: its torch.jit.script warning comes before any plugin code runs, so
+# the environment's start-up hook (install_startup_hook, below) installs the same filters.
 # --------------------------------------------------------------------------------------------------
 
 KNOWN_NOISE = (  # (category, message, module): regular expressions matched at the start
@@ -242,6 +243,29 @@ def quiet_known_warnings() -> None:
 
     for category, message, module in KNOWN_NOISE:
         warnings.filterwarnings("ignore", message=message, category=category, module=module)
+
+
+# The same filters at interpreter start-up, for what nerfstudio prints before it loads any plugin (ns-train's
+# torch.jit.script warning): a .pth file in the environment's site-packages whose one `import` line installs
+# them (Python's site module runs such lines). scripts/setup.sh installs it into .venv; nothing is imported.
+STARTUP_HOOK_NAME = "geer_ns_host_warnings.pth"
+
+
+def startup_hook_line() -> str:
+    calls = "; ".join(f"_w.filterwarnings('ignore', message={message!r}, category={category.__name__}, "
+                      f"module={module!r})" for category, message, module in KNOWN_NOISE)
+    return f"import warnings as _w; {calls}\n"
+
+
+def install_startup_hook(site_packages: Optional[Path] = None) -> Path:
+    """Write the start-up hook into `site_packages` (default: this interpreter's purelib) and return its path."""
+    import sysconfig
+
+    folder = Path(site_packages) if site_packages is not None else Path(sysconfig.get_paths()["purelib"])
+    path = folder / STARTUP_HOOK_NAME
+    path.write_text("# geer-ns: nerfstudio's known import-time warnings (geer_ns/host_fixes.py KNOWN_NOISE)\n"
+                    + startup_hook_line())
+    return path
 
 
 def report_dataset_errors_without_traceback() -> None:

@@ -4,6 +4,7 @@ set), known host warnings filtered, a COLMAP dataset read once for both splits."
 from __future__ import annotations
 
 import re
+import sysconfig
 import warnings
 from dataclasses import fields
 from pathlib import Path
@@ -161,10 +162,46 @@ def test_importing_the_plugin_prints_no_host_future_warning():
 
     shown = future_warnings(code)
     assert len(shown) == 1 and "not host noise" in shown[0], shown
-    # As ns-train imports: nerfstudio's camera code, then the plugins. Only the warning raised before any
-    # plugin is imported remains (see host_fixes).
+    # As ns-train imports: nerfstudio's camera code, then the plugins. The warning raised before any plugin is
+    # imported is shown without the environment's start-up hook and filtered with it (host_fixes).
     shown = future_warnings("import nerfstudio.configs.method_configs")
-    assert len(shown) == 1 and "`torch.jit.script` is deprecated" in shown[0], shown
+    hook = Path(sysconfig.get_paths()["purelib"]) / host_fixes.STARTUP_HOOK_NAME
+    if not hook.is_file():  # an environment set up without scripts/setup.sh
+        assert len(shown) == 1 and "`torch.jit.script` is deprecated" in shown[0], shown
+    else:
+        assert shown == [], shown
+
+
+def test_the_start_up_hook_filters_what_nerfstudio_prints_before_plugins(tmp_path):
+    """The .pth line scripts/setup.sh installs, loaded by Python's site module before nerfstudio's imports (as
+    in ns-train): no host FutureWarning; another module's FutureWarning with the same text still shows."""
+    import os
+    import subprocess
+    import sys
+
+    folder = tmp_path / "site"
+    folder.mkdir()
+    hook = host_fixes.install_startup_hook(folder)
+    assert hook.name == host_fixes.STARTUP_HOOK_NAME
+    # python -S: site-packages on the path without their .pth files (the environment's own hook, if installed,
+    # stays out); then only the hook under test, then nerfstudio as ns-train imports it.
+    code = ("import site, sys, warnings; sys.path.append(sys.argv[2]); site.addsitedir(sys.argv[1]); "
+            "import nerfstudio.configs.method_configs; "
+            "warnings.warn_explicit('`torch.jit.script` is deprecated. x', FutureWarning, 'elsewhere.py', 1, "
+            "module='elsewhere')")
+    root = Path(__file__).resolve().parents[1]
+    env = {**{k: v for k, v in os.environ.items() if k != "PYTHONWARNINGS"}, "PYTHONPATH": str(root)}
+
+    def future_warnings(hook_folder: Path) -> list:
+        done = subprocess.run([sys.executable, "-S", "-c", code, str(hook_folder), sysconfig.get_paths()["purelib"]],
+                              capture_output=True, text=True, env=env, cwd=root, timeout=300)
+        assert done.returncode == 0, done.stderr
+        return [line for line in done.stderr.splitlines() if "FutureWarning" in line]
+
+    without = future_warnings(tmp_path)  # no hook there
+    assert len(without) == 2 and "`torch.jit.script` is deprecated" in without[0], without
+    shown = future_warnings(folder)
+    assert len(shown) == 1 and "elsewhere.py" in shown[0], shown
 
 
 def test_colmap_dataset_is_read_once_for_both_splits(monkeypatch):
