@@ -38,14 +38,16 @@ DATA = ROOT.parent / "shared" / "data"
 BEFORE_COMMIT = "51908164d68e"  # main when this benchmark was written
 
 
-def _pbf_inputs(means, quats, scales, opac, viewmat, grid, name):
-    """(name, grid, bounds [N,4], alive, depth) from the twin's preprocess (the specification)."""
+def _pbf_inputs(means, quats, scales, opac, viewmat, grid, name, with_scene=False):
+    """(name, grid, bounds [N,4], alive, depth) from the twin's preprocess (the specification), and with_scene:
+    (means, quats, scales, opacities, viewmat) as well."""
     from geer_ns.render import preprocess
 
     with torch.no_grad():
         pre = preprocess(means, quats, scales, opac, means.new_zeros(means.shape[0], 3), viewmat)
     p = pre.pbf
-    return name, grid, torch.stack([p.theta_lo, p.theta_hi, p.phi_lo, p.phi_hi], -1).contiguous(), p.alive, pre.depth
+    out = name, grid, torch.stack([p.theta_lo, p.theta_hi, p.phi_lo, p.phi_hi], -1).contiguous(), p.alive, pre.depth
+    return out + ((means, quats, scales, opac, viewmat),) if with_scene else out
 
 
 def fisheye_grid(size: int = 512):
@@ -67,7 +69,7 @@ def masked(case, crop_deg: float):
     return f"{name}-masked", grid, bounds, alive, depth
 
 
-def dev_room_case(room: Path = DATA / "fisheye_room_dev"):
+def dev_room_case(room: Path = DATA / "fisheye_room_dev", with_scene: bool = False):
     from bench_gpu import _knn_rms
 
     from geer_ns.cameras import EquidistantCamera
@@ -84,15 +86,15 @@ def dev_room_case(room: Path = DATA / "fisheye_room_dev"):
     quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(means.shape[0], 1)
     opac = torch.full((means.shape[0],), 0.1)  # nerfstudio's initial opacity
     c2w = torch.tensor(meta["frames"][0]["transform_matrix"], dtype=torch.float32)[:3]
-    return _pbf_inputs(means, quats, scales, opac, world_to_camera_opencv(c2w), grid, "dev-room-beap")
+    return _pbf_inputs(means, quats, scales, opac, world_to_camera_opencv(c2w), grid, "dev-room-beap", with_scene)
 
 
-def donut_case(grid=None):
+def donut_case(grid=None, with_scene: bool = False):
     from bench_cpu_renderer import load_3dgs_ply, look_at_viewmat
 
     means, quats, scales, opac, _ = load_3dgs_ply(DATA / "donut_3dgs.ply")
     return _pbf_inputs(means, quats, scales, opac, look_at_viewmat(means, 2.2), grid or fisheye_grid(),
-                       "donut-fisheye512")
+                       "donut-fisheye512", with_scene)
 
 
 def synthetic_case(n: int = 200_000, grid=None):
