@@ -6,15 +6,21 @@
   as separators (kapture and some exporters write them) are accepted, and anything else malformed is
   reported with its file and line number instead of pycolmap's bare C++ check message;
 * an image name is looked up under the usual image folders, by its full relative name and by its file
-  name; the images that cannot be found are listed together.
+  name; the images that cannot be found are listed together;
+* the model is then read with ``pycolmap.Reconstruction`` (``read_reconstruction``).
 """
 
 from __future__ import annotations
 
 import math
 import re
+import shutil
+import struct
+import tempfile
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
+
+from nerfstudio.utils.rich_utils import CONSOLE
 
 from geer_ns.data.dataset_checks import DatasetError, missing_images_error
 
@@ -220,3 +226,43 @@ def locate_images(names: Sequence[str], roots: Sequence[Path], model_file: Path)
     if missing:
         raise missing_images_error(model_file, missing, roots)
     return found
+
+
+def model_file(model_dir: Path, stem: str) -> Path:
+    fmt = model_format(model_dir) or "txt"
+    return model_dir / f"{stem}.{fmt}"
+
+
+def read_reconstruction(model_dir: Path):
+    """pycolmap.Reconstruction of model_dir; a missing points3D file counts as no points.
+
+    Text models are first rewritten strictly (commas accepted, errors at file:line)."""
+    import pycolmap
+
+    fmt = model_format(model_dir)
+    if fmt is None:
+        raise FileNotFoundError(
+            f"COLMAP model directory {model_dir} has no cameras.bin + images.bin or cameras.txt + images.txt"
+        )
+    with tempfile.TemporaryDirectory(prefix="geer_colmap_") as tmp:
+        src = Path(tmp)
+        if fmt == "txt":
+            has_points = write_strict_text_model(model_dir, src)
+        else:
+            has_points = (model_dir / "points3D.bin").is_file()
+            for name in ("cameras.bin", "images.bin", "points3D.bin"):
+                if (model_dir / name).is_file():
+                    shutil.copy(model_dir / name, src / name)
+            if not has_points:
+                (src / "points3D.bin").write_bytes(struct.pack("<Q", 0))
+        if not has_points:
+            CONSOLE.log(f"[yellow]geer: {model_dir} has no points3D.{fmt}: seed points are drawn in the camera frusta")
+        recon = pycolmap.Reconstruction()
+        try:
+            if fmt == "txt":
+                recon.read_text(str(src))
+            else:
+                recon.read_binary(str(src))
+        except Exception as e:  # pycolmap raises ValueError / RuntimeError with a C++ check message
+            raise DatasetError(f"geer: pycolmap could not read the COLMAP model in {model_dir}: {e}") from e
+    return recon
