@@ -8,8 +8,8 @@
 // Multi-threaded with at::parallel_for over tiles (render) and Gaussians (preprocess, association), with
 // every float sum in a fixed order: results do not depend on the thread count or scheduling. The render
 // backward sums each (tile, Gaussian) pair's gradient over the tile's rays in the kernel's order (the warp
-// reduction with its lanes in lock-step, then warps in order) into that pair's own slot, then each Gaussian
-// sums its pairs in list order.
+// reduction's order over the contributing lanes, warp_grad_sum_sparse, then warps in order) into that pair's
+// own slot, then each Gaussian sums its pairs in list order.
 // ATen + pybind only (not torch/extension.h): half the compile time.
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
@@ -270,7 +270,8 @@ constexpr int kGradValues = geer::kGradValues;
 
 // One warp's reduction as render.cu runs it (geer_blocks.h): the 32 lanes in lock-step through the stages,
 // each shuffle reading what the partner lane sent at the same stage; the writer lanes then add their totals
-// to row (the kernel's atomicAdds). v: the lanes' values, left holding each lane's v[0] total.
+// to row (the kernel's atomicAdds). v: the lanes' values, left holding each lane's v[0] total. The reference
+// for warp_grad_sum_sparse (what the CPU backward runs), through the warp_grad_sum op of the tests.
 // GCC 12.2 at -O3 -mavx512f miscompiles the scatter_send lane loop (some lanes send the wrong half; a
 // standalone loop of copies does the same); the extension builds at -O2, and
 // tests/test_blocks_warp_reduction.py fails on such a build.
@@ -314,14 +315,16 @@ template <typename T> void warp_grad_sum_sparse(uint32_t contrib, const geer::Pa
     for (int i = 0; i < kGradValues; ++i) row[i] += part[0][i];  // the writer lanes' atomicAdds
 }
 
-// -> [N,16] gradient rows (geer_launchers.h RenderGradArgs::grads).
+// -> [N,16] gradient rows (geer_launchers.h RenderGradArgs::grads). kRayCull: the CPU's per-ray cull before the
+// pair math (render_backward); without it, the GPU's path (render_backward_gpu_path, geer_math.h
+// ray_backward_step), which the tests check gives the same bits.
+template <bool kRayCull>
 at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
                            at::Tensor pbf_pieces,
                            at::Tensor dirs, at::Tensor ray_bounds, at::Tensor warp_bounds, at::Tensor valid,
                            at::Tensor ids, at::Tensor ranges,
                            int64_t height, int64_t width, int64_t tile_size, at::Tensor t_final,
-                           at::Tensor n_contrib, at::Tensor g_rgb, at::Tensor g_depth, at::Tensor g_acc,
-                           bool ray_cull) {
+                           at::Tensor n_contrib, at::Tensor g_rgb, at::Tensor g_depth, at::Tensor g_acc) {
     whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities); pbf_pieces = cpu(pbf_pieces);
     dirs = cpu(dirs); ray_bounds = cpu(ray_bounds); warp_bounds = cpu(warp_bounds);
     valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges);
@@ -376,7 +379,7 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
                             const int tid = w0 + lane;
                             if (pos < my_n[tid] &&
                                 geer::ray_backward_step(st[tid], frame, blk.dir[tid],
-                                                        ray_cull ? blk.ray_bounds(tid) : nullptr, p[lane]))
+                                                        kRayCull ? blk.ray_bounds(tid) : nullptr, p[lane]))
                                 contrib |= 1u << lane;
                         }
                         warp_grad_sum_sparse(contrib, p, slot);
@@ -400,17 +403,6 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
         return 0;
     });
     return grads;
-}
-
-// The backward as the GPU runs it, without the per-ray cull (geer_math.h ray_backward_step): the tests check
-// that it gives the same bits as the CPU path.
-at::Tensor render_backward_gpu_path(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
-                                    at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
-                                    at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids, at::Tensor ranges,
-                                    int64_t height, int64_t width, int64_t tile_size, at::Tensor t_final,
-                                    at::Tensor n_contrib, at::Tensor g_rgb, at::Tensor g_depth, at::Tensor g_acc) {
-    return render_backward(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges,
-                           height, width, tile_size, t_final, n_contrib, g_rgb, g_depth, g_acc, false);
 }
 
 // ------------------------------------------------------------------------------------ stage 4
@@ -448,13 +440,13 @@ std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats
 }
 
 // ------------------------------------------------------------------------------------ primitives
-// Per-pair response of K pairs (Gaussian k with ray k): D^2, t*, q (half-line), alpha (0 where not kept).
 // A PBF that every ray meets, for the single-pair probes (they test the pair math, not the cull).
 template <typename T> std::array<T, 8> full_range_pieces() {
     const T inf = geer::Limits<T>::inf();
     return {-inf, inf, inf, -inf, -inf, inf, inf, -inf};
 }
 
+// Per-pair response of K pairs (Gaussian k with ray k): D^2, t*, q (half-line), alpha (0 where not kept).
 std::vector<at::Tensor> pair_eval(at::Tensor whiten, at::Tensor o_u, at::Tensor opac, at::Tensor dirs) {
     whiten = cpu(whiten); o_u = cpu(o_u); opac = cpu(opac); dirs = cpu(dirs);
     const int64_t k = whiten.size(0);
@@ -465,7 +457,8 @@ std::vector<at::Tensor> pair_eval(at::Tensor whiten, at::Tensor o_u, at::Tensor 
         const T zero[3] = {T(0), T(0), T(0)};
         for (int64_t i = 0; i < k; ++i) {
             GaussFrame<T> f;
-            geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, zero, ptr<T>(opac)[i], full_range_pieces<T>().data(), f);
+            geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, zero, ptr<T>(opac)[i],
+                             full_range_pieces<T>().data(), f);
             auto e = geer::eval_pair(f, geer::load3(ptr<T>(dirs) + 3 * i));
             mptr<T>(d2)[i] = e.dist_sq;
             mptr<T>(ts)[i] = e.t_star;
@@ -488,7 +481,8 @@ std::vector<at::Tensor> pair_backward(at::Tensor whiten, at::Tensor o_u, at::Ten
         const T zero[3] = {T(0), T(0), T(0)};
         for (int64_t i = 0; i < k; ++i) {
             GaussFrame<T> f;
-            geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, zero, T(1), full_range_pieces<T>().data(), f);
+            geer::make_frame(ptr<T>(whiten) + 9 * i, ptr<T>(o_u) + 3 * i, zero, T(1), full_range_pieces<T>().data(),
+                             f);
             const Vec3<T> d = geer::load3(ptr<T>(dirs) + 3 * i);
             auto e = geer::eval_pair(f, d);
             Vec3<T> g;
@@ -571,15 +565,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("preprocess_forward", &preprocess_forward);
     m.def("associate", &associate);
     m.def("render_forward", &render_forward);
-    m.def("render_backward", [](at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
-                                 at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds, at::Tensor warp_bounds,
-                                 at::Tensor valid, at::Tensor ids, at::Tensor ranges, int64_t height, int64_t width,
-                                 int64_t tile_size, at::Tensor t_final, at::Tensor n_contrib, at::Tensor g_rgb,
-                                 at::Tensor g_depth, at::Tensor g_acc) {
-        return render_backward(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
-                               ranges, height, width, tile_size, t_final, n_contrib, g_rgb, g_depth, g_acc, true);
-    });
-    m.def("render_backward_gpu_path", &render_backward_gpu_path);
+    m.def("render_backward", &render_backward<true>);
+    m.def("render_backward_gpu_path", &render_backward<false>);
     m.def("preprocess_backward", &preprocess_backward);
     m.def("pair_eval", &pair_eval);
     m.def("pair_backward", &pair_backward);

@@ -107,8 +107,7 @@ template <typename F> GEER_HD void for_each_scatter_stage(F&& f) {
     f(ScatterStage<1>{});
 }
 // sent[i], i < count: the half of v the lane gives to lane ^ mask (at mask 1: its value). Both halves are
-// constant indices (a pointer to either would put the GPU's values in local memory); branches rather than
-// per-value selects let GCC vectorise the CPU build's lane loops (its backward as fast as with the tree).
+// constant indices (a pointer to either would put the GPU's values in local memory).
 template <int kMask, typename T> GEER_HD void scatter_send(ScatterStage<kMask> s, const T* v, int lane, T* sent) {
     const bool upper = (lane & s.mask) != 0;
     if (upper) {

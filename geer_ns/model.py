@@ -71,8 +71,9 @@ class GeerOwnOptions:
     strategy: Literal["default", "mcmc"] = "default"
     """Densification: gsplat's DefaultStrategy (3DGS heuristics) or MCMCStrategy."""
     renderer_backend: Backend = "auto"
-    """geer_ns.render backend: auto (PyTorch twin; CUDA kernels once verified on a GPU), torch, cuda (opt in
-    to the kernels) or cpu (the kernels' math compiled for the CPU: ~3x faster CPU training, JIT-built once)."""
+    """geer_ns.render backend: auto (CPU tensors: the kernels' math compiled for the CPU, JIT-built once, else
+    the PyTorch renderer, said once; CUDA tensors: the PyTorch renderer until the kernels are verified on a GPU),
+    torch, cuda (opt in to the kernels) or cpu (the compiled CPU build; benchmarks/cpu_training.md)."""
     lambda_mode: LambdaMode = "opacity"
     """PBF extent rule of the renderer (geer_ns.render.pbf)."""
     max_pairs: int = 1 << 22
