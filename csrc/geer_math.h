@@ -457,7 +457,7 @@ GEER_HD void make_frame(const T* w, const T* o_u, const T* rgb, T opacity, const
 // Per-ray cull before any per-pair arithmetic: a ray whose own mirror-domain bounds (RayGrid.ray_cull_bounds:
 // its BEAP angles, widened by a slack far above the PBF's rounding) miss the Gaussian's PBF has alpha < 1/255,
 // so eval_pair would not keep it either (the association's tile test, one ray at a time). On a tile's list
-// most rays lie outside most PBFs (~3/4 of the pairs on the dev room's 256^2 BEAP view).
+// most rays lie outside most PBFs (65-71 % of the pairs on benchmarks/cpu_render_cull.md's views).
 template <typename T> GEER_HD bool ray_meets_pbf(const GaussFrame<T>& g, const T* ray_bounds) {
     return pbf_overlaps(g.pbf, ray_bounds);
 }
