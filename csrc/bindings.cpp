@@ -225,14 +225,17 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
                                    mptr<int32_t>(n_contrib)};
         geer::launch_render_forward<T>(a, out, stream());
     });
-    return {out_rgb, depth, acc, t_final, n_contrib};
+    // The CPU build also records which lanes blended each entry for its backward; the kernels do not (a
+    // 32-bit word per entry and warp), and their backward re-derives them: an empty record.
+    return {out_rgb, depth, acc, t_final, n_contrib, at::empty({0}, opts.dtype(at::kInt))};
 }
 
 // -> [N,16] gradient rows (geer_launchers.h RenderGradArgs::grads).
 at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
                            at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds, at::Tensor warp_bounds,
                            at::Tensor valid, at::Tensor ids, at::Tensor ranges, int64_t height, int64_t width,
-                           int64_t tile_size, at::Tensor t_final, at::Tensor n_contrib, at::Tensor g_rgb,
+                           int64_t tile_size, at::Tensor t_final, at::Tensor n_contrib,
+                           at::Tensor /* blended_lanes: empty, see render_forward */, at::Tensor g_rgb,
                            at::Tensor g_depth, at::Tensor g_acc) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(whiten));
     const int64_t n = whiten.size(0);

@@ -224,6 +224,9 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     auto out_rgb = at::zeros({r, 3}, opts), depth = at::zeros({r}, opts), acc = at::zeros({r}, opts);
     auto t_final = at::ones({r}, opts);
     auto n_contrib = at::zeros({r}, at::kInt);
+    const int warps = geer::warps_per_tile(int(tile_size));
+    auto blended_lanes = at::zeros({ids.numel(), warps}, at::kInt);
+    uint32_t* blended = reinterpret_cast<uint32_t*>(blended_lanes.data_ptr<int32_t>());
     dispatch<int>(whiten, [&](auto tag) {
         using T = decltype(tag);
         constexpr int kBatch = geer::Batch<T>::value;
@@ -246,8 +249,14 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
                     const GaussFrame<T>& frame = f[id[j]];
                     for (int w0 = 0; w0 < blk.threads; w0 += geer::kWarp) {
                         if (!geer::ray_meets_pbf(frame, blk.warp_bounds_of(w0))) continue;
-                        for (int tid = w0; tid < w0 + geer::kWarp; ++tid)
-                            geer::ray_forward_step(st[tid], frame, blk.dir[tid], blk.ray_bounds(tid), j - start);
+                        uint32_t lanes = 0;
+                        for (int lane = 0; lane < geer::kWarp; ++lane) {
+                            geer::RayForward<T>& s = st[w0 + lane];
+                            const int before = s.n_contrib;
+                            geer::ray_forward_step(s, frame, blk.dir[w0 + lane], blk.ray_bounds(w0 + lane), j - start);
+                            lanes |= uint32_t(s.n_contrib != before) << lane;  // blended: n_contrib moved to j
+                        }
+                        blended[size_t(j) * warps + w0 / geer::kWarp] = lanes;
                     }
                 }
             }
@@ -263,7 +272,7 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
         });
         return 0;
     });
-    return {out_rgb, depth, acc, t_final, n_contrib};
+    return {out_rgb, depth, acc, t_final, n_contrib, blended_lanes};
 }
 
 constexpr int kGradValues = geer::kGradValues;
@@ -272,9 +281,9 @@ constexpr int kGradValues = geer::kGradValues;
 // each shuffle reading what the partner lane sent at the same stage; the writer lanes then add their totals
 // to row (the kernel's atomicAdds). v: the lanes' values, left holding each lane's v[0] total. The reference
 // for warp_grad_sum_sparse (what the CPU backward runs), through the warp_grad_sum op of the tests.
-// GCC 12.2 at -O3 -mavx512f miscompiles the scatter_send lane loop (some lanes send the wrong half; a
-// standalone loop of copies does the same); the extension builds at -O2, and
-// tests/test_blocks_warp_reduction.py fails on such a build.
+// GCC 12.2 at -O3 -mavx512f (-march=native here) miscompiles the scatter_send lane loop (some lanes send the
+// wrong half; a standalone loop of copies does the same); the extension builds at -O3 for the generic x86-64
+// target, where it does not, and tests/test_blocks_warp_reduction.py fails on a build that does.
 template <typename T> void warp_grad_sum(T (*v)[kGradValues] /* [kWarp] */, T* row /* kGradValues */) {
     constexpr int kWarp = geer::kWarp;
     T sent[kWarp][kGradValues / 2];
@@ -315,24 +324,28 @@ template <typename T> void warp_grad_sum_sparse(uint32_t contrib, const geer::Pa
     for (int i = 0; i < kGradValues; ++i) row[i] += part[0][i];  // the writer lanes' atomicAdds
 }
 
-// -> [N,16] gradient rows (geer_launchers.h RenderGradArgs::grads). kRayCull: the CPU's per-ray cull before the
-// pair math (render_backward); without it, the GPU's path (render_backward_gpu_path, geer_math.h
-// ray_backward_step), which the tests check gives the same bits.
-template <bool kRayCull>
+// -> [N,16] gradient rows (geer_launchers.h RenderGradArgs::grads). kRecorded: the CPU's path (render_backward),
+// which visits only the lanes the forward recorded as blending each entry (blended_lanes); without it the GPU's
+// path (render_backward_gpu_path: the warp cull, then every lane of the blended prefix evaluates the pair, as
+// render.cu), which the tests check gives the same bits.
+template <bool kRecorded>
 at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
                            at::Tensor pbf_pieces,
                            at::Tensor dirs, at::Tensor ray_bounds, at::Tensor warp_bounds, at::Tensor valid,
                            at::Tensor ids, at::Tensor ranges,
                            int64_t height, int64_t width, int64_t tile_size, at::Tensor t_final,
-                           at::Tensor n_contrib, at::Tensor g_rgb, at::Tensor g_depth, at::Tensor g_acc) {
+                           at::Tensor n_contrib, at::Tensor blended_lanes, at::Tensor g_rgb, at::Tensor g_depth,
+                           at::Tensor g_acc) {
     whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities); pbf_pieces = cpu(pbf_pieces);
     dirs = cpu(dirs); ray_bounds = cpu(ray_bounds); warp_bounds = cpu(warp_bounds);
     valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges);
-    t_final = cpu(t_final);
+    t_final = cpu(t_final); blended_lanes = cpu(blended_lanes);
     TORCH_CHECK(ray_bounds.numel() == 4 * height * width, "geer: ray_bounds must be [R,4]");
-    TORCH_CHECK(warp_bounds.numel() == 4 * geer::tile_count(int(height), int(width), int(tile_size)) *
-                                           geer::warps_per_tile(int(tile_size)),
+    const int warps = geer::warps_per_tile(int(tile_size));
+    TORCH_CHECK(warp_bounds.numel() == 4 * geer::tile_count(int(height), int(width), int(tile_size)) * warps,
                 "geer: warp_bounds must be [tiles * warps per tile, 4]");
+    TORCH_CHECK(!kRecorded || (blended_lanes.scalar_type() == at::kInt && blended_lanes.numel() == ids.numel() * warps),
+                "geer: blended_lanes must be render_forward's [M, warps per tile] int32 record");
     n_contrib = cpu(n_contrib); g_rgb = cpu(g_rgb); g_depth = cpu(g_depth); g_acc = cpu(g_acc);
     const int64_t n = whiten.size(0), m = ids.numel();
     auto opts = whiten.options();
@@ -345,6 +358,7 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
         const int32_t* id = ids.data_ptr<int32_t>();
         const int32_t* rg = ranges.data_ptr<int32_t>();
         const int32_t* nc = n_contrib.data_ptr<int32_t>();
+        const uint32_t* blended = reinterpret_cast<const uint32_t*>(blended_lanes.data_ptr<int32_t>());
         std::vector<T> pair_grad(size_t(m) * kGradValues, T(0));  // one slot per (tile, Gaussian) pair
         parallel_dynamic(geer::tile_count(int(height), int(width), int(tile_size)), [&](int64_t tile) {
             const Block<T> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs), ptr<T>(ray_bounds),
@@ -373,13 +387,16 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
                     const GaussFrame<T>& frame = f[id[j]];
                     T* slot = pair_grad.data() + size_t(j) * kGradValues;
                     for (int w0 = 0; w0 < blk.threads; w0 += kWarp) {
-                        if (!geer::ray_meets_pbf(frame, blk.warp_bounds_of(w0))) continue;
+                        // The lanes to visit: those that blended the entry (every other lane's step returns
+                        // false: outside the PBF, q > q_max, or past its blended prefix).
+                        uint32_t lanes = ~0u;
+                        if (kRecorded) lanes = blended[size_t(j) * warps + w0 / kWarp];
+                        else if (!geer::ray_meets_pbf(frame, blk.warp_bounds_of(w0))) lanes = 0;
                         uint32_t contrib = 0;  // __ballot_sync
-                        for (int lane = 0; lane < kWarp; ++lane) {
+                        for (; lanes; lanes &= lanes - 1) {
+                            const int lane = __builtin_ctz(lanes);
                             const int tid = w0 + lane;
-                            if (pos < my_n[tid] &&
-                                geer::ray_backward_step(st[tid], frame, blk.dir[tid],
-                                                        kRayCull ? blk.ray_bounds(tid) : nullptr, p[lane]))
+                            if (pos < my_n[tid] && geer::ray_backward_step(st[tid], frame, blk.dir[tid], p[lane]))
                                 contrib |= 1u << lane;
                         }
                         warp_grad_sum_sparse(contrib, p, slot);

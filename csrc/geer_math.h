@@ -20,6 +20,9 @@
 
 #if defined(__CUDACC__)
 #define GEER_HD __host__ __device__ __forceinline__
+#elif defined(__GNUC__)
+// Inlined on the CPU as on the GPU: the per-pair functions return structs the caller only partly reads.
+#define GEER_HD inline __attribute__((always_inline))
 #else
 #define GEER_HD inline
 #endif
@@ -605,18 +608,16 @@ template <typename T> GEER_HD void pair_grad_zero(PairGrad<T>& p) {
 }
 
 // One Gaussian of the ray's blended prefix, back to front. Returns false (p untouched) when the pair
-// was skipped (q > q_max), which is what the forward skipped too. ray_bounds: the per-ray cull first (the CPU
-// build), or nullptr (the GPU, whose 1024-thread float32 build has no registers to spare for it; it skips whole
-// warps, which is where a GPU gains); the cull only skips pairs eval_pair rejects, so both give the same bits
-// (tests/test_cpu_backend.py runs the CPU build both ways). Subgradients at the clamps:
+// was skipped (q > q_max), which is what the forward skipped too. No per-ray cull here: the GPU, whose
+// 1024-thread float32 build has no registers to spare for it, skips whole warps (render.cu); the CPU build
+// visits only the lanes its forward recorded as blending the pair (cpu_ops.cpp); tests/test_cpu_backend.py
+// checks that the two give the same bits. Subgradients at the clamps:
 //   alpha = min(raw, 0.99)  the derivative of raw where raw <= 0.99, none where raw > 0.99;
 //   skip (q <= q_max) and stop (T_after >= 1e-4)  piecewise constant: a blended pair gets its ordinary
 //                           derivative (also exactly on a threshold, where it is blended), others none;
 //   max(t*, 0)              half_line_backward.
 template <typename T>
-GEER_HD bool ray_backward_step(RayBackward<T>& s, const GaussFrame<T>& g, const Vec3<T>& d, const T* ray_bounds,
-                               PairGrad<T>& p) {
-    if (ray_bounds != nullptr && !ray_meets_pbf(g, ray_bounds)) return false;
+GEER_HD bool ray_backward_step(RayBackward<T>& s, const GaussFrame<T>& g, const Vec3<T>& d, PairGrad<T>& p) {
     const PairEval<T> e = eval_pair(g, d);
     if (!e.keep) return false;
     const T one_minus = T(1) - e.alpha;

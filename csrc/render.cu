@@ -113,7 +113,7 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
             if (!ray_meets_pbf(frames[k], wb)) continue;  // the same for every lane of the warp
             const int pos = batch_entry(bt, k) - start;  // list position within the tile
             PairGrad<T> p;
-            const bool contrib = pos < my_n && ray_backward_step(st, frames[k], d, static_cast<const T*>(nullptr), p);
+            const bool contrib = pos < my_n && ray_backward_step(st, frames[k], d, p);
             if (!__any_sync(0xffffffffu, contrib)) continue;
             T v[kGradValues];
             lane_grad_values(p, contrib, v);

@@ -103,9 +103,10 @@ def test_lists_longer_than_a_batch_match_the_twin(ops, dtype):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("grid_name", ["beap", "fisheye180", "equirect360"])
-def test_the_gpu_backward_path_without_the_ray_cull_gives_the_same_bits(ops, monkeypatch, grid_name, dtype):
-    """The CPU backward tests each lane's ray bounds before the pair math; the GPU's skips only whole warps
-    (csrc/geer_math.h ray_backward_step with ray_bounds = nullptr). Same images and gradients, bit for bit."""
+def test_the_gpu_backward_path_without_the_forward_record_gives_the_same_bits(ops, monkeypatch, grid_name, dtype):
+    """The CPU backward visits only the lanes its forward recorded as blending each entry (blended_lanes);
+    the GPU's skips whole warps by the cull and lets every lane of the blended prefix evaluate the pair
+    (render_backward_gpu_path runs that path on the CPU). Same images and gradients, bit for bit."""
     grid = reference_grids(dtype)[grid_name]
     cpu_path = _render_and_grads(grid, dtype, backend="cpu")
     monkeypatch.setattr(ops, "render_backward", ops.render_backward_gpu_path)

@@ -83,7 +83,9 @@ def _load(name: str, sources: tuple[str, ...], cuda: bool, verbose: bool) -> Mod
             module = cpp_extension.load(
                 name=name,
                 sources=[str(_CSRC / s) for s in sources],
-                extra_cflags=["-O2", "-ffp-contract=off"],  # geer_math.h: pair decisions without FMA drift
+                # -ffp-contract=off: pair decisions without FMA drift (geer_math.h); -fno-math-errno: sqrt inline.
+                # No -march: see cpu_ops.cpp warp_grad_sum on GCC 12's -O3 AVX-512 code.
+                extra_cflags=["-O3", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"],
                 extra_include_paths=[str(_CSRC)],
                 build_directory=str(build_dir),
                 with_cuda=cuda,
@@ -165,10 +167,12 @@ class _Rasterize(torch.autograd.Function):
         # pieces [N,8] (associate.pbf_cull_pieces), ray_bounds [R,4] and warp_bounds (RayGrid.ray/warp_cull_bounds):
         # the cull.
         geometry = (pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges)
-        out_rgb, depth, acc, t_final, n_contrib = ops.render_forward(
+        # blended_lanes: the CPU build's record of the lanes that blended each list entry, which its backward
+        # visits (empty from the kernels, whose backward re-derives them).
+        out_rgb, depth, acc, t_final, n_contrib, blended_lanes = ops.render_forward(
             whiten, o_u, rgb, opacities, *geometry, height, width, tile_size
         )
-        ctx.save_for_backward(whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib)
+        ctx.save_for_backward(whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib, blended_lanes)
         ctx.layout = (height, width, tile_size)
         ctx.ops = ops
         return out_rgb, depth, acc
@@ -176,13 +180,13 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_rgb, g_depth, g_acc):
-        whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib = ctx.saved_tensors
+        whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib, blended_lanes = ctx.saved_tensors
         r = geometry[1].shape[0]
         g_rgb = _zeros_if_none(g_rgb, (r, 3), whiten).contiguous()
         g_depth = _zeros_if_none(g_depth, (r,), whiten).contiguous()
         g_acc = _zeros_if_none(g_acc, (r,), whiten).contiguous()
         grads = ctx.ops.render_backward(
-            whiten, o_u, rgb, opacities, *geometry, *ctx.layout, t_final, n_contrib, g_rgb, g_depth, g_acc,
+            whiten, o_u, rgb, opacities, *geometry, *ctx.layout, t_final, n_contrib, blended_lanes, g_rgb, g_depth, g_acc,
         )  # [N, 16] rows (csrc/geer_blocks.h kGradValues): W row-major, o_u, colour, opacity
         gw, go, gc, gs = grads.split([9, 3, 3, 1], dim=1)
         return (gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1)) + (None,) * 11
