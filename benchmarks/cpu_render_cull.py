@@ -29,19 +29,21 @@ from cpu_association import dev_room_case, donut_case  # noqa: E402
 BEFORE_COMMIT = "1c7ac91"  # main before the cull
 
 
-def load_before_ops():
+def load_before_ops(commit: str = BEFORE_COMMIT, headers=("geer_math.h", "geer_associate.h", "geer_blocks.h"),
+                    cflags=("-O2", "-ffp-contract=off")):
+    """main's CPU build at `commit`, built as a second extension (its own name and build folder)."""
     from torch.utils import cpp_extension
 
-    src = Path(tempfile.mkdtemp(prefix="geer_before_cull_"))
-    for name in ("cpu_ops.cpp", "geer_math.h", "geer_associate.h", "geer_blocks.h"):
-        blob = subprocess.run(["git", "show", f"{BEFORE_COMMIT}:csrc/{name}"], cwd=ROOT, check=True,
+    name = f"geer_cpu_ops_{commit}"
+    src = Path(tempfile.mkdtemp(prefix=f"{name}_"))
+    for file in ("cpu_ops.cpp", *headers):
+        blob = subprocess.run(["git", "show", f"{commit}:csrc/{file}"], cwd=ROOT, check=True,
                               capture_output=True, text=True).stdout
-        (src / name).write_text(blob)
-    build = ROOT / ".cache" / "geer_ext" / "geer_cpu_ops_before_cull"
+        (src / file).write_text(blob)
+    build = ROOT / ".cache" / "geer_ext" / name
     build.mkdir(parents=True, exist_ok=True)
-    return cpp_extension.load(name="geer_cpu_ops_before_cull", sources=[str(src / "cpu_ops.cpp")],
-                              extra_cflags=["-O2", "-ffp-contract=off"], extra_include_paths=[str(src)],
-                              build_directory=str(build))
+    return cpp_extension.load(name=name, sources=[str(src / "cpu_ops.cpp")], extra_cflags=list(cflags),
+                              extra_include_paths=[str(src)], build_directory=str(build))
 
 
 def stage_inputs(case):

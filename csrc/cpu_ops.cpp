@@ -1,9 +1,14 @@
-// The 3DGEER pipeline on the CPU: geer_math.h (per-Gaussian, per-pair, per-ray math), geer_associate.h
-// (tile search, sort keys, ranges) and geer_blocks.h (which ray and which list entry each GPU thread
-// touches, batches, the warp reduction's order) run behind the same operation names and signatures as
+// The 3DGEER pipeline on the CPU: geer_math.h (per-Gaussian math), geer_ray.h (per-pair and per-ray math),
+// geer_associate.h (tile search, sort keys, ranges) and geer_blocks.h (which ray and which list entry each GPU
+// thread touches, batches, the warp reduction's order) run behind the same operation names and signatures as
 // the CUDA extension (bindings.cpp), so geer_ns/render/cuda_backend.py drives either: backend="cpu", and
 // the twin checks of tests/test_csrc_math.py. What the GPU adds on top (shared memory, atomics, the
 // radix sort) is not exercised here.
+//
+// The render stage's own path evaluates a warp's rays in packs (geer_packs.h, where the build has AVX2), and
+// its forward records which lanes blended each list entry so that the backward visits only those. The
+// kernels' path, one ray per thread with the warp cull, runs here too (render_forward_gpu_path,
+// render_backward_gpu_path); tests/test_cpu_backend.py checks that both give the same bits.
 //
 // Multi-threaded with at::parallel_for over tiles (render) and Gaussians (preprocess, association), with
 // every float sum in a fixed order: results do not depend on the thread count or scheduling. The render
@@ -20,6 +25,9 @@
 #include <atomic>
 #include <vector>
 
+#include <type_traits>
+
+#include "geer_packs.h"  // before geer_ray.h (through geer_blocks.h): the pack overloads
 #include "geer_associate.h"
 #include "geer_blocks.h"
 #include "geer_math.h"
@@ -184,34 +192,121 @@ std::vector<GaussFrame<T>> frames(const at::Tensor& whiten, const at::Tensor& o_
     return f;
 }
 
-// One tile's block as render.cu launches it: its threads' ray slots, validity, directions and cull bounds.
-template <typename T> struct Block {
-    int threads;
+// The lane type a CPU loop runs the per-ray functions on: a pack of rays (geer_packs.h), or one ray as a GPU
+// thread does (kPacks false: the kernels' path, which the tests compare bit for bit). The CPU's own path uses
+// packs where the build has AVX2 (cuda_backend.load_cpu_ops passes -mavx2 where the CPU has it): without it
+// GCC splits the 256-bit vectors into slower scalar code than one ray at a time.
+template <typename T, bool kPacks> using LaneOf = std::conditional_t<kPacks, typename geer::PackOf<T>::type, T>;
+#if defined(__AVX2__)
+constexpr bool kCpuPacks = true;
+#else
+constexpr bool kCpuPacks = false;
+#endif
+
+// One tile's block as render.cu launches it: its threads' ray slots and validity, and per pack of
+// Lane<L>::width consecutive threads (a warp holds whole packs) their rays' directions and cull bounds.
+template <typename T, typename L> struct Block {
+    static constexpr int kWidth = geer::Lane<L>::width;
+    static_assert(geer::kWarp % kWidth == 0, "a warp holds whole packs");
+    int threads, packs;
     std::vector<geer::RaySlot> slot;
     std::vector<uint8_t> valid;
-    std::vector<Vec3<T>> dir;
-    const T* all_ray_bounds;
-    const T* warp_bounds;   // the block's first warp's; then one row of 4 per warp
+    std::vector<Vec3<L>> dir;
+    std::vector<std::array<L, 4>> bounds;  // theta lo, hi, phi lo, hi (RayGrid.ray_cull_bounds)
+    const T* warp_bounds;                  // the block's first warp's; then one row of 4 per warp
 
     Block(int tile, int64_t height, int64_t width, int64_t ts, const uint8_t* ray_valid, const T* dirs,
           const T* ray_bounds, const T* all_warp_bounds)
-        : threads(geer::threads_per_tile(int(ts))), slot(threads), valid(threads), dir(threads),
-          all_ray_bounds(ray_bounds), warp_bounds(geer::warp_bounds_of(all_warp_bounds, int(ts), tile, 0)) {
+        : threads(geer::threads_per_tile(int(ts))), packs(threads / kWidth), slot(threads), valid(threads),
+          dir(packs), bounds(packs), warp_bounds(geer::warp_bounds_of(all_warp_bounds, int(ts), tile, 0)) {
         for (int tid = 0; tid < threads; ++tid) {
             slot[tid] = geer::ray_slot(int(height), int(width), int(ts), tile, tid);
             valid[tid] = slot[tid].in_image && ray_valid[slot[tid].ray] != 0;
-            dir[tid] = valid[tid] ? geer::load3(dirs + 3 * slot[tid].ray) : Vec3<T>{T(0), T(0), T(0)};
+            const Vec3<T> d = valid[tid] ? geer::load3(dirs + 3 * slot[tid].ray) : Vec3<T>{T(0), T(0), T(0)};
+            const T* rb = geer::ray_bounds_of(ray_bounds, slot[tid].ray);
+            const int pk = tid / kWidth, i = tid % kWidth;
+            geer::lane_set(dir[pk].x, i, d.x);
+            geer::lane_set(dir[pk].y, i, d.y);
+            geer::lane_set(dir[pk].z, i, d.z);
+            for (int c = 0; c < 4; ++c) geer::lane_set(bounds[pk][c], i, rb[c]);
         }
     }
-    const T* ray_bounds(int tid) const { return geer::ray_bounds_of(all_ray_bounds, slot[tid].ray); }
+    typename geer::Lane<L>::Mask valid_lanes(int pk) const {
+        uint32_t bits = 0;
+        for (int i = 0; i < kWidth; ++i) bits |= uint32_t(valid[pk * kWidth + i]) << i;
+        return geer::lanes_of_bits<L>(bits);
+    }
     const T* warp_bounds_of(int tid) const { return warp_bounds + 4 * (tid / geer::kWarp); }
 };
 
+template <typename T, bool kPacks>
 std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb,
-                                          at::Tensor opacities, at::Tensor pbf_pieces, at::Tensor dirs,
-                                          at::Tensor ray_bounds, at::Tensor warp_bounds, at::Tensor valid,
-                                          at::Tensor ids,
-                                          at::Tensor ranges, int64_t height, int64_t width, int64_t tile_size) {
+                                       at::Tensor opacities, at::Tensor pbf_pieces, at::Tensor dirs,
+                                       at::Tensor ray_bounds, at::Tensor warp_bounds, at::Tensor valid,
+                                       at::Tensor ids, at::Tensor ranges, int64_t height, int64_t width,
+                                       int64_t tile_size) {
+    using L = LaneOf<T, kPacks>;
+    constexpr int kWidth = geer::Lane<L>::width;
+    constexpr int kBatch = geer::Batch<T>::value;
+    const int64_t r = height * width;
+    auto opts = whiten.options();
+    auto out_rgb = at::zeros({r, 3}, opts), depth = at::zeros({r}, opts), acc = at::zeros({r}, opts);
+    auto t_final = at::ones({r}, opts);
+    auto n_contrib = at::zeros({r}, at::kInt);
+    // Which lanes blended each list entry, per warp: what the CPU backward visits (render_backward).
+    const int warps = geer::warps_per_tile(int(tile_size));
+    auto blended_lanes = at::zeros({ids.numel(), warps}, at::kInt);
+    uint32_t* blended = reinterpret_cast<uint32_t*>(blended_lanes.data_ptr<int32_t>());
+    const auto f = frames<T>(whiten, o_u, rgb, opacities, pbf_pieces);
+    const int32_t* id = ids.data_ptr<int32_t>();
+    const int32_t* rg = ranges.data_ptr<int32_t>();
+    parallel_dynamic(geer::tile_count(int(height), int(width), int(tile_size)), [&](int64_t tile) {
+        const Block<T, L> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs), ptr<T>(ray_bounds),
+                              ptr<T>(warp_bounds));
+        std::vector<geer::RayForward<L>> st(blk.packs);
+        for (int pk = 0; pk < blk.packs; ++pk) geer::ray_forward_init(st[pk], blk.valid_lanes(pk));
+        const int start = rg[2 * tile], end = rg[2 * tile + 1];
+        for (int b = 0; b < geer::batch_count(end - start, kBatch); ++b) {
+            bool all_done = true;  // __syncthreads_count(done) == blockDim.x
+            for (int pk = 0; pk < blk.packs; ++pk)
+                all_done = all_done && geer::lane_bits(st[pk].done) == (uint32_t(1) << kWidth) - 1;
+            if (all_done) break;
+            const geer::ListBatch bt = geer::forward_batch(start, end, b, kBatch);
+            for (int k = 0; k < bt.size; ++k) {
+                const int j = geer::batch_entry(bt, k);
+                const GaussFrame<T>& frame = f[id[j]];
+                for (int w0 = 0; w0 < blk.threads; w0 += geer::kWarp) {
+                    if (!geer::ray_meets_pbf(frame, blk.warp_bounds_of(w0))) continue;
+                    uint32_t lanes = 0;
+                    for (int pk = w0 / kWidth; pk < (w0 + geer::kWarp) / kWidth; ++pk) {
+                        const auto before = st[pk].n_contrib;
+                        geer::ray_forward_step(st[pk], frame, blk.dir[pk], blk.bounds[pk].data(), j - start);
+                        // blended: n_contrib moved to j
+                        lanes |= geer::lane_bits(st[pk].n_contrib != before) << (pk * kWidth - w0);
+                    }
+                    blended[size_t(j) * warps + w0 / geer::kWarp] = lanes;
+                }
+            }
+        }
+        for (int tid = 0; tid < blk.threads; ++tid) {
+            if (!blk.slot[tid].in_image) continue;
+            const int ray = blk.slot[tid].ray, pk = tid / kWidth, i = tid % kWidth;
+            for (int c = 0; c < 3; ++c) mptr<T>(out_rgb)[3 * ray + c] = geer::lane_get(st[pk].rgb[c], i);
+            mptr<T>(depth)[ray] = geer::lane_get(st[pk].depth, i);
+            mptr<T>(acc)[ray] = geer::lane_get(st[pk].acc, i);
+            mptr<T>(t_final)[ray] = geer::lane_get(st[pk].trans, i);
+            n_contrib.data_ptr<int32_t>()[ray] = geer::lane_get(st[pk].n_contrib, i);
+        }
+    });
+    return {out_rgb, depth, acc, t_final, n_contrib, blended_lanes};
+}
+
+// render_forward for either dtype: kPacks, the CPU's path; otherwise one ray per thread, the kernels' path.
+template <bool kPacks>
+std::vector<at::Tensor> render_forward_op(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
+                                          at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
+                                          at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids, at::Tensor ranges,
+                                          int64_t height, int64_t width, int64_t tile_size) {
     whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities); pbf_pieces = cpu(pbf_pieces);
     dirs = cpu(dirs); ray_bounds = cpu(ray_bounds); warp_bounds = cpu(warp_bounds);
     valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges);
@@ -219,60 +314,10 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     TORCH_CHECK(warp_bounds.numel() == 4 * geer::tile_count(int(height), int(width), int(tile_size)) *
                                            geer::warps_per_tile(int(tile_size)),
                 "geer: warp_bounds must be [tiles * warps per tile, 4]");
-    const int64_t r = height * width;
-    auto opts = whiten.options();
-    auto out_rgb = at::zeros({r, 3}, opts), depth = at::zeros({r}, opts), acc = at::zeros({r}, opts);
-    auto t_final = at::ones({r}, opts);
-    auto n_contrib = at::zeros({r}, at::kInt);
-    const int warps = geer::warps_per_tile(int(tile_size));
-    auto blended_lanes = at::zeros({ids.numel(), warps}, at::kInt);
-    uint32_t* blended = reinterpret_cast<uint32_t*>(blended_lanes.data_ptr<int32_t>());
-    dispatch<int>(whiten, [&](auto tag) {
-        using T = decltype(tag);
-        constexpr int kBatch = geer::Batch<T>::value;
-        const auto f = frames<T>(whiten, o_u, rgb, opacities, pbf_pieces);
-        const int32_t* id = ids.data_ptr<int32_t>();
-        const int32_t* rg = ranges.data_ptr<int32_t>();
-        parallel_dynamic(geer::tile_count(int(height), int(width), int(tile_size)), [&](int64_t tile) {
-            const Block<T> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs), ptr<T>(ray_bounds),
-                                    ptr<T>(warp_bounds));
-            std::vector<geer::RayForward<T>> st(blk.threads);
-            for (int tid = 0; tid < blk.threads; ++tid) geer::ray_forward_init(st[tid], blk.valid[tid] != 0);
-            const int start = rg[2 * tile], end = rg[2 * tile + 1];
-            for (int b = 0; b < geer::batch_count(end - start, kBatch); ++b) {
-                bool all_done = true;  // __syncthreads_count(done) == blockDim.x
-                for (int tid = 0; tid < blk.threads; ++tid) all_done = all_done && st[tid].done;
-                if (all_done) break;
-                const geer::ListBatch bt = geer::forward_batch(start, end, b, kBatch);
-                for (int k = 0; k < bt.size; ++k) {
-                    const int j = geer::batch_entry(bt, k);
-                    const GaussFrame<T>& frame = f[id[j]];
-                    for (int w0 = 0; w0 < blk.threads; w0 += geer::kWarp) {
-                        if (!geer::ray_meets_pbf(frame, blk.warp_bounds_of(w0))) continue;
-                        uint32_t lanes = 0;
-                        for (int lane = 0; lane < geer::kWarp; ++lane) {
-                            geer::RayForward<T>& s = st[w0 + lane];
-                            const int before = s.n_contrib;
-                            geer::ray_forward_step(s, frame, blk.dir[w0 + lane], blk.ray_bounds(w0 + lane), j - start);
-                            lanes |= uint32_t(s.n_contrib != before) << lane;  // blended: n_contrib moved to j
-                        }
-                        blended[size_t(j) * warps + w0 / geer::kWarp] = lanes;
-                    }
-                }
-            }
-            for (int tid = 0; tid < blk.threads; ++tid) {
-                if (!blk.slot[tid].in_image) continue;
-                const int ray = blk.slot[tid].ray;
-                for (int c = 0; c < 3; ++c) mptr<T>(out_rgb)[3 * ray + c] = st[tid].rgb[c];
-                mptr<T>(depth)[ray] = st[tid].depth;
-                mptr<T>(acc)[ray] = st[tid].acc;
-                mptr<T>(t_final)[ray] = st[tid].trans;
-                n_contrib.data_ptr<int32_t>()[ray] = st[tid].n_contrib;
-            }
-        });
-        return 0;
+    return dispatch<int>(whiten, [&](auto tag) {
+        return render_forward<decltype(tag), kPacks>(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds,
+                                                     warp_bounds, valid, ids, ranges, height, width, tile_size);
     });
-    return {out_rgb, depth, acc, t_final, n_contrib, blended_lanes};
 }
 
 constexpr int kGradValues = geer::kGradValues;
@@ -324,11 +369,21 @@ template <typename T> void warp_grad_sum_sparse(uint32_t contrib, const geer::Pa
     for (int i = 0; i < kGradValues; ++i) row[i] += part[0][i];  // the writer lanes' atomicAdds
 }
 
+// One lane of a pack's pair gradient.
+template <typename T, typename L> void pair_grad_lane(const geer::PairGrad<L>& pg, int i, geer::PairGrad<T>& out) {
+    for (int v = 0; v < 9; ++v) out.w[v] = geer::lane_get(pg.w[v], i);
+    for (int v = 0; v < 3; ++v) {
+        out.o[v] = geer::lane_get(pg.o[v], i);
+        out.rgb[v] = geer::lane_get(pg.rgb[v], i);
+    }
+    out.opacity = geer::lane_get(pg.opacity, i);
+}
+
 // -> [N,16] gradient rows (geer_launchers.h RenderGradArgs::grads). kRecorded: the CPU's path (render_backward),
-// which visits only the lanes the forward recorded as blending each entry (blended_lanes); without it the GPU's
-// path (render_backward_gpu_path: the warp cull, then every lane of the blended prefix evaluates the pair, as
-// render.cu), which the tests check gives the same bits.
-template <bool kRecorded>
+// which visits only the lanes the forward recorded as blending each entry (blended_lanes), in packs where
+// kPacks; otherwise the GPU's path (render_backward_gpu_path: one ray per thread, the warp cull, then every lane
+// of the blended prefix evaluates the pair, as render.cu), which the tests check gives the same bits.
+template <bool kPacks, bool kRecorded>
 at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
                            at::Tensor pbf_pieces,
                            at::Tensor dirs, at::Tensor ray_bounds, at::Tensor warp_bounds, at::Tensor valid,
@@ -352,6 +407,9 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
     auto grads = at::zeros({n, kGradValues}, opts);
     dispatch<int>(whiten, [&](auto tag) {
         using T = decltype(tag);
+        using L = LaneOf<T, kPacks>;
+        constexpr int kWidth = geer::Lane<L>::width;
+        constexpr uint32_t kPackBits = kWidth == 32 ? ~0u : (uint32_t(1) << kWidth) - 1;
         constexpr int kBatch = geer::Batch<T>::value;
         constexpr int kWarp = geer::kWarp;
         const auto f = frames<T>(whiten, o_u, rgb, opacities, pbf_pieces);
@@ -361,24 +419,27 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
         const uint32_t* blended = reinterpret_cast<const uint32_t*>(blended_lanes.data_ptr<int32_t>());
         std::vector<T> pair_grad(size_t(m) * kGradValues, T(0));  // one slot per (tile, Gaussian) pair
         parallel_dynamic(geer::tile_count(int(height), int(width), int(tile_size)), [&](int64_t tile) {
-            const Block<T> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs), ptr<T>(ray_bounds),
-                                    ptr<T>(warp_bounds));
-            std::vector<geer::RayBackward<T>> st(blk.threads);
-            std::vector<int> my_n(blk.threads);
+            const Block<T, L> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs), ptr<T>(ray_bounds),
+                                  ptr<T>(warp_bounds));
+            std::vector<geer::RayBackward<L>> st(blk.packs);
+            std::vector<typename geer::Lane<L>::Int> my_n(blk.packs);
             int block_n = 0;
             for (int tid = 0; tid < blk.threads; ++tid) {
                 const bool ok = blk.valid[tid] != 0;
-                const int ray = blk.slot[tid].ray;
-                my_n[tid] = ok ? nc[ray] : 0;
-                block_n = std::max(block_n, my_n[tid]);  // atomicMax
-                st[tid].trans = ok ? ptr<T>(t_final)[ray] : T(1);
-                st[tid].rec = T(0);
-                for (int c = 0; c < 3; ++c) st[tid].g_rgb[c] = ok ? ptr<T>(g_rgb)[3 * ray + c] : T(0);
-                st[tid].g_depth = ok ? ptr<T>(g_depth)[ray] : T(0);
-                st[tid].g_acc = ok ? ptr<T>(g_acc)[ray] : T(0);
+                const int ray = blk.slot[tid].ray, pk = tid / kWidth, i = tid % kWidth;
+                const int n_mine = ok ? nc[ray] : 0;
+                geer::lane_set(my_n[pk], i, n_mine);
+                block_n = std::max(block_n, n_mine);  // atomicMax
+                geer::RayBackward<L>& s = st[pk];
+                geer::lane_set(s.trans, i, ok ? ptr<T>(t_final)[ray] : T(1));
+                geer::lane_set(s.rec, i, T(0));
+                for (int c = 0; c < 3; ++c) geer::lane_set(s.g_rgb[c], i, ok ? ptr<T>(g_rgb)[3 * ray + c] : T(0));
+                geer::lane_set(s.g_depth, i, ok ? ptr<T>(g_depth)[ray] : T(0));
+                geer::lane_set(s.g_acc, i, ok ? ptr<T>(g_acc)[ray] : T(0));
             }
             const int start = rg[2 * tile];
             geer::PairGrad<T> p[kWarp];
+            geer::PairGrad<L> pg;
             for (int b = 0; b < geer::batch_count(block_n, kBatch); ++b) {
                 const geer::ListBatch bt = geer::backward_batch(start, block_n, b, kBatch);
                 for (int k = 0; k < bt.size; ++k) {
@@ -387,17 +448,27 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
                     const GaussFrame<T>& frame = f[id[j]];
                     T* slot = pair_grad.data() + size_t(j) * kGradValues;
                     for (int w0 = 0; w0 < blk.threads; w0 += kWarp) {
-                        // The lanes to visit: those that blended the entry (every other lane's step returns
-                        // false: outside the PBF, q > q_max, or past its blended prefix).
+                        // The lanes to visit: the CPU's path, those that blended the entry (every other lane's
+                        // step finds nothing: outside the PBF, q > q_max, or past its blended prefix); the
+                        // kernels' path, every lane of a warp the cull keeps.
                         uint32_t lanes = ~0u;
                         if (kRecorded) lanes = blended[size_t(j) * warps + w0 / kWarp];
                         else if (!geer::ray_meets_pbf(frame, blk.warp_bounds_of(w0))) lanes = 0;
+                        if (!lanes) continue;
                         uint32_t contrib = 0;  // __ballot_sync
-                        for (; lanes; lanes &= lanes - 1) {
-                            const int lane = __builtin_ctz(lanes);
-                            const int tid = w0 + lane;
-                            if (pos < my_n[tid] && geer::ray_backward_step(st[tid], frame, blk.dir[tid], p[lane]))
-                                contrib |= 1u << lane;
+                        for (int pk = w0 / kWidth; pk < (w0 + kWarp) / kWidth; ++pk) {
+                            const int first = pk * kWidth - w0;  // the pack's first lane in the warp
+                            const uint32_t mine = (lanes >> first) & kPackBits;
+                            if (!mine) continue;
+                            const auto active =
+                                geer::lanes_of_bits<L>(mine) & (geer::Lane<L>::splat_int(pos) < my_n[pk]);
+                            const uint32_t done = geer::lane_bits(geer::ray_backward_step(st[pk], frame, blk.dir[pk],
+                                                                                          active, pg));
+                            contrib |= done << first;
+                            for (uint32_t d = done; d; d &= d - 1) {
+                                const int i = __builtin_ctz(d);
+                                pair_grad_lane(pg, i, p[first + i]);
+                            }
                         }
                         warp_grad_sum_sparse(contrib, p, slot);
                     }
@@ -503,7 +574,7 @@ std::vector<at::Tensor> pair_backward(at::Tensor whiten, at::Tensor o_u, at::Ten
             const Vec3<T> d = geer::load3(ptr<T>(dirs) + 3 * i);
             auto e = geer::eval_pair(f, d);
             Vec3<T> g;
-            geer::pair_response_backward(e, geer::load3(ptr<T>(o_u) + 3 * i), d, ptr<T>(g_d2)[i], ptr<T>(g_t)[i], g,
+            geer::pair_response_backward<T>(e, geer::load3(ptr<T>(o_u) + 3 * i), d, ptr<T>(g_d2)[i], ptr<T>(g_t)[i], g,
                                          mptr<T>(gw) + 9 * i);
             geer::store3(mptr<T>(go) + 3 * i, g);
         }
@@ -581,9 +652,14 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.doc() = "geer_math.h on the CPU (tests only)";
     m.def("preprocess_forward", &preprocess_forward);
     m.def("associate", &associate);
-    m.def("render_forward", &render_forward);
-    m.def("render_backward", &render_backward<true>);
-    m.def("render_backward_gpu_path", &render_backward<false>);
+    m.def("render_forward", &render_forward_op<kCpuPacks>);
+    m.def("render_forward_gpu_path", &render_forward_op<false>);
+    m.def("render_backward", &render_backward<kCpuPacks, true>);
+    m.def("render_backward_gpu_path", &render_backward<false, false>);
+    m.def("render_lanes", [](bool float64) -> int64_t {
+        if (!kCpuPacks) return 1;
+        return float64 ? geer::Lane<geer::DoublePack>::width : geer::Lane<geer::FloatPack>::width;
+    }, "rays per pack in render_forward / render_backward (1: one ray at a time, as a GPU thread)");
     m.def("preprocess_backward", &preprocess_backward);
     m.def("pair_eval", &pair_eval);
     m.def("pair_backward", &pair_backward);

@@ -5,7 +5,7 @@
 // each batch item, and the backward's warp reduction (its stages, summation order and output slots).
 #pragma once
 
-#include "geer_math.h"
+#include "geer_ray.h"
 
 namespace geer {
 

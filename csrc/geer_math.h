@@ -160,6 +160,39 @@ template <typename T> GEER_HD void store_mat3(T* p, const Mat3<T>& a) {
     for (int i = 0; i < 9; ++i) p[i] = a.m[i];
 }
 
+// ---------------------------------------------------------------------------------- lanes
+// The per-ray functions (geer_ray.h) take their ray quantities as a lane type L: one ray, L = T (a GPU
+// thread), or in the CPU build a pack of rays at once (geer_packs.h: GCC vectors, the same IEEE operations
+// lane by lane, so the same bits). Lane<L> names the scalar, the per-lane mask and integer types and
+// broadcasts; the lane_* helpers are the scalar forms, which geer_packs.h overloads for packs.
+template <typename L> struct Lane;
+template <> struct Lane<float> {
+    using Scalar = float;
+    using Mask = bool;
+    using Int = int;
+    static constexpr int width = 1;
+    GEER_HD static float splat(float x) { return x; }
+    GEER_HD static int splat_int(int x) { return x; }
+};
+template <> struct Lane<double> {
+    using Scalar = double;
+    using Mask = bool;
+    using Int = int;
+    static constexpr int width = 1;
+    GEER_HD static double splat(double x) { return x; }
+    GEER_HD static int splat_int(int x) { return x; }
+};
+template <typename L> GEER_HD L splat(typename Lane<L>::Scalar x) { return Lane<L>::splat(x); }
+template <typename L> GEER_HD Vec3<L> splat3(const typename Lane<L>::Scalar* p) {
+    return Vec3<L>{splat<L>(p[0]), splat<L>(p[1]), splat<L>(p[2])};
+}
+GEER_HD bool lane_any(bool m) { return m; }
+GEER_HD bool lane_not(bool m) { return !m; }
+template <typename V> GEER_HD V lane_select(bool m, V a, V b) { return m ? a : b; }
+// Scalar forms of the per-pair intrinsics with a lane mask: exp where kept, 0 elsewhere.
+GEER_HD float exp_where(bool keep, float x) { return keep ? g_exp_pair(x) : 0.0f; }
+GEER_HD double exp_where(bool keep, double x) { return keep ? g_exp_pair(x) : 0.0; }
+
 // ================================================================================ forward: Gaussian
 // transforms.quat_to_rotmat: wxyz, any norm (normalised with the norm clamped at tiny).
 // transforms.normalize_quats: divide by the largest |component| first, so the squares stay in range (a
@@ -282,9 +315,15 @@ template <typename T> GEER_HD MirrorPieces<T> interval_pieces(T lo, T hi) {
     return p;
 }
 
-// associate._overlaps for one tile interval [t_lo, t_hi] (mirror domain).
-template <typename T> GEER_HD bool pieces_overlap(const MirrorPieces<T>& p, T t_lo, T t_hi) {
-    return (p.a_lo <= t_hi && t_lo <= p.a_hi) || (p.b_lo <= t_hi && t_lo <= p.b_hi);
+// associate._overlaps for one tile interval [t_lo, t_hi] (mirror domain), per lane. One ray: short-circuit (the
+// GPU loads no more bounds than it needs).
+template <typename T, typename L>
+GEER_HD typename Lane<L>::Mask pieces_overlap(const MirrorPieces<T>& p, L t_lo, L t_hi) {
+    if constexpr (Lane<L>::width == 1) {
+        return (p.a_lo <= t_hi && t_lo <= p.a_hi) || (p.b_lo <= t_hi && t_lo <= p.b_hi);
+    } else {
+        return ((p.a_lo <= t_hi) & (t_lo <= p.a_hi)) | ((p.b_lo <= t_hi) & (t_lo <= p.b_hi));
+    }
 }
 
 // A PBF as the association tests it: theta and phi pieces (mirror domain).
@@ -296,9 +335,13 @@ template <typename T> GEER_HD PbfPieces<T> pbf_pieces(const T* pbf_bounds) {
     return PbfPieces<T>{interval_pieces(pbf_bounds[0], pbf_bounds[1]), interval_pieces(pbf_bounds[2], pbf_bounds[3])};
 }
 
-// Whether a ray (or a tile) with mirror-domain bounds b = (theta lo, hi, phi lo, hi) meets the PBF.
-template <typename T> GEER_HD bool pbf_overlaps(const PbfPieces<T>& p, const T* b) {
-    return pieces_overlap(p.theta, b[0], b[1]) && pieces_overlap(p.phi, b[2], b[3]);
+// Whether a ray (or a tile) with mirror-domain bounds b = (theta lo, hi, phi lo, hi) meets the PBF, per lane.
+template <typename T, typename L> GEER_HD typename Lane<L>::Mask pbf_overlaps(const PbfPieces<T>& p, const L* b) {
+    if constexpr (Lane<L>::width == 1) {
+        return pieces_overlap(p.theta, b[0], b[1]) && pieces_overlap(p.phi, b[2], b[3]);
+    } else {
+        return pieces_overlap(p.theta, b[0], b[1]) & pieces_overlap(p.phi, b[2], b[3]);
+    }
 }
 
 // Everything the preprocess stage produces for one Gaussian.
@@ -415,231 +458,6 @@ GEER_HD Vec3<T> sh_to_color(const T* coeffs, int degree, const Vec3<T>& dir, Vec
     acc = acc + Vec3<T>{T(0.5), T(0.5), T(0.5)};
     if (raw) *raw = acc;
     return Vec3<T>{g_max(acc.x, T(0)), g_max(acc.y, T(0)), g_max(acc.z, T(0))};
-}
-
-// ================================================================================ forward: pair
-// One Gaussian as the render stage sees it (transmittance.ray_frame, plus what blending needs): 32 values,
-// 16-byte aligned (128 bytes in float32), so that the kernels' shared-memory reads vectorise.
-template <typename T> struct alignas(16) GaussFrame {
-    T w[9];       // rows 0-2: d_u = W d
-    T mom[9];     // rows 3-5: m_u = ([o_u]_x W) d (columns o_u x W e_j)
-    T along[3];   // row 6: o_u . d_u = (W^T o_u) . d
-    T o[3];       // o_u (for the backward)
-    T o_sq;       // |o_u|^2: q of every ray whose line peaks behind the camera (t* <= 0)
-    T q_max;      // 2 ln(255 sigma): alpha >= 1/255 exactly when q <= q_max (-inf for sigma = 0)
-    T rgb[3];
-    T opacity;
-    PbfPieces<T> pbf;  // the per-ray cull (ray_meets_pbf)
-    T pad[2];
-};
-static_assert(sizeof(GaussFrame<float>) == 160 && alignof(GaussFrame<float>) == 16, "GaussFrame<float>: 10 x 16 B");
-static_assert(sizeof(GaussFrame<double>) == 320, "GaussFrame<double>: 20 x 16 B");
-
-// pieces: the Gaussian's PBF as the association tests it, [8] = theta (a_lo, a_hi, b_lo, b_hi), phi (same)
-// in the mirror domain (cuda_backend.pbf_cull_pieces; made once per Gaussian and view, not per tile: the
-// tangents would cost the render kernels registers).
-template <typename T>
-GEER_HD void make_frame(const T* w, const T* o_u, const T* rgb, T opacity, const T* pieces, GaussFrame<T>& f) {
-    const Vec3<T> o = load3(o_u);
-    for (int i = 0; i < 9; ++i) f.w[i] = w[i];
-    for (int j = 0; j < 3; ++j) {
-        const Vec3<T> col{w[j], w[3 + j], w[6 + j]};
-        const Vec3<T> c = x_cross(o, col);
-        f.mom[j] = c.x; f.mom[3 + j] = c.y; f.mom[6 + j] = c.z;
-        f.along[j] = x_dot(o, col);
-    }
-    for (int i = 0; i < 3; ++i) { f.o[i] = o_u[i]; f.rgb[i] = rgb[i]; }
-    f.o_sq = x_dot(o, o);
-    f.q_max = T(2.0) * g_log(T(255.0) * opacity);  // transmittance.alpha_level_sq
-    f.opacity = opacity;
-    f.pbf.theta = MirrorPieces<T>{pieces[0], pieces[1], pieces[2], pieces[3]};
-    f.pbf.phi = MirrorPieces<T>{pieces[4], pieces[5], pieces[6], pieces[7]};
-    f.pad[0] = f.pad[1] = T(0);
-}
-
-// Per-ray cull before any per-pair arithmetic: a ray whose own mirror-domain bounds (RayGrid.ray_cull_bounds:
-// its BEAP angles, widened by a slack far above the PBF's rounding) miss the Gaussian's PBF has alpha < 1/255,
-// so eval_pair would not keep it either (the association's tile test, one ray at a time). On a tile's list
-// most rays lie outside most PBFs (65-71 % of the pairs on benchmarks/cpu_render_cull.md's views).
-template <typename T> GEER_HD bool ray_meets_pbf(const GaussFrame<T>& g, const T* ray_bounds) {
-    return pbf_overlaps(g.pbf, ray_bounds);
-}
-
-template <typename T> struct PairEval {
-    Vec3<T> d_u;   // W d
-    Vec3<T> m_hat; // m_u / |d_u|
-    T inv_norm;    // 1 / |d_u| (|d_u|^2 clamped at tiny)
-    bool clamped;  // |d_u|^2 < tiny: inv_norm does not depend on d_u
-    T dist_sq;     // D^2: q on the whole line, at t*
-    T t_star;      // distance along the unit ray to the line's maximum response
-    bool front;    // t* > 0: the line's maximum lies on the half-line t >= 0, q = D^2; else q = |o_u|^2
-    T q;           // q(max(t*, 0)): squared canonical distance of the half-line's closest point
-    bool keep;     // q <= q_max (alpha >= 1/255): decided before the exponential
-    T gauss;       // exp(-q / 2)        (0 where not kept)
-    T raw;         // sigma exp(-q / 2)  (0 where not kept)
-    T alpha;       // min(0.99, raw)     (0 where not kept)
-};
-
-// transmittance.canonical_ray_response + half_line_sq + pair_alpha for one (ray, Gaussian) pair: the
-// half-line rule, the peak response on the ray as travelled (t >= 0), sigma exp(-q(max(t*, 0)) / 2).
-// The forward and the backward kernel both decide `front` and `keep` here, on values computed with
-// x_* arithmetic (never contracted into FMAs), so the two decisions are the same bits.
-template <typename T> GEER_HD PairEval<T> eval_pair(const GaussFrame<T>& g, const Vec3<T>& d) {
-    PairEval<T> e;
-    e.d_u = Vec3<T>{x_dot(load3(g.w), d), x_dot(load3(g.w + 3), d), x_dot(load3(g.w + 6), d)};
-    const Vec3<T> m{x_dot(load3(g.mom), d), x_dot(load3(g.mom + 3), d), x_dot(load3(g.mom + 6), d)};
-    const T a = x_dot(load3(g.along), d);
-    const T nsq = x_dot(e.d_u, e.d_u);
-    e.clamped = nsq < Limits<T>::tiny();
-    e.inv_norm = g_rsqrt(g_max(nsq, Limits<T>::tiny()));
-    e.m_hat = Vec3<T>{x_mul(e.inv_norm, m.x), x_mul(e.inv_norm, m.y), x_mul(e.inv_norm, m.z)};  // no overflow
-    e.dist_sq = x_dot(e.m_hat, e.m_hat);
-    e.t_star = x_mul(x_mul(-a, e.inv_norm), e.inv_norm);
-    e.front = e.t_star > T(0);
-    e.q = e.front ? e.dist_sq : g.o_sq;
-    e.keep = e.q <= g.q_max;
-    e.gauss = e.keep ? g_exp_pair(T(-0.5) * e.q) : T(0);
-    e.raw = g.opacity * e.gauss;
-    e.alpha = g_min(e.raw, T(kAlphaMax));
-    return e;
-}
-
-// ================================================================================ forward: ray
-template <typename T> struct RayForward {
-    T rgb[3];
-    T depth;      // sum of w_i max(t*_i, 0)
-    T acc;        // sum of w_i
-    T trans;      // transmittance after the last blended Gaussian
-    int n_contrib;  // 1 + list position of the last blended Gaussian (0: none)
-    bool done;    // stopped (T would fall below T_MIN) or the ray is invalid
-};
-
-template <typename T> GEER_HD void ray_forward_init(RayForward<T>& s, bool valid) {
-    s.rgb[0] = s.rgb[1] = s.rgb[2] = T(0);
-    s.depth = s.acc = T(0);
-    s.trans = T(1);
-    s.n_contrib = 0;
-    s.done = !valid;
-}
-
-// Blend the Gaussian at list position `pos` (composite.composite: stop before T < T_MIN).
-template <typename T>
-GEER_HD void ray_forward_step(RayForward<T>& s, const GaussFrame<T>& g, const Vec3<T>& d, const T* ray_bounds,
-                              int pos) {
-    if (s.done || !ray_meets_pbf(g, ray_bounds)) return;
-    const PairEval<T> e = eval_pair(g, d);
-    if (!e.keep) return;
-    const T t_after = s.trans * (T(1) - e.alpha);
-    if (t_after < T(kTMin)) {
-        s.done = true;
-        return;
-    }
-    const T w = e.alpha * s.trans;
-    for (int c = 0; c < 3; ++c) s.rgb[c] += w * g.rgb[c];
-    s.depth += w * (e.front ? e.t_star : T(0));  // depth at the same clamped t as the response
-    s.acc += w;
-    s.trans = t_after;
-    s.n_contrib = pos + 1;
-}
-
-// ================================================================================ backward: pair
-// dL/dD^2, dL/dt* of one pair -> dL/d(o_u), dL/dW (paper C.3-C.4, RenderCUDA part).
-// With m = o_u x d_u, n = 1 / |d_u|, m_hat = m n, d_hat = d_u n:
-//   D^2 = |m|^2 n^2        dD^2/dm = 2 n m_hat      dD^2/dd_u (via n) = -2 D^2 n d_hat
-//   t*  = -(o_u . d_u) n^2 dt*/do_u = -n d_hat      dt*/dd_u = -n^2 o_u - 2 t* n d_hat
-//   d(m . g)/do_u = d_u x g,  d(m . g)/dd_u = g x o_u
-// so dL/do_u = 2 gD (d_hat x m_hat) - gt n d_hat and dL/dd_u = n [2 gD (m_hat x o_u) - gt n o_u
-// - 2 (gD D^2 + gt t*) d_hat], dL/dW = dL/dd_u d^T (C.9). Everything stays O(|o_u|), never |m|^2.
-template <typename T>
-GEER_HD void pair_response_backward(const PairEval<T>& e, const Vec3<T>& o_u, const Vec3<T>& d, T g_dist_sq,
-                                    T g_t_star, Vec3<T>& g_o, T* g_w /* 9, accumulated */) {
-    const T n = e.inv_norm;
-    const Vec3<T> d_hat = n * e.d_u;
-    g_o = (T(2) * g_dist_sq) * cross(d_hat, e.m_hat) - (g_t_star * n) * d_hat;
-    Vec3<T> g_du = (T(2) * g_dist_sq) * cross(e.m_hat, o_u) - (g_t_star * n) * o_u;
-    if (!e.clamped) g_du = g_du - (T(2) * (g_dist_sq * e.dist_sq + g_t_star * e.t_star)) * d_hat;
-    g_du = n * g_du;
-    const T gd[3] = {g_du.x, g_du.y, g_du.z};
-    const T dv[3] = {d.x, d.y, d.z};
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) g_w[3 * i + j] += gd[i] * dv[j];
-}
-
-// dL/dq, dL/d(depth position) of one kept pair -> dL/d(o_u), dL/dW through the half-line rule.
-// One gradient at every clamp, defined here and followed by the twin's autograd (transmittance.py):
-//   max(t*, 0)   the t* branch where t* > 0, the camera-centre branch q = |o_u|^2 (no W, no depth
-//                gradient) where t* <= 0. q is C^1 across t* = 0 (both branches: value |o_u|^2,
-//                gradient 2 o_u), so only depth has a kink there, and it takes the derivative 0.
-//   min(raw, 0.99), the 1/255 skip, the 1e-4 stop: see ray_backward_step.
-template <typename T>
-GEER_HD void half_line_backward(const PairEval<T>& e, const Vec3<T>& o_u, const Vec3<T>& d, T g_q, T g_depth_t,
-                                Vec3<T>& g_o, T* g_w /* 9, accumulated */) {
-    if (e.front) {
-        pair_response_backward(e, o_u, d, g_q, g_depth_t, g_o, g_w);
-    } else {
-        g_o = (T(2) * g_q) * o_u;
-    }
-}
-
-// ================================================================================ backward: ray
-// Back-to-front state of one ray (3DGS-style): transmittance before the current Gaussian is
-// recovered as T_after / (1 - alpha); `rec` is sum_{j > i} alpha_j prod_{i<k<j} (1 - alpha_k) v_j with
-// v = gC . c + gZ z + gA, so that dL/dalpha_i = T_i (v_i - rec).
-template <typename T> struct RayBackward {
-    T trans;      // transmittance after the Gaussian about to be processed
-    T rec;
-    T g_rgb[3];   // dL/d(rgb sum), dL/d(depth sum), dL/d(accumulation) of this ray
-    T g_depth;
-    T g_acc;
-};
-
-// Per-pair gradient contributions, to be summed into the Gaussian's buffers.
-template <typename T> struct PairGrad {
-    T w[9];
-    T o[3];
-    T rgb[3];
-    T opacity;
-};
-
-template <typename T> GEER_HD void pair_grad_zero(PairGrad<T>& p) {
-    for (int i = 0; i < 9; ++i) p.w[i] = T(0);
-    for (int i = 0; i < 3; ++i) p.o[i] = p.rgb[i] = T(0);
-    p.opacity = T(0);
-}
-
-// One Gaussian of the ray's blended prefix, back to front. Returns false (p untouched) when the pair
-// was skipped (q > q_max), which is what the forward skipped too. No per-ray cull here: the GPU, whose
-// 1024-thread float32 build has no registers to spare for it, skips whole warps (render.cu); the CPU build
-// visits only the lanes its forward recorded as blending the pair (cpu_ops.cpp); tests/test_cpu_backend.py
-// checks that the two give the same bits. Subgradients at the clamps:
-//   alpha = min(raw, 0.99)  the derivative of raw where raw <= 0.99, none where raw > 0.99;
-//   skip (q <= q_max) and stop (T_after >= 1e-4)  piecewise constant: a blended pair gets its ordinary
-//                           derivative (also exactly on a threshold, where it is blended), others none;
-//   max(t*, 0)              half_line_backward.
-template <typename T>
-GEER_HD bool ray_backward_step(RayBackward<T>& s, const GaussFrame<T>& g, const Vec3<T>& d, PairGrad<T>& p) {
-    const PairEval<T> e = eval_pair(g, d);
-    if (!e.keep) return false;
-    const T one_minus = T(1) - e.alpha;
-    const T t_before = s.trans / one_minus;
-    const T w = e.alpha * t_before;
-    const T z = e.front ? e.t_star : T(0);
-    const T v = s.g_rgb[0] * g.rgb[0] + s.g_rgb[1] * g.rgb[1] + s.g_rgb[2] * g.rgb[2] + s.g_depth * z + s.g_acc;
-    const T g_alpha = t_before * (v - s.rec);
-    s.rec = e.alpha * v + one_minus * s.rec;
-    s.trans = t_before;
-
-    pair_grad_zero(p);
-    for (int c = 0; c < 3; ++c) p.rgb[c] = w * s.g_rgb[c];
-    T g_q = T(0);
-    if (e.raw <= T(kAlphaMax)) {
-        p.opacity = g_alpha * e.gauss;
-        g_q = T(-0.5) * g_alpha * e.raw;
-    }
-    Vec3<T> g_o;
-    half_line_backward(e, load3(g.o), d, g_q, e.front ? w * s.g_depth : T(0), g_o, p.w);
-    p.o[0] = g_o.x; p.o[1] = g_o.y; p.o[2] = g_o.z;
-    return true;
 }
 
 // ================================================================================ backward: Gaussian

@@ -13,6 +13,7 @@
 #include "geer_blocks.h"
 #include "geer_launchers.h"
 #include "geer_math.h"
+#include "geer_ray.h"
 
 namespace geer {
 
@@ -113,7 +114,7 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
             if (!ray_meets_pbf(frames[k], wb)) continue;  // the same for every lane of the warp
             const int pos = batch_entry(bt, k) - start;  // list position within the tile
             PairGrad<T> p;
-            const bool contrib = pos < my_n && ray_backward_step(st, frames[k], d, p);
+            const bool contrib = ray_backward_step(st, frames[k], d, pos < my_n, p);
             if (!__any_sync(0xffffffffu, contrib)) continue;
             T v[kGradValues];
             lane_grad_values(p, contrib, v);

@@ -103,14 +103,26 @@ def test_lists_longer_than_a_batch_match_the_twin(ops, dtype):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("grid_name", ["beap", "fisheye180", "equirect360"])
-def test_the_gpu_backward_path_without_the_forward_record_gives_the_same_bits(ops, monkeypatch, grid_name, dtype):
-    """The CPU backward visits only the lanes its forward recorded as blending each entry (blended_lanes);
-    the GPU's skips whole warps by the cull and lets every lane of the blended prefix evaluate the pair
-    (render_backward_gpu_path runs that path on the CPU). Same images and gradients, bit for bit."""
+def test_the_kernels_one_ray_per_thread_path_gives_the_cpu_paths_bits(ops, monkeypatch, grid_name, dtype):
+    """The CPU build renders packs of rays (csrc/geer_packs.h, where it has AVX2), and its backward visits only
+    the lanes its forward recorded as blending each entry (blended_lanes). The kernels run one ray per thread,
+    and their backward skips whole warps by the cull and lets every lane of the blended prefix evaluate the
+    pair (render_forward_gpu_path / render_backward_gpu_path run that path on the CPU). Same images and
+    gradients, bit for bit: packs, masks and the record change which lanes compute, never a lane's result."""
     grid = reference_grids(dtype)[grid_name]
     cpu_path = _render_and_grads(grid, dtype, backend="cpu")
+    monkeypatch.setattr(ops, "render_forward", ops.render_forward_gpu_path)
     monkeypatch.setattr(ops, "render_backward", ops.render_backward_gpu_path)
     gpu_path = _render_and_grads(grid, dtype, backend="cpu")
     assert float(cpu_path[5].abs().max()) > 0
     for a, b in zip(cpu_path, gpu_path):
         assert torch.equal(a, b)
+
+
+def test_the_cpu_build_renders_packs_where_torch_dispatches_avx2(ops):
+    """cuda_backend.cpu_cflags adds -mavx2 where torch's CPU dispatch level has it; the build then renders
+    8 float32 / 4 float64 rays per pack. A flag lost on the way shows here, not as a silent 1.6x slowdown."""
+    if torch.backends.cpu.get_cpu_capability() not in ("AVX2", "AVX512"):
+        assert ops.render_lanes(False) == 1 and ops.render_lanes(True) == 1
+        return
+    assert ops.render_lanes(False) == 8 and ops.render_lanes(True) == 4

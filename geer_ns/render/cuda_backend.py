@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import os
+import platform
 import threading
 from pathlib import Path
 from types import ModuleType
@@ -83,9 +84,7 @@ def _load(name: str, sources: tuple[str, ...], cuda: bool, verbose: bool) -> Mod
             module = cpp_extension.load(
                 name=name,
                 sources=[str(_CSRC / s) for s in sources],
-                # -ffp-contract=off: pair decisions without FMA drift (geer_math.h); -fno-math-errno: sqrt inline.
-                # No -march: see cpu_ops.cpp warp_grad_sum on GCC 12's -O3 AVX-512 code.
-                extra_cflags=["-O3", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"],
+                extra_cflags=cpu_cflags(),
                 extra_include_paths=[str(_CSRC)],
                 build_directory=str(build_dir),
                 with_cuda=cuda,
@@ -97,6 +96,17 @@ def _load(name: str, sources: tuple[str, ...], cuda: bool, verbose: bool) -> Mod
             raise
         _modules[name] = module
         return module
+
+
+def cpu_cflags() -> list[str]:
+    """C++ flags of both builds. -ffp-contract=off: pair decisions without FMA drift (geer_math.h);
+    -fno-math-errno: sqrt inline. -mavx2 where the CPU has it (torch's own dispatch level): the CPU build's
+    render then evaluates packs of 8 float32 / 4 float64 rays (csrc/geer_packs.h). No -march=native: see
+    cpu_ops.cpp warp_grad_sum on GCC 12's -O3 AVX-512 code."""
+    flags = ["-O3", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"]
+    if platform.machine() in ("x86_64", "AMD64") and torch.backends.cpu.get_cpu_capability() in ("AVX2", "AVX512"):
+        flags.append("-mavx2")
+    return flags
 
 
 def build_error(name: str) -> str:
