@@ -166,22 +166,16 @@ template <typename T> GEER_HD void store_mat3(T* p, const Mat3<T>& a) {
 // lane by lane, so the same bits). Lane<L> names the scalar, the per-lane mask and integer types and
 // broadcasts; the lane_* helpers are the scalar forms, which geer_packs.h overloads for packs.
 template <typename L> struct Lane;
-template <> struct Lane<float> {
-    using Scalar = float;
+template <typename T> struct ScalarLane {
+    using Scalar = T;
     using Mask = bool;
     using Int = int;
     static constexpr int width = 1;
-    GEER_HD static float splat(float x) { return x; }
+    GEER_HD static T splat(T x) { return x; }
     GEER_HD static int splat_int(int x) { return x; }
 };
-template <> struct Lane<double> {
-    using Scalar = double;
-    using Mask = bool;
-    using Int = int;
-    static constexpr int width = 1;
-    GEER_HD static double splat(double x) { return x; }
-    GEER_HD static int splat_int(int x) { return x; }
-};
+template <> struct Lane<float> : ScalarLane<float> {};
+template <> struct Lane<double> : ScalarLane<double> {};
 template <typename L> GEER_HD L splat(typename Lane<L>::Scalar x) { return Lane<L>::splat(x); }
 template <typename L> GEER_HD Vec3<L> splat3(const typename Lane<L>::Scalar* p) {
     return Vec3<L>{splat<L>(p[0]), splat<L>(p[1]), splat<L>(p[2])};

@@ -52,7 +52,7 @@ CUDA_VERIFIED = False
 _CSRC = Path(__file__).resolve().parents[2] / "csrc"
 _CUDA_SOURCES = ("bindings.cpp", "preprocess.cu", "associate.cu", "render.cu", "preprocess_backward.cu",
                  "launch_probe.cu")
-_CPU_SOURCES = ("cpu_ops.cpp",)
+_CPU_SOURCES = ("cpu_ops.cpp", "cpu_render.cpp")
 
 _lock = threading.Lock()
 _modules: dict[str, ModuleType] = {}
