@@ -71,7 +71,7 @@ def stage_inputs(case):
 
 def meet_fraction(grid, ids, ranges, pieces, rays, chunk: int = 4096) -> float:
     """Of the (valid ray, tile-list entry) pairs the render stage visits, the fraction whose ray meets the
-    Gaussian's PBF (geer_math.h ray_meets_pbf, with the twin's overlap test): the rest the cull skips."""
+    Gaussian's PBF (geer_ray.h ray_meets_pbf, with the twin's overlap test): the rest the cull skips."""
     from geer_ns.render.associate import _overlaps
 
     tile_of = torch.repeat_interleave(torch.arange(grid.num_tiles), (ranges[:, 1] - ranges[:, 0]).long())

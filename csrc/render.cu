@@ -8,7 +8,7 @@
 // per-pair gradients of (W, o_u, colour, opacity), 16 values, are summed over the warp by a transposing
 // reduction (16 shuffles; geer_blocks.h) that leaves value k's total in lanes 2k and 2k + 1, so 16 lanes
 // add them to the Gaussian's gradient row with one atomic each, in parallel.
-// Per-pair and per-ray math: geer_math.h (eval_pair, ray_forward_step, ray_backward_step); which ray and
+// Per-pair and per-ray math: geer_ray.h (eval_pair, ray_forward_step, ray_backward_step); which ray and
 // which list entry a thread touches: geer_blocks.h (shared with the CPU build, so the CPU tests run it).
 #include "geer_blocks.h"
 #include "geer_launchers.h"

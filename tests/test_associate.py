@@ -138,7 +138,7 @@ def test_complete_with_the_camera_inside_gaussians():
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# The kernels' per-ray and per-warp cull (csrc/geer_math.h ray_meets_pbf on RayGrid.ray_cull_bounds and
+# The kernels' per-ray and per-warp cull (csrc/geer_ray.h ray_meets_pbf on RayGrid.ray_cull_bounds and
 # warp_cull_bounds): a (ray, Gaussian) pair it skips must have alpha < 1/255 by the float64 reference.
 
 

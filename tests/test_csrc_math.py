@@ -1,10 +1,11 @@
-"""The CUDA kernels' math (csrc/geer_math.h), compiled for the CPU, against the PyTorch twin.
+"""The CUDA kernels' math (csrc/geer_math.h, geer_ray.h), compiled for the CPU, against the PyTorch twin.
 
-csrc/cpu_ops.cpp runs geer_math.h's per-Gaussian, per-pair and per-ray functions, geer_associate.h's tile
-search and geer_blocks.h's per-block orchestration (ray slots, batches, warp-reduction order) behind the
-CUDA extension's operation names, so `cuda_backend.render_cuda(..., ops=cpu_ops)` drives the
-whole CUDA-backend pipeline (autograd Functions, association with keys and ranges, front-to-back blending,
-back-to-front analytic backward, preprocess backward) on the CPU. What remains for a GPU session: shared
+csrc/cpu_ops.cpp and cpu_render.cpp run geer_math.h's per-Gaussian and geer_ray.h's per-pair and per-ray
+functions, geer_associate.h's tile search and geer_blocks.h's per-block orchestration (ray slots, batches,
+warp-reduction order) behind the CUDA extension's operation names, so
+`cuda_backend.render_cuda(..., ops=cpu_ops)` drives the whole CUDA-backend pipeline (autograd Functions,
+association with keys and ranges, front-to-back blending, back-to-front analytic backward, preprocess
+backward) on the CPU. What remains for a GPU session: shared
 memory, shuffles and atomics, the radix sort (tests/test_cuda_gpu.py, skipped without CUDA).
 
 Forward quantities match the twin to float rounding (1e-5 in float32 where values are continuous; a

@@ -1,6 +1,6 @@
 """The half-line rule near and inside Gaussians: every pair responds with the peak of sigma G on the ray as
 travelled (t >= 0), so images are continuous as the camera moves through a Gaussian, and every clamp has
-one gradient that both backends (the PyTorch twin, autograd; geer_math.h compiled for the CPU, analytic)
+one gradient that both backends (the PyTorch twin, autograd; geer_ray.h compiled for the CPU, analytic)
 agree on.
 
 References: the half-line minimum of the Mahalanobis distance found numerically in float64 from Sigma^-1

@@ -50,7 +50,7 @@ def _interval_pieces(lo: Tensor, hi: Tensor, xi: float) -> tuple[Tensor, Tensor,
 
 
 def pbf_cull_pieces(bounds: Tensor, xi: float = 1.0) -> Tensor:
-    """[N, 8] the PBFs' pieces as the render kernels' per-ray cull reads them (csrc/geer_math.h GaussFrame.pbf):
+    """[N, 8] the PBFs' pieces as the render kernels' per-ray cull reads them (csrc/geer_ray.h GaussFrame.pbf):
     theta (a_lo, a_hi, b_lo, b_hi), phi (the same), mirror domain; bounds [N, 4] (theta lo, hi, phi lo, hi)."""
     theta = _interval_pieces(bounds[:, 0], bounds[:, 1], xi)
     phi = _interval_pieces(bounds[:, 2], bounds[:, 3], xi)

@@ -1,7 +1,7 @@
 """Stage 5: front-to-back alpha compositing (paper Eq. B.3), with 3DGS's early termination: a ray
 stops before the Gaussian that would bring its transmittance below 1e-4 (a pair exactly at 1e-4 is
 still blended). The stop is piecewise constant: blended pairs get their ordinary derivative, the rest
-none, as in csrc/geer_math.h."""
+none, as in csrc/geer_ray.h (ray_forward_step)."""
 
 from __future__ import annotations
 

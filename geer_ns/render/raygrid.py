@@ -83,7 +83,7 @@ class RayGrid:
     def ray_cull_bounds(self, dtype: torch.dtype | None = None, xi: float = 1.0) -> Tensor:
         """[R, 4] each ray's own bounds (theta lo, hi, phi lo, hi; mirror domain, the tile bounds of a one-ray
         tile widened by _RAY_CULL_SLACK), cached: the kernels skip a (ray, Gaussian) pair of a tile's list whose
-        ray bounds miss the Gaussian's PBF (csrc/geer_math.h ray_meets_pbf). Invalid rays: empty intervals."""
+        ray bounds miss the Gaussian's PBF (csrc/geer_ray.h ray_meets_pbf). Invalid rays: empty intervals."""
         dtype = self.dirs.dtype if dtype is None else dtype
         key = ("ray_cull", dtype, xi)
         if key not in self._cache:

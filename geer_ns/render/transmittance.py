@@ -18,7 +18,7 @@ the camera position and ray direction (q is even C^1 across t* = 0: both branche
 gradient 2 o_u there), it is bounded by the same lambda-ellipsoid as the PBF (complete with no new
 bounds), and it costs one comparison. Depth uses the same clamped t.
 
-Gradients at the clamps follow csrc/geer_math.h (half_line_backward, ray_backward_step) exactly; they are
+Gradients at the clamps follow csrc/geer_ray.h (half_line_backward, ray_backward_step) exactly; they are
 written out below with explicit masks rather than left to how torch differentiates clamp/max.
 """
 
