@@ -434,6 +434,8 @@ void register_render_ops(pybind11::module_& m) {
     m.def("render_forward_gpu_path", &render_forward_op<false>);
     m.def("render_backward", &render_backward<kCpuPacks, true>);
     m.def("render_backward_gpu_path", &render_backward<false, false>);
+    // The CPU's path one ray at a time: what render_backward is on a build without AVX2.
+    m.def("render_backward_one_ray", &render_backward<false, true>);
     m.def("render_lanes", [](bool float64) -> int64_t {
         if (!kCpuPacks) return 1;
         return float64 ? geer::Lane<geer::DoublePack>::width : geer::Lane<geer::FloatPack>::width;

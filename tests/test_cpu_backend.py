@@ -114,9 +114,12 @@ def test_the_kernels_one_ray_per_thread_path_gives_the_cpu_paths_bits(ops, monke
     monkeypatch.setattr(ops, "render_forward", ops.render_forward_gpu_path)
     monkeypatch.setattr(ops, "render_backward", ops.render_backward_gpu_path)
     gpu_path = _render_and_grads(grid, dtype, backend="cpu")
+    # The CPU's path one ray at a time (a build without AVX2): the record, no packs.
+    monkeypatch.setattr(ops, "render_backward", ops.render_backward_one_ray)
+    one_ray = _render_and_grads(grid, dtype, backend="cpu")
     assert float(cpu_path[5].abs().max()) > 0
-    for a, b in zip(cpu_path, gpu_path):
-        assert torch.equal(a, b)
+    for a, b, c in zip(cpu_path, gpu_path, one_ray):
+        assert torch.equal(a, b) and torch.equal(a, c)
 
 
 def test_the_cpu_build_renders_packs_where_torch_dispatches_avx2(ops):
