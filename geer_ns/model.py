@@ -46,7 +46,7 @@ from geer_ns.cameras import CameraModel
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, native_view
 from geer_ns.render import render
-from geer_ns.render.backend import Backend
+from geer_ns.render.backend import Backend, announce_backend
 from geer_ns.render.pbf import LambdaMode
 from geer_ns.render.transforms import view_transform
 from geer_ns.render_guard import RenderGuard, camera_problem, in_viewer_thread, is_viewer_interrupt
@@ -438,6 +438,7 @@ class GeerModel(SplatfactoModel):
             means2d = torch.zeros(1, means.shape[0], 2, dtype=means.dtype, device=means.device, requires_grad=True)
             means = self._displaced_means(means, means2d[0], viewmat, view.steps)
         colors, sh_degree = self._colors(params)
+        announce_backend(self.config.renderer_backend, means.device, say=CONSOLE.log)
         out = render(
             means, params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]).squeeze(-1),
             colors, viewmat, view.rays, sh_degree=sh_degree, background=background,

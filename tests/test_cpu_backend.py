@@ -129,3 +129,17 @@ def test_the_cpu_build_renders_packs_where_torch_dispatches_avx2(ops):
         assert ops.render_lanes(False) == 1 and ops.render_lanes(True) == 1
         return
     assert ops.render_lanes(False) == 8 and ops.render_lanes(True) == 4
+
+
+def test_start_up_says_once_which_renderer_runs(ops):
+    from geer_ns.render import backend as backend_module
+
+    backend_module._announced.clear()
+    said = []
+    for _ in range(2):
+        backend_module.announce_backend("auto", torch.device("cpu"), say=said.append)
+    assert len(said) == 1, said
+    lanes = "packs of 8 rays (AVX2)" if ops.render_lanes(False) == 8 else "one ray at a time"
+    assert "compiled for the CPU" in said[0] and lanes in said[0], said
+    backend_module.announce_backend("torch", torch.device("cpu"), say=said.append)
+    assert said[-1] == "geer: renderer: the PyTorch renderer on cpu"

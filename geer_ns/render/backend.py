@@ -94,3 +94,24 @@ def resolve_backend(backend: Backend, device: torch.device, pose_grad: bool = Fa
             return "torch"
         return "cuda"
     raise ValueError(f"backend must be 'auto', 'torch', 'cuda' or 'cpu', got {backend!r}")
+
+
+_announced: set[tuple[str, str]] = set()
+
+
+def announce_backend(backend: Backend, device: torch.device, say=print) -> None:
+    """Say once per process (and backend request and device type) what `backend` renders tensors on `device`
+    with: the start-up line of a training run. Fallbacks are announced by resolve_backend itself."""
+    key = (backend, device.type)
+    if key in _announced:
+        return
+    _announced.add(key)
+    chosen = resolve_backend(backend, device)
+    if chosen == "cpu":
+        from .cuda_backend import load_cpu_ops
+
+        lanes = load_cpu_ops().render_lanes(False)
+        how = f"packs of {lanes} rays (AVX2)" if lanes > 1 else "one ray at a time (no AVX2 in this build)"
+        say(f"geer: renderer: the kernels' code compiled for the CPU ({torch.get_num_threads()} threads, {how})")
+    else:
+        say(f"geer: renderer: {'the CUDA kernels' if chosen == 'cuda' else 'the PyTorch renderer'} on {device}")
