@@ -21,8 +21,8 @@ def ops():
     return cuda_backend.load_cpu_ops()
 
 
-def _render_and_grads(grid, dtype=torch.float32, backend="auto"):
-    scene = [t.to(dtype).requires_grad_(True) for t in random_scene(300, 7, around=True)]
+def _render_and_grads(grid, dtype=torch.float32, backend="auto", scene=None):
+    scene = [t.to(dtype).clone().requires_grad_(True) for t in (scene or random_scene(300, 7, around=True))]
     out = render(*scene, torch.eye(4, dtype=dtype), grid, background=torch.full((3,), 0.3, dtype=dtype),
                  backend=backend)
     (out.rgb.square().sum() + out.depth.sum() + out.accumulation.sum()).backward()
@@ -101,23 +101,38 @@ def test_lists_longer_than_a_batch_match_the_twin(ops, dtype):
         assert (a - b).norm() <= (1e-8 if dtype == torch.float64 else 1e-3) * b.norm()
 
 
+def _bit_case(name, dtype):
+    """(grid, scene) of the bit test below. "stops": near-opaque layers on a 37x29 image in 12-pixel tiles, so
+    that rays stop (T would fall below 1e-4) while pack-mates blend the same entry, tile lists cross the
+    256 / 128-entry batch boundary, and the edge tiles overhang the image (lanes off the image inside packs);
+    the reference grids with their scene have none of these (a pack that updates a stopped lane's T passes them)."""
+    from geer_ns.render import RayGrid
+
+    if name == "stops":
+        grid = RayGrid.beap(37, 29, 1.2, 1.0, tile_size=12, dtype=dtype)
+        return grid, random_scene(300, 1, spread=0.6, scale_range=(0.1, 0.5), opacity_range=(0.9, 1.0))
+    return reference_grids(dtype)[name], None
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize("grid_name", ["beap", "fisheye180", "equirect360"])
+@pytest.mark.parametrize("grid_name", ["beap", "fisheye180", "equirect360", "stops"])
 def test_the_kernels_one_ray_per_thread_path_gives_the_cpu_paths_bits(ops, monkeypatch, grid_name, dtype):
     """The CPU build renders packs of rays (csrc/geer_packs.h, where it has AVX2), and its backward visits only
     the lanes its forward recorded as blending each entry (blended_lanes). The kernels run one ray per thread,
     and their backward skips whole warps by the cull and lets every lane of the blended prefix evaluate the
     pair (render_forward_gpu_path / render_backward_gpu_path run that path on the CPU). Same images and
     gradients, bit for bit: packs, masks and the record change which lanes compute, never a lane's result."""
-    grid = reference_grids(dtype)[grid_name]
-    cpu_path = _render_and_grads(grid, dtype, backend="cpu")
+    grid, scene = _bit_case(grid_name, dtype)
+    cpu_path = _render_and_grads(grid, dtype, backend="cpu", scene=scene)
     monkeypatch.setattr(ops, "render_forward", ops.render_forward_gpu_path)
     monkeypatch.setattr(ops, "render_backward", ops.render_backward_gpu_path)
-    gpu_path = _render_and_grads(grid, dtype, backend="cpu")
+    gpu_path = _render_and_grads(grid, dtype, backend="cpu", scene=scene)
     # The CPU's path one ray at a time (a build without AVX2): the record, no packs.
     monkeypatch.setattr(ops, "render_backward", ops.render_backward_one_ray)
-    one_ray = _render_and_grads(grid, dtype, backend="cpu")
+    one_ray = _render_and_grads(grid, dtype, backend="cpu", scene=scene)
     assert float(cpu_path[5].abs().max()) > 0
+    if grid_name == "stops":  # the walk crosses a batch; rays come within 10x of T_MIN
+        assert int(cpu_path[4].max()) > 256 and float(cpu_path[2].max()) > 0.999
     for a, b, c in zip(cpu_path, gpu_path, one_ray):
         assert torch.equal(a, b) and torch.equal(a, c)
 
