@@ -91,7 +91,7 @@ def meet_fraction(grid, ids, ranges, pieces, rays, chunk: int = 4096) -> float:
 
 def run_after(ops, c, cull, grads):
     fwd = ops.render_forward(c["whiten"], c["o_u"], c["rgb"], c["opac"], cull[0], c["dirs"], cull[1], cull[2],
-                             c["valid"], c["ids"], c["ranges"], *c["layout"])
+                             c["valid"], c["ids"], c["ranges"], *c["layout"], True)
     bwd = lambda: ops.render_backward(c["whiten"], c["o_u"], c["rgb"], c["opac"], cull[0], c["dirs"], cull[1],  # noqa: E731
                                       cull[2], c["valid"], c["ids"], c["ranges"], *c["layout"], fwd[3], fwd[4], fwd[5],
                                       *grads)

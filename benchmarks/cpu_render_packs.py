@@ -31,9 +31,10 @@ START_COMMIT = "c693625"  # main before the packs and the forward's record
 
 
 def render_pair(forward, backward, c, cull, grads, recorded: bool):
-    """(forward outputs, a backward call) of one stage-3 implementation on the case's inputs."""
+    """(forward outputs, a backward call) of one stage-3 implementation on the case's inputs; recorded: this
+    build's signature (the forward's record argument and output, the backward's blended_lanes)."""
     fwd = forward(c["whiten"], c["o_u"], c["rgb"], c["opac"], cull[0], c["dirs"], cull[1], cull[2], c["valid"],
-                  c["ids"], c["ranges"], *c["layout"])
+                  c["ids"], c["ranges"], *c["layout"], *((True,) if recorded else ()))
     record = (fwd[5],) if recorded else ()
     args = (c["whiten"], c["o_u"], c["rgb"], c["opac"], cull[0], c["dirs"], cull[1], cull[2], c["valid"], c["ids"],
             c["ranges"], *c["layout"], fwd[3], fwd[4], *record, *grads)

@@ -210,7 +210,8 @@ geer::RenderArgs<T> render_args(const at::Tensor& whiten, const at::Tensor& o_u,
 std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
                                        at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
                                        at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids,
-                                       at::Tensor ranges, int64_t height, int64_t width, int64_t tile_size) {
+                                       at::Tensor ranges, int64_t height, int64_t width, int64_t tile_size,
+                                       bool /* record: the CPU build's blended_lanes, see below */) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(whiten));
     const int64_t r = height * width;
     auto opts = whiten.options();

@@ -84,7 +84,7 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
                                        at::Tensor opacities, at::Tensor pbf_pieces, at::Tensor dirs,
                                        at::Tensor ray_bounds, at::Tensor warp_bounds, at::Tensor valid,
                                        at::Tensor ids, at::Tensor ranges, int64_t height, int64_t width,
-                                       int64_t tile_size) {
+                                       int64_t tile_size, bool record) {
     using L = LaneOf<T, kPacks>;
     constexpr int kWidth = geer::Lane<L>::width;
     constexpr int kBatch = geer::Batch<T>::value;
@@ -93,10 +93,11 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     auto out_rgb = at::zeros({r, 3}, opts), depth = at::zeros({r}, opts), acc = at::zeros({r}, opts);
     auto t_final = at::ones({r}, opts);
     auto n_contrib = at::zeros({r}, at::kInt);
-    // Which lanes blended each list entry, per warp: what the CPU backward visits (render_backward).
+    // Which lanes blended each list entry, per warp: what the CPU backward visits (render_backward). Only
+    // when a backward will run (record): 32 bytes per list entry with 16-pixel tiles.
     const int warps = geer::warps_per_tile(int(tile_size));
-    auto blended_lanes = at::zeros({ids.numel(), warps}, at::kInt);
-    uint32_t* blended = reinterpret_cast<uint32_t*>(blended_lanes.data_ptr<int32_t>());
+    auto blended_lanes = record ? at::zeros({ids.numel(), warps}, at::kInt) : at::empty({0}, at::kInt);
+    uint32_t* blended = record ? reinterpret_cast<uint32_t*>(blended_lanes.data_ptr<int32_t>()) : nullptr;
     const auto f = frames<T>(whiten, o_u, rgb, opacities, pbf_pieces);
     const int32_t* id = ids.data_ptr<int32_t>();
     const int32_t* rg = ranges.data_ptr<int32_t>();
@@ -124,7 +125,7 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
                         // blended: n_contrib moved to j
                         lanes |= geer::lane_bits(st[pk].n_contrib != before) << (pk * kWidth - w0);
                     }
-                    blended[size_t(j) * warps + w0 / geer::kWarp] = lanes;
+                    if (blended) blended[size_t(j) * warps + w0 / geer::kWarp] = lanes;
                 }
             }
         }
@@ -146,7 +147,7 @@ template <bool kPacks>
 std::vector<at::Tensor> render_forward_op(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
                                           at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
                                           at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids, at::Tensor ranges,
-                                          int64_t height, int64_t width, int64_t tile_size) {
+                                          int64_t height, int64_t width, int64_t tile_size, bool record) {
     whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities); pbf_pieces = cpu(pbf_pieces);
     dirs = cpu(dirs); ray_bounds = cpu(ray_bounds); warp_bounds = cpu(warp_bounds);
     valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges);
@@ -156,7 +157,8 @@ std::vector<at::Tensor> render_forward_op(at::Tensor whiten, at::Tensor o_u, at:
                 "geer: warp_bounds must be [tiles * warps per tile, 4]");
     return dispatch<int>(whiten, [&](auto tag) {
         return render_forward<decltype(tag), kPacks>(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds,
-                                                     warp_bounds, valid, ids, ranges, height, width, tile_size);
+                                                     warp_bounds, valid, ids, ranges, height, width, tile_size,
+                                                     record);
     });
 }
 
@@ -279,7 +281,7 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
             }
             const int start = rg[2 * tile];
             geer::PairGrad<T> p[kWarp];
-            geer::PairGrad<L> pg;
+            geer::PairGrad<L> pg{};  // only the lanes ray_backward_step returns are read
             for (int b = 0; b < geer::batch_count(block_n, kBatch); ++b) {
                 const geer::ListBatch bt = geer::backward_batch(start, block_n, b, kBatch);
                 for (int k = 0; k < bt.size; ++k) {

@@ -158,3 +158,22 @@ def test_start_up_says_once_which_renderer_runs(ops):
     assert "compiled for the CPU" in said[0] and lanes in said[0], said
     backend_module.announce_backend("torch", torch.device("cpu"), say=said.append)
     assert said[-1] == "geer: renderer: the PyTorch renderer on cpu"
+
+
+def test_the_forward_records_blended_lanes_only_when_a_backward_will_run(ops, monkeypatch):
+    """blended_lanes (32 bytes per list entry at 16-pixel tiles) is made for renders that need gradients only;
+    the images are the same either way."""
+    grid = reference_grids(torch.float32)["beap"]
+    scene = random_scene(300, 7, around=True)
+    forward, seen = ops.render_forward, []
+    monkeypatch.setattr(ops, "render_forward", lambda *args: seen.append(forward(*args)) or seen[-1])
+    with torch.no_grad():
+        render(*scene, torch.eye(4), grid, backend="cpu")
+    leaves = [t.clone().requires_grad_(True) for t in scene]
+    out = render(*leaves, torch.eye(4), grid, backend="cpu")
+    out.rgb.sum().backward()
+    no_grad, with_grad = seen
+    pairs = int(out.tile_counts.sum())  # one row per list entry, one word per warp of a 16x16 tile
+    assert no_grad[5].numel() == 0 and with_grad[5].shape == (pairs, 8) and bool((with_grad[5] != 0).any())
+    for a, b in zip(no_grad[:5], with_grad[:5]):
+        assert torch.equal(a, b)

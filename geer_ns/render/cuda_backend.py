@@ -104,8 +104,11 @@ def cpu_cflags() -> list[str]:
     render then evaluates packs of 8 float32 / 4 float64 rays (csrc/geer_packs.h). No -march=native: see
     cpu_ops.cpp warp_grad_sum on GCC 12's -O3 AVX-512 code."""
     flags = ["-O3", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"]
-    if platform.machine() in ("x86_64", "AMD64") and torch.backends.cpu.get_cpu_capability() in ("AVX2", "AVX512"):
-        flags.append("-mavx2")
+    if platform.machine() in ("x86_64", "AMD64"):
+        avx2 = torch.backends.cpu.get_cpu_capability() in ("AVX2", "AVX512")
+        # Without AVX2 GCC notes that 256-bit pack arguments change the ABI: harmless here (inline functions of
+        # one translation unit), and the render stage then runs one ray at a time anyway.
+        flags.append("-mavx2" if avx2 else "-Wno-psabi")
     return flags
 
 
@@ -178,9 +181,10 @@ class _Rasterize(torch.autograd.Function):
         # the cull.
         geometry = (pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges)
         # blended_lanes: the CPU build's record of the lanes that blended each list entry, which its backward
-        # visits (empty from the kernels, whose backward re-derives them).
+        # visits; made only when a backward will run (empty from the kernels, whose backward re-derives them).
+        record = any(ctx.needs_input_grad[:4])
         out_rgb, depth, acc, t_final, n_contrib, blended_lanes = ops.render_forward(
-            whiten, o_u, rgb, opacities, *geometry, height, width, tile_size
+            whiten, o_u, rgb, opacities, *geometry, height, width, tile_size, record
         )
         ctx.save_for_backward(whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib, blended_lanes)
         ctx.layout = (height, width, tile_size)
