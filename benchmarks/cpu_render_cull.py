@@ -1,7 +1,8 @@
 """Render forward and backward on the CPU build with the per-warp and per-ray cull (csrc/geer_math.h
-ray_meets_pbf) against the same stage without it: main's csrc at BEFORE_COMMIT (the transposing warp reduction
-already in, no cull, every lane of the warp emulation through the butterfly), built as a second extension and
-run in the same process on the same inputs (preprocess and association from the current build).
+ray_meets_pbf at AFTER_COMMIT) against the same stage without it: main's csrc at BEFORE_COMMIT (the transposing
+warp reduction already in, no cull, every lane of the warp emulation through the butterfly). Each is built as an
+extension of its own and run in the same process on the same inputs (preprocess and association from the
+current build).
 
 Cases: the dev fisheye room's BEAP training view with its 20k seed points as Gaussians (kNN scales, opacity 0.1:
 faint and large, a training start) and the trained donut in a 512x512 equidistant fisheye (cpu_association.py).
@@ -27,6 +28,7 @@ from benchmarks.timing import median_seconds  # noqa: E402
 from cpu_association import dev_room_case, donut_case  # noqa: E402
 
 BEFORE_COMMIT = "1c7ac91"  # main before the cull
+AFTER_COMMIT = "5dc2d15"  # main with the cull (before the packs of benchmarks/cpu_render_packs.py)
 
 
 def load_before_ops(commit: str = BEFORE_COMMIT, headers=("geer_math.h", "geer_associate.h", "geer_blocks.h"),
@@ -91,10 +93,9 @@ def meet_fraction(grid, ids, ranges, pieces, rays, chunk: int = 4096) -> float:
 
 def run_after(ops, c, cull, grads):
     fwd = ops.render_forward(c["whiten"], c["o_u"], c["rgb"], c["opac"], cull[0], c["dirs"], cull[1], cull[2],
-                             c["valid"], c["ids"], c["ranges"], *c["layout"], True)
+                             c["valid"], c["ids"], c["ranges"], *c["layout"])
     bwd = lambda: ops.render_backward(c["whiten"], c["o_u"], c["rgb"], c["opac"], cull[0], c["dirs"], cull[1],  # noqa: E731
-                                      cull[2], c["valid"], c["ids"], c["ranges"], *c["layout"], fwd[3], fwd[4], fwd[5],
-                                      *grads)
+                                      cull[2], c["valid"], c["ids"], c["ranges"], *c["layout"], fwd[3], fwd[4], *grads)
     return fwd, bwd
 
 
@@ -111,9 +112,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "cpu_render_cull.md")
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
-    from geer_ns.render.cuda_backend import load_cpu_ops
-
-    ops, before = load_cpu_ops(), load_before_ops()
+    # Both sides are main's csrc at their commits (the render stage's signature has moved on since).
+    ops, before = load_before_ops(AFTER_COMMIT), load_before_ops()
     rows = []
     for case in (dev_room_case(with_scene=True), donut_case(with_scene=True)):
         name, grid, pairs, c, cull, grads = stage_inputs(case)
@@ -132,7 +132,8 @@ def main() -> None:
     args.out.write_text(f"""# Render stage on the CPU build: with the per-warp and per-ray cull vs without
 
 - device: CPU, {platform.machine()}, {torch.get_num_threads()} threads; torch {torch.__version__}
-- commit: {commit.strip()} (before: {BEFORE_COMMIT}, main's csrc built as a second extension, same process)
+- commit: {commit.strip()} (before: {BEFORE_COMMIT}, after: {AFTER_COMMIT}, main's csrc at each built as an
+  extension of its own, same process)
 - command: `.venv/bin/python benchmarks/cpu_render_cull.py`
 - float32, tile size 16; stage 3 only (render_forward; render_backward with a fixed random loss gradient) on
   the same frames and tile lists; time: median of {args.repeats} runs after a warm-up. "Same bits": forward
