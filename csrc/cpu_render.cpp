@@ -34,7 +34,7 @@ std::vector<GaussFrame<T>> frames(const at::Tensor& whiten, const at::Tensor& o_
 
 // The lane type a CPU loop runs the per-ray functions on: a pack of rays (geer_packs.h), or one ray as a GPU
 // thread does (kPacks false: the kernels' path, which the tests compare bit for bit). The CPU's own path uses
-// packs where the build has AVX2 (cuda_backend.load_cpu_ops passes -mavx2 where the CPU has it): without it
+// packs where the build has AVX2 (cuda_backend.cpu_cflags passes -mavx2 where the CPU has it): without it
 // GCC splits the 256-bit vectors into slower scalar code than one ray at a time.
 template <typename T, bool kPacks> using LaneOf = std::conditional_t<kPacks, typename geer::PackOf<T>::type, T>;
 #if defined(__AVX2__)
@@ -110,7 +110,7 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
         for (int b = 0; b < geer::batch_count(end - start, kBatch); ++b) {
             bool all_done = true;  // __syncthreads_count(done) == blockDim.x
             for (int pk = 0; pk < blk.packs; ++pk)
-                all_done = all_done && geer::lane_bits(st[pk].done) == (uint32_t(1) << kWidth) - 1;
+                all_done = all_done && geer::lane_bits(st[pk].done) == geer::all_lane_bits<L>();
             if (all_done) break;
             const geer::ListBatch bt = geer::forward_batch(start, end, b, kBatch);
             for (int k = 0; k < bt.size; ++k) {
@@ -142,6 +142,15 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     return {out_rgb, depth, acc, t_final, n_contrib, blended_lanes};
 }
 
+// The render stage's per-ray and per-warp cull bounds fit the grid (both passes).
+void check_cull_bounds(const at::Tensor& ray_bounds, const at::Tensor& warp_bounds, int64_t height, int64_t width,
+                       int64_t tile_size) {
+    TORCH_CHECK(ray_bounds.numel() == 4 * height * width, "geer: ray_bounds must be [R,4]");
+    TORCH_CHECK(warp_bounds.numel() == 4 * geer::tile_count(int(height), int(width), int(tile_size)) *
+                                           geer::warps_per_tile(int(tile_size)),
+                "geer: warp_bounds must be [tiles * warps per tile, 4]");
+}
+
 // render_forward for either dtype: kPacks, the CPU's path; otherwise one ray per thread, the kernels' path.
 template <bool kPacks>
 std::vector<at::Tensor> render_forward_op(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
@@ -151,10 +160,7 @@ std::vector<at::Tensor> render_forward_op(at::Tensor whiten, at::Tensor o_u, at:
     whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities); pbf_pieces = cpu(pbf_pieces);
     dirs = cpu(dirs); ray_bounds = cpu(ray_bounds); warp_bounds = cpu(warp_bounds);
     valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges);
-    TORCH_CHECK(ray_bounds.numel() == 4 * height * width, "geer: ray_bounds must be [R,4]");
-    TORCH_CHECK(warp_bounds.numel() == 4 * geer::tile_count(int(height), int(width), int(tile_size)) *
-                                           geer::warps_per_tile(int(tile_size)),
-                "geer: warp_bounds must be [tiles * warps per tile, 4]");
+    check_cull_bounds(ray_bounds, warp_bounds, height, width, tile_size);
     return dispatch<int>(whiten, [&](auto tag) {
         return render_forward<decltype(tag), kPacks>(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds,
                                                      warp_bounds, valid, ids, ranges, height, width, tile_size,
@@ -237,10 +243,8 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
     dirs = cpu(dirs); ray_bounds = cpu(ray_bounds); warp_bounds = cpu(warp_bounds);
     valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges);
     t_final = cpu(t_final); blended_lanes = cpu(blended_lanes);
-    TORCH_CHECK(ray_bounds.numel() == 4 * height * width, "geer: ray_bounds must be [R,4]");
+    check_cull_bounds(ray_bounds, warp_bounds, height, width, tile_size);
     const int warps = geer::warps_per_tile(int(tile_size));
-    TORCH_CHECK(warp_bounds.numel() == 4 * geer::tile_count(int(height), int(width), int(tile_size)) * warps,
-                "geer: warp_bounds must be [tiles * warps per tile, 4]");
     TORCH_CHECK(!kRecorded || (blended_lanes.scalar_type() == at::kInt && blended_lanes.numel() == ids.numel() * warps),
                 "geer: blended_lanes must be render_forward's [M, warps per tile] int32 record");
     n_contrib = cpu(n_contrib); g_rgb = cpu(g_rgb); g_depth = cpu(g_depth); g_acc = cpu(g_acc);
@@ -251,7 +255,6 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
         using T = decltype(tag);
         using L = LaneOf<T, kPacks>;
         constexpr int kWidth = geer::Lane<L>::width;
-        constexpr uint32_t kPackBits = kWidth == 32 ? ~0u : (uint32_t(1) << kWidth) - 1;
         constexpr int kBatch = geer::Batch<T>::value;
         constexpr int kWarp = geer::kWarp;
         const auto f = frames<T>(whiten, o_u, rgb, opacities, pbf_pieces);
@@ -300,7 +303,7 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
                         uint32_t contrib = 0;  // __ballot_sync
                         for (int pk = w0 / kWidth; pk < (w0 + kWarp) / kWidth; ++pk) {
                             const int first = pk * kWidth - w0;  // the pack's first lane in the warp
-                            const uint32_t mine = (lanes >> first) & kPackBits;
+                            const uint32_t mine = (lanes >> first) & geer::all_lane_bits<L>();
                             if (!mine) continue;
                             const auto active =
                                 geer::lanes_of_bits<L>(mine) & (geer::Lane<L>::splat_int(pos) < my_n[pk]);

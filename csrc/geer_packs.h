@@ -102,6 +102,10 @@ inline void lane_set(DoublePack& v, int i, double x) { v[i] = x; }
 inline void lane_set(FloatPackMask& v, int i, int x) { v[i] = x; }
 inline void lane_set(DoublePackMask& v, int i, int x) { v[i] = x; }
 inline uint32_t lane_bits(bool m) { return m ? 1u : 0u; }
+// Every lane of L as bits (bit i: lane i).
+template <typename L> constexpr uint32_t all_lane_bits() {
+    return Lane<L>::width == 32 ? ~0u : (uint32_t(1) << Lane<L>::width) - 1;
+}
 // The lanes of L whose bit is set in bits (bit i: lane i).
 template <typename L> inline typename Lane<L>::Mask lanes_of_bits(uint32_t bits) {
     if constexpr (Lane<L>::width == 1) {

@@ -102,7 +102,7 @@ def cpu_cflags() -> list[str]:
     """C++ flags of both builds. -ffp-contract=off: pair decisions without FMA drift (geer_math.h);
     -fno-math-errno: sqrt inline. -mavx2 where the CPU has it (torch's own dispatch level): the CPU build's
     render then evaluates packs of 8 float32 / 4 float64 rays (csrc/geer_packs.h). No -march=native: see
-    cpu_ops.cpp warp_grad_sum on GCC 12's -O3 AVX-512 code."""
+    cpu_render.cpp warp_grad_sum on GCC 12's -O3 AVX-512 code."""
     flags = ["-O3", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"]
     if platform.machine() in ("x86_64", "AMD64"):
         avx2 = torch.backends.cpu.get_cpu_capability() in ("AVX2", "AVX512")
