@@ -7,13 +7,13 @@ learning rates are splatfacto's (nerfstudio 1.1.5), so results compare one to on
 from __future__ import annotations
 
 import torch
-from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
+from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
-from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from geer_ns.data.datamanager import GeerDataManagerConfig
+from geer_ns.distributed.trainer import GeerMachineConfig, GeerTrainerConfig
 from geer_ns.model import OWN_OPTIONS_HELP, GeerModelConfig
 from geer_ns.pipeline import GeerPipelineConfig
 
@@ -39,8 +39,8 @@ def splatfacto_optimizers(max_steps: int = MAX_STEPS) -> dict:
     }
 
 
-def geer_trainer_config(method_name: str, model: GeerModelConfig) -> TrainerConfig:
-    return TrainerConfig(
+def geer_trainer_config(method_name: str, model: GeerModelConfig) -> GeerTrainerConfig:
+    return GeerTrainerConfig(
         method_name=method_name,
         steps_per_eval_image=100,
         steps_per_eval_batch=0,
@@ -53,7 +53,7 @@ def geer_trainer_config(method_name: str, model: GeerModelConfig) -> TrainerConf
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
         vis="viewer",
         # nerfstudio defaults to "cuda" even where there is none; geer runs on either.
-        machine=MachineConfig(device_type="cuda" if torch.cuda.is_available() else "cpu"),
+        machine=GeerMachineConfig(device_type="cuda" if torch.cuda.is_available() else "cpu"),
     )
 
 

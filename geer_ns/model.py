@@ -21,7 +21,7 @@ from typing import Dict, List, Literal, Optional, Tuple, Type, Union
 
 import torch
 import torch.nn.functional as F
-from gsplat.strategy import DefaultStrategy, MCMCStrategy
+from gsplat.strategy import MCMCStrategy
 from pytorch_msssim import SSIM
 from torch import Tensor
 from torchmetrics.image import PeakSignalNoiseRatio
@@ -45,6 +45,9 @@ from geer_ns import host_fixes, resume
 from geer_ns.cameras import CameraModel
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, native_view
+from geer_ns.densify.mcmc_cpu import install_mcmc_cpu_ops
+from geer_ns.densify.signal import StepStatistics, ViewRecord, lateral_displacement, pbf_radii
+from geer_ns.densify.strategy import GeerDefaultStrategy
 from geer_ns.render import render
 from geer_ns.render.backend import Backend, announce_backend
 from geer_ns.render.pbf import LambdaMode
@@ -59,6 +62,7 @@ host_fixes.install_two_keyframe_spline_fix()  # the viewer's camera path with tw
 host_fixes.provide_ffmpeg()  # ns-render needs an `ffmpeg` program; imageio-ffmpeg ships one
 host_fixes.quiet_known_warnings()  # host FutureWarnings that every run would print
 host_fixes.report_dataset_errors_without_traceback()  # a broken dataset ends ns-train with its one line
+host_fixes.install_distributed_launch_fix()  # ns-train --machine.num-devices N on CPU machines too
 
 View = Union[BeapView, NativeView]
 
@@ -122,6 +126,10 @@ class GeerModelConfig(SplatfactoModelConfig, GeerOwnOptions):
     """IGNORED by geer: metrics are computed over the valid pixels, without colour correction."""
     n_split_samples: int = 2
     """IGNORED by geer: gsplat's DefaultStrategy splits a Gaussian into two."""
+    # Set by the training engine (geer_ns.distributed.schedule), not on the command line: the images one
+    # training step sees over all processes. The step-valued options above are then in steps of that many
+    # images, and checkpoints record it so that steps convert when a run is resumed or evaluated with another.
+    images_per_step_total: tyro.conf.Suppress[int] = 1
 
 
 # splatfacto options geer accepts (so that splatfacto command lines still parse) but does not use.
@@ -151,47 +159,6 @@ def world_to_camera_opencv(camera_to_world: Tensor) -> Tensor:
     return viewmat
 
 
-def angle_jacobian_pinv(means_c: Tensor) -> Tensor:
-    """[N,3,2] pseudo-inverse of d(theta, phi)/d(mean_c), theta = atan2(x, z), phi = atan2(y, z).
-
-    Its columns are the smallest view-space moves that shift a mean's BEAP angles by one radian in theta
-    (resp. phi) and leave the other angle unchanged; they are orthogonal to the viewing ray (the
-    Jacobian's null space), so the distance to the camera is kept. Zero where the angles are undefined.
-    """
-    p = means_c.detach().double()
-    x, y, z = p.unbind(-1)
-    a, b = x * x + z * z, y * y + z * z
-    zero = torch.zeros_like(x)
-    jac = torch.stack(
-        [torch.stack([z / a, zero, -x / a], -1), torch.stack([zero, z / b, -y / b], -1)], -2
-    )  # [N, 2, 3]
-    gram = jac @ jac.transpose(-1, -2)
-    det = gram[:, 0, 0] * gram[:, 1, 1] - gram[:, 0, 1] * gram[:, 1, 0]
-    ok = (a > 1e-12) & (b > 1e-12) & torch.isfinite(det) & (det > 1e-30)
-    safe_gram = torch.where(ok[:, None, None], gram, torch.eye(2, dtype=p.dtype, device=p.device))
-    pinv = jac.transpose(-1, -2) @ torch.linalg.inv(safe_gram)
-    pinv = torch.where(ok[:, None, None] & torch.isfinite(pinv), pinv, torch.zeros_like(pinv))
-    return pinv.to(means_c.dtype)
-
-
-def lateral_displacement(means_c: Tensor, means2d: Tensor, steps: Tuple[float, float]) -> Tensor:
-    """View-space move [N,3] that shifts each mean's BEAP position by means2d [N,2] pixels (to first order).
-
-    Adding it to the means (zero when means2d = 0) makes means2d.grad = dL/d(image position in pixels),
-    the quantity gsplat's DefaultStrategy thresholds.
-    """
-    angles = means2d * means2d.new_tensor(steps)
-    return torch.einsum("nij,nj->ni", angle_jacobian_pinv(means_c), angles)
-
-
-def pbf_radii(pbf, visible: Tensor, steps: Tuple[float, float]) -> Tensor:
-    """[N] image half-extent in pixels from the PBF's angular bounds; 0 when not rendered."""
-    half_theta = (pbf.theta_hi - pbf.theta_lo) / (2.0 * steps[0])
-    half_phi = (pbf.phi_hi - pbf.phi_lo) / (2.0 * steps[1])
-    radii = torch.maximum(half_theta, half_phi)
-    return torch.where(visible, radii, torch.zeros_like(radii)).detach()
-
-
 def central_region(camera: CameraModel, dirs: Tensor, half_angles: Optional[Tuple[float, float]]) -> Optional[Tensor]:
     """[H,W] bool: rays whose (theta, phi) lie inside the central rectangle (paper App. G), None if undefined."""
     if half_angles is None:
@@ -218,53 +185,6 @@ def masked_psnr(pred: Tensor, gt: Tensor, mask: Tensor) -> Optional[float]:
         return None
     mse = ((pred - gt) ** 2)[mask].mean().clamp_min(1e-10)
     return float(-10.0 * torch.log10(mse))
-
-
-# ==================================================================================================
-# MCMC glue: gsplat's relocation and covariance ops are CUDA-only; the CPU path uses torch versions.
-# ==================================================================================================
-
-
-def relocation_torch(opacities: Tensor, scales: Tensor, ratios: Tensor, binoms: Tensor) -> Tuple[Tensor, Tensor]:
-    """MCMC relocation (Kheradmand et al. 2024, Eq. 9): N copies of a Gaussian that together render like it."""
-    shape = opacities.shape  # [N] or [N, 1]; the result keeps it
-    opacities = opacities.reshape(-1)
-    n_max = binoms.shape[0]
-    n = ratios.reshape(-1).clamp(1, n_max).long()
-    new_opacities = 1.0 - (1.0 - opacities) ** (1.0 / n.to(opacities.dtype))
-    i = torch.arange(1, n_max + 1, device=opacities.device)  # [I]
-    k = torch.arange(n_max, device=opacities.device)  # [K]
-    coeff = binoms[(i - 1)[:, None], k[None, :]] * (-1.0) ** k / torch.sqrt(k + 1.0)  # [I, K]
-    coeff = torch.where(k[None, :] <= (i - 1)[:, None], coeff, torch.zeros_like(coeff))
-    powers = new_opacities[:, None] ** (k[None, :] + 1.0)  # [N, K]
-    terms = powers @ coeff.T.to(powers.dtype)  # [N, I]: inner sums over k
-    used = i[None, :] <= n[:, None]
-    denom = torch.where(used, terms, torch.zeros_like(terms)).sum(-1)
-    new_scales = (opacities / denom)[:, None] * scales
-    return new_opacities.reshape(shape), new_scales
-
-
-def install_mcmc_cpu_ops() -> None:
-    """Route gsplat.strategy.ops' CUDA-only calls to torch implementations for CPU tensors."""
-    import gsplat.strategy.ops as ops
-    from gsplat.cuda._torch_impl import _quat_scale_to_covar_preci
-
-    if getattr(ops, "_geer_cpu_ops", False):
-        return
-    cuda_relocation, cuda_covar = ops.compute_relocation, ops.quat_scale_to_covar_preci
-
-    def compute_relocation(opacities, scales, ratios, binoms):
-        if opacities.is_cuda:
-            return cuda_relocation(opacities, scales, ratios, binoms)
-        return relocation_torch(opacities, scales, ratios, binoms)
-
-    def quat_scale_to_covar_preci(quats, scales, compute_covar=True, compute_preci=True, triu=False):
-        fn = cuda_covar if quats.is_cuda else _quat_scale_to_covar_preci
-        return fn(F.normalize(quats, dim=-1), scales, compute_covar=compute_covar, compute_preci=compute_preci, triu=triu)
-
-    ops.compute_relocation = compute_relocation
-    ops.quat_scale_to_covar_preci = quat_scale_to_covar_preci
-    ops._geer_cpu_ops = True
 
 
 # ==================================================================================================
@@ -306,7 +226,11 @@ class GeerModel(SplatfactoModel):
             shape = self.config.grid_shape
             self.bil_grids = BilateralGrid(num=self.num_train_data, grid_X=shape[0], grid_Y=shape[1], grid_W=shape[2])
         self.strategy, self.strategy_state = self._build_strategy()
-        self.info: Dict[str, object] = {}
+        self.views: List[ViewRecord] = []  # this step's rendered training views, for the densification statistics
+        self.info: Dict[str, object] = {}  # the last view's record in gsplat's terms (means2d, radii, size)
+        self._statistics: Optional[StepStatistics] = None  # the step's statistics, when the engine reduced them
+        self._step_background: Optional[Tensor] = None  # one random background per step, for all its views
+        self.loaded_images_per_step = self.config.images_per_step_total  # of the checkpoint loaded, if any
         self.render_guard = RenderGuard()
 
     def _initial_means(self) -> torch.nn.Parameter:
@@ -347,7 +271,8 @@ class GeerModel(SplatfactoModel):
                 verbose=True,
             )
             return strategy, strategy.initialize_state()
-        strategy = DefaultStrategy(
+        pause = -(-self.num_train_data // cfg.images_per_step_total)  # one pass over the images, in steps
+        strategy = GeerDefaultStrategy(
             prune_opa=cfg.cull_alpha_thresh,
             grow_grad2d=cfg.densify_grad_thresh,
             grow_scale3d=cfg.densify_size_thresh,
@@ -359,7 +284,7 @@ class GeerModel(SplatfactoModel):
             refine_stop_iter=cfg.stop_split_at,
             reset_every=cfg.reset_alpha_every * cfg.refine_every,
             refine_every=cfg.refine_every,
-            pause_refine_after_reset=self.num_train_data + cfg.refine_every,
+            pause_refine_after_reset=pause + cfg.refine_every,
             absgrad=False,
             revised_opacity=False,
             verbose=True,
@@ -383,10 +308,13 @@ class GeerModel(SplatfactoModel):
 
     def get_extra_state(self) -> Dict[str, object]:
         return {"step": self.step, "strategy_state": resume.strategy_state(self.strategy_state),
-                "rng": resume.rng_state()}
+                "rng": resume.rng_state(), "images_per_step": self.config.images_per_step_total}
 
     def set_extra_state(self, state: Dict[str, object]) -> None:
-        self.step = int(state["step"])
+        # A checkpoint's steps are in its own effective batch; this model's are in images_per_step_total.
+        self.loaded_images_per_step = int(state.get("images_per_step", 1))
+        self.step = resume.convert_step(int(state["step"]), self.loaded_images_per_step,
+                                        self.config.images_per_step_total)
         resume.restore_strategy_state(self.strategy_state, state["strategy_state"], self.device)
         resume.restore_rng_state(state["rng"])
 
@@ -432,11 +360,11 @@ class GeerModel(SplatfactoModel):
         background = self._get_background_color().to(means)
         c2w = self.camera_optimizer.apply_to_camera(camera)[0] if self.training else camera.camera_to_worlds[0]
         viewmat = world_to_camera_opencv(c2w.to(means.device, torch.float64))  # float64: see view_transform
-        means2d = None
+        offsets = None
         record = self.training and torch.is_grad_enabled()  # not for viewer renders during training
         if record:
-            means2d = torch.zeros(1, means.shape[0], 2, dtype=means.dtype, device=means.device, requires_grad=True)
-            means = self._displaced_means(means, means2d[0], viewmat, view.steps)
+            offsets = torch.zeros(means.shape[0], 2, dtype=means.dtype, device=means.device, requires_grad=True)
+            means = self._displaced_means(means, offsets, viewmat, view.steps)
         colors, sh_degree = self._colors(params)
         announce_backend(self.config.renderer_backend, means.device, say=CONSOLE.log)
         out = render(
@@ -446,7 +374,7 @@ class GeerModel(SplatfactoModel):
             backend=self.config.renderer_backend,
         )
         if record:
-            self._record_info(means2d, out, view)
+            self._record_view(offsets, out, view)
         self.last_size = (height, width)
         outputs = self._outputs(out, view, background)
         cam_idx = (camera.metadata or {}).get("cam_idx")
@@ -454,23 +382,27 @@ class GeerModel(SplatfactoModel):
             outputs["rgb"] = self._apply_bilateral_grid(outputs["rgb"][None], cam_idx, height, width)[0]
         return outputs
 
-    def _displaced_means(self, means: Tensor, means2d: Tensor, viewmat: Tensor, steps) -> Tensor:
-        """means + R^T lateral(means2d): the render depends on means2d only through the image position."""
+    def _displaced_means(self, means: Tensor, offsets: Tensor, viewmat: Tensor, steps) -> Tensor:
+        """means + R^T lateral(offsets): the render depends on the offsets only through the image position."""
         means_c = view_transform(means.detach(), viewmat)
-        return means + lateral_displacement(means_c, means2d, steps) @ viewmat[:3, :3].to(means.dtype)
+        return means + lateral_displacement(means_c, offsets, steps) @ viewmat[:3, :3].to(means.dtype)
 
-    def _record_info(self, means2d: Tensor, out, view: View) -> None:
+    def _record_view(self, offsets: Tensor, out, view: View) -> None:
         height, width = view.size
-        self.info = {
-            "means2d": means2d,
-            "radii": pbf_radii(out.pbf, out.visible, view.steps)[None],
-            "width": width,
-            "height": height,
-            "n_cameras": 1,
-            "gaussian_ids": None,
-        }
-        if isinstance(self.strategy, DefaultStrategy):
-            self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info)
+        radii = pbf_radii(out.pbf, out.visible, view.steps)
+        self.views.append(ViewRecord(offsets, out.visible.detach(), (width / 2.0, height / 2.0),
+                                     radii / float(max(width, height)), width, height))
+        self.info = {"means2d": offsets[None], "radii": radii[None], "width": width, "height": height}
+
+    def _get_background_color(self) -> Tensor:
+        """splatfacto's, with one random colour per training step (drawn at its first view): every view of
+        a step, on every process, composites over the same colour, and the random stream stays the same
+        however a step's views are split over processes."""
+        if self.config.background_color == "random" and self.training:
+            if self._step_background is None:
+                self._step_background = torch.rand(3, device=self.device)
+            return self._step_background
+        return super()._get_background_color()
 
     def _outputs(self, out, view: View, background: Tensor) -> Dict[str, Tensor]:
         height, width = view.size
@@ -514,13 +446,35 @@ class GeerModel(SplatfactoModel):
         return self.render_guard.fallback(problem, self.get_empty_outputs(*size, self.background_color.to(self.device)))
 
     # ------------------------------------------------------------------------------- densification
+    def step_cb(self, optimizers, step):
+        super().step_cb(optimizers, step)
+        self._step_background = None
+
+    @property
+    def needs_step_statistics(self) -> bool:
+        """Whether step_post_backward will read this step's statistics (DefaultStrategy, before its last split)."""
+        return isinstance(self.strategy, GeerDefaultStrategy) and self.step < self.strategy.refine_stop_iter
+
+    def step_statistics(self) -> StepStatistics:
+        """This process's densification statistics of the step so far (its views, after their backward)."""
+        return StepStatistics.of_views(self.views, self.num_points, self.device)
+
+    def use_step_statistics(self, statistics: StepStatistics) -> None:
+        """The step's statistics over every process (the engine's reduction), for step_post_backward."""
+        self._statistics = statistics
+
     def step_post_backward(self, step):
         assert step == self.step
+        statistics = self._statistics
+        if statistics is None and self.needs_step_statistics:  # no engine reduced them: this process's views
+            statistics = self.step_statistics()
+        self.views, self._statistics = [], None
         if isinstance(self.strategy, MCMCStrategy):
             lr = self.optimizers["means"].param_groups[0]["lr"]
-            self.strategy.step_post_backward(self.gauss_params, self.optimizers, self.strategy_state, step, self.info, lr=lr)
+            self.strategy.step_post_backward(self.gauss_params, self.optimizers, self.strategy_state, step, {}, lr=lr)
             return
-        self.strategy.step_post_backward(self.gauss_params, self.optimizers, self.strategy_state, step, self.info, packed=False)
+        self.strategy.step_post_backward(self.gauss_params, self.optimizers, self.strategy_state, step,
+                                         {"statistics": statistics}, packed=False)
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         return [
@@ -547,13 +501,20 @@ class GeerModel(SplatfactoModel):
         return metrics
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
+        return {**self.get_image_loss_dict(outputs, batch), **self.get_step_loss_dict()}
+
+    def get_image_loss_dict(self, outputs, batch) -> Dict[str, Tensor]:
+        """The losses of one rendered image (a step averages them over its images)."""
         gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
         valid = self._batch_mask(outputs, batch)
         pred = torch.where(valid, outputs["rgb"], gt)  # invalid pixels equal: no loss, no SSIM edge
         l1 = (pred - gt).abs().sum() / (valid.sum() * gt.shape[-1]).clamp_min(1)
         ssim = self.ssim(gt.permute(2, 0, 1)[None], pred.permute(2, 0, 1)[None])
-        losses = {"main_loss": (1 - self.config.ssim_lambda) * l1 + self.config.ssim_lambda * (1 - ssim)}
-        losses["scale_reg"] = self._scale_regularisation()
+        return {"main_loss": (1 - self.config.ssim_lambda) * l1 + self.config.ssim_lambda * (1 - ssim)}
+
+    def get_step_loss_dict(self) -> Dict[str, Tensor]:
+        """The losses of the parameters alone (regularisers), once per step whatever its images."""
+        losses = {"scale_reg": self._scale_regularisation()}
         if isinstance(self.strategy, MCMCStrategy):
             losses["opacity_reg"] = self.config.mcmc_opacity_reg * torch.sigmoid(self.opacities).mean()
             losses["mcmc_scale_reg"] = self.config.mcmc_scale_reg * torch.exp(self.scales).mean()

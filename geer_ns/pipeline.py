@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 from time import time
-from typing import Dict, Iterable, List, Optional, Tuple, Type
+from typing import Dict, Iterable, List, Literal, Optional, Tuple, Type
 
 import torch
 import torchvision.utils as vutils
@@ -55,6 +55,15 @@ def split_by_kind(per_image: List[Tuple[str, Dict[str, float]]]) -> Dict[str, fl
 
 
 class GeerPipeline(VanillaPipeline):
+    def __init__(self, config: GeerPipelineConfig, device: str, test_mode: Literal["test", "val", "inference"] = "val",
+                 world_size: int = 1, local_rank: int = 0, grad_scaler=None):
+        # nerfstudio wraps the model in DistributedDataParallel when world_size > 1: DDP registers the parameters
+        # once, while densification replaces them every refinement, and its barrier takes NCCL-only device_ids.
+        # geer's training engine keeps the replicas identical itself (geer_ns/distributed), so no wrap.
+        super().__init__(config, device, test_mode=test_mode, world_size=1, local_rank=local_rank,
+                         grad_scaler=grad_scaler)
+        self.world_size = world_size
+
     def get_average_image_metrics(
         self,
         data_loader: Iterable,

@@ -37,6 +37,15 @@ def resize_in_place(gauss_params: torch.nn.ParameterDict, state_dict: Mapping[st
                 param.data = param.new_zeros((n,) + tuple(param.shape[1:]))
 
 
+def convert_step(step: int, saved_images_per_step: int, images_per_step: int) -> int:
+    """The index of the last completed step `step` of a run whose steps saw `saved_images_per_step` images
+    each, in steps of `images_per_step` images: what carries over is the number of images seen."""
+    if saved_images_per_step == images_per_step:
+        return step
+    completed = round((step + 1) * saved_images_per_step / images_per_step)
+    return max(completed - 1, 0)
+
+
 def rng_state() -> Dict[str, Any]:
     """torch (CPU and CUDA), numpy and Python RNG states as tensors, ints and tuples."""
     np_state = np.random.get_state()

@@ -61,6 +61,10 @@ class GeerDataOptions:
     """Pixels kept inside an automatically detected fisheye image circle (its rim pixels are blended)."""
     load_seed_points: bool = True
     """Seed Gaussians from the dataset's point cloud (nerfstudio-data `ply_file_path`)."""
+    images_per_step: int = 1
+    """Training images each process renders per step; their losses are averaged (gsplat's batch_size). The
+    effective batch is this times the number of processes, and step counts scale with it (README: several
+    processes and images per step)."""
 
 
 @dataclass
@@ -302,8 +306,27 @@ class GeerDataManager(FullImageDatamanager):
         return self._report[split]
 
     def next_train(self, step: int) -> Tuple[Cameras, Dict]:
-        camera, data = super().next_train(step)
+        return self.train_view(self.next_train_indices(1)[0])
+
+    def next_train_indices(self, count: int) -> List[int]:
+        """The next `count` training images of the queue (nerfstudio's: each epoch a permutation, drawn from
+        train_cameras_sampling_seed). Every process holds the same queue, so processes that each take their
+        share of one call's indices see disjoint images, and an epoch still visits every image once."""
+        indices = []
+        for _ in range(count):
+            indices.append(self.train_unseen_cameras.pop(0))
+            if not self.train_unseen_cameras:
+                self.train_unseen_cameras = self.sample_train_cameras()
+        return indices
+
+    def train_view(self, index: int) -> Tuple[Cameras, Dict]:
+        """Training image `index` as nerfstudio's next_train gives it (a one-camera batch, its image on the
+        device, `cam_idx`), with the view it is supervised in."""
+        data = dict(self.cached_train[index])  # a copy: the cache is not mutated (nerfstudio issue 3335)
+        data["image"] = data["image"].to(self.device)
+        camera = self.train_cameras[index : index + 1].to(self.device)
         camera.metadata = dict(camera.metadata or {})
+        camera.metadata["cam_idx"] = index
         camera.metadata[VIEW_KEY] = data.pop(VIEW_KEY)
         return camera, data
 

@@ -4,7 +4,7 @@ from .associate import TileLists, associate
 from .backend import resolve_backend
 from .composite import composite
 from .pbf import PBF, compute_pbf, mirror_tangent, pbf_lambda_sq
-from .rasterize import RenderOutput, preprocess, render, render_brute_force
+from .rasterize import RenderOutput, preprocess, render, render_batch, render_brute_force
 from .raygrid import RayGrid, beap_directions
 from .sh import sh_to_color
 from .transforms import quat_to_rotmat, to_view_space, whitening
@@ -27,6 +27,7 @@ __all__ = [
     "preprocess",
     "quat_to_rotmat",
     "render",
+    "render_batch",
     "render_brute_force",
     "resolve_backend",
     "sh_to_color",

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import torch
 from torch import Tensor
@@ -23,7 +24,7 @@ from .pbf import PBF, LambdaMode, compute_pbf, pbf_lambda_sq
 from .raygrid import RayGrid
 from .sh import sh_to_color
 from .transforms import camera_offsets, covariance_factor, to_view_space, whitening
-from .validate import check_gaussians
+from .validate import check_gaussians, check_shape, check_tensor
 
 
 @dataclass
@@ -116,6 +117,46 @@ def render(
     (memory model: blend.py); the kernels need no such cap.
     """
     _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background)
+    return _render_checked(means, quats, scales, opacities, colors, viewmat, grid, sh_degree, background, lambda_mode,
+                           backend, max_pairs)
+
+
+def render_batch(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    grids: RayGrid | Sequence[RayGrid],
+    *,
+    sh_degree: int | None = None,
+    background: Tensor | None = None,
+    lambda_mode: LambdaMode = "opacity",
+    backend: Backend = "auto",
+    max_pairs: int = 1 << 20,
+) -> list[RenderOutput]:
+    """Render C cameras of one scene: viewmats [C,4,4], grids one RayGrid for every camera or one per camera
+    (mixed rigs). Each view is what `render` gives for it, outputs and gradients; the scene is checked once.
+    Views are rendered one after the other: their lists and pairs differ, and one view's pairs at a time is
+    what bounds the memory (a training step with several images also runs each image's backward before the
+    next image's forward: geer_ns/distributed/trainer.py)."""
+    check_shape("viewmats", viewmats, (None, 4, 4))
+    views = viewmats.shape[0]
+    grids = [grids] * views if isinstance(grids, RayGrid) else list(grids)
+    if len(grids) != views:
+        raise ValueError(f"grids: expected one RayGrid or {views} (one per viewmat), got {len(grids)}")
+    for grid in grids:
+        if not isinstance(grid, RayGrid):
+            raise TypeError(f"grids: expected RayGrids, got {type(grid).__name__}")
+    check_gaussians(means, quats, scales, opacities, colors, background=background)
+    check_tensor("viewmats", viewmats, (views, 4, 4))
+    return [_render_checked(means, quats, scales, opacities, colors, viewmats[c], grids[c], sh_degree, background,
+                            lambda_mode, backend, max_pairs) for c in range(views)]
+
+
+def _render_checked(means, quats, scales, opacities, colors, viewmat, grid, sh_degree, background, lambda_mode,
+                    backend, max_pairs) -> RenderOutput:
     chosen = resolve_backend(backend, means.device, pose_grad=viewmat.requires_grad and torch.is_grad_enabled())
     if chosen != "torch":  # the kernels (CUDA), or their math compiled for the CPU
         from .cuda_backend import load_cpu_ops, render_cuda

@@ -1,0 +1,235 @@
+"""geer's training step on 1..N processes: nerfstudio's Trainer with the step made of images and replicas.
+
+A step renders this process's `images_per_step` training images one at a time (each its own backward, so
+only one image's graph is alive), sums their gradients, reduces them over the processes (replicas.py) and
+divides by the step's images (the effective batch), adds the regularisers' gradient once, reduces the
+densification statistics, and steps the optimisers; nerfstudio's callbacks (densification, the SH schedule)
+run around it as before. Everything else is nerfstudio's Trainer: rank 0 alone logs, evaluates, saves and
+serves the viewer (its decorators and this class), and every process trains the same replica.
+
+The launch (one process per device, the process group) is nerfstudio's `--machine.*` launcher, made to work
+on CPU machines by geer_ns.host_fixes.install_distributed_launch_fix.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import traceback
+from dataclasses import dataclass, field
+from typing import Dict, List, Tuple, Type
+
+import torch
+from nerfstudio.configs.base_config import MachineConfig
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils import profiler
+from nerfstudio.utils.decorators import check_main_thread
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from geer_ns import resume
+from geer_ns.distributed.replicas import (
+    ReplicaMismatchError,
+    broadcast_replica,
+    check_consistent,
+    check_replicas_identical,
+    fingerprint,
+    optimised_parameters,
+    reduce_gradients,
+    reduce_statistics,
+)
+from geer_ns.distributed.schedule import EffectiveBatch, describe, scaled_config
+from geer_ns.distributed.world import current_world
+
+
+@dataclass
+class GeerMachineConfig(MachineConfig):
+    timeout_s: float = 600.0
+    """Seconds a process waits for the others (start-up, each gradient reduction) before it stops with an error,
+    so a process that died or hangs ends the run within this time. Rank 0 evaluates and saves while the others
+    wait at the next step: keep it above the longest evaluation (--steps-per-eval-all-images)."""
+    check_replicas_every: int = 0
+    """Every this many steps, compare the replicas' parameter checksums over the processes and stop if they
+    differ (0: never; the replicas are identical by construction)."""
+
+
+@dataclass
+class GeerTrainerConfig(TrainerConfig):
+    _target: Type = field(default_factory=lambda: GeerTrainer)
+
+
+class GeerTrainer(Trainer):
+    config: GeerTrainerConfig
+
+    def __init__(self, config: GeerTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        self.world = current_world()
+        images = config.pipeline.datamanager.images_per_step
+        if images < 1:
+            raise ValueError(f"geer: --pipeline.datamanager.images-per-step must be >= 1, got {images}")
+        self.batch = EffectiveBatch(self.world.size, images)
+        self.user_config = config
+        config = scaled_config(config, self.batch)
+        if not self.world.is_main:  # rank 0 alone speaks, and serves the viewer (the writers are rank 0's already)
+            CONSOLE.quiet = True
+            if config.vis.startswith("viewer"):
+                config.vis = "tensorboard"
+        super().__init__(config, local_rank, world_size)
+
+    # ------------------------------------------------------------------------------------- set-up
+    def setup(self, test_mode="val") -> None:
+        try:
+            self._setup(test_mode)
+        except Exception as error:  # noqa: BLE001 - said once, then the process ends
+            if not self.world.distributed:
+                raise
+            self._stop(error)
+
+    def _setup(self, test_mode) -> None:
+        super().setup(test_mode)  # pipeline, optimisers, viewer, checkpoint
+        if self.world.distributed:
+            check_consistent(self.world, fingerprint(self))
+            broadcast_replica(self.world, self.pipeline.model, self.optimizers)
+        every = getattr(self.config.machine, "check_replicas_every", 0)
+        if every and self.world.distributed:  # after the model's own callbacks: densification included
+            self.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
+                                                   lambda step: check_replicas_identical(self.world,
+                                                                                         self.pipeline.model, step),
+                                                   update_every_num_iters=every))
+        self._say_start()
+
+    def _say_start(self) -> None:
+        if not self.world.is_main or self.batch.images == 1:
+            return
+        how = f"{self.world.size} process(es) ({self.world.backend}"
+        if self.device.startswith("cpu"):
+            how += f", {torch.get_num_threads()} CPU thread(s) each"
+        CONSOLE.log(f"geer: training on {how}), {self.batch.images_per_process} image(s) per process per step: "
+                    f"an effective batch of {self.batch.images} images")
+        for line in describe(self.config, self.user_config, self.batch):
+            CONSOLE.log(f"geer: {line}")
+
+    def _load_checkpoint(self) -> None:
+        super()._load_checkpoint()
+        saved, now = self.pipeline.model.loaded_images_per_step, self.batch.images
+        if self._start_step == 0 or saved == now:
+            return
+        start = resume.convert_step(self._start_step - 1, saved, now) + 1
+        for scheduler in self.optimizers.schedulers.values():
+            scheduler.last_epoch = resume.convert_step(scheduler.last_epoch - 1, saved, now)
+            scheduler.step()  # the learning rate of the converted step
+        CONSOLE.log(f"geer: the checkpoint's steps saw {saved} image(s) each, this run's see {now}: step "
+                    f"{self._start_step} there is step {start} here (the images seen carry over)")
+        self._start_step = start
+
+    # --------------------------------------------------------------------------------- the step
+    def _views(self, step: int) -> List[Tuple[object, Dict]]:
+        """This process's images of the step: its share of the next effective batch of the shared queue."""
+        dm = self.pipeline.datamanager
+        per = self.batch.images_per_process
+        indices = dm.next_train_indices(self.batch.images)
+        return [dm.train_view(i) for i in indices[self.world.rank * per : (self.world.rank + 1) * per]]
+
+    @profiler.time_function
+    def train_iteration(self, step: int):
+        accumulate = self.gradient_accumulation_steps
+        self.optimizers.zero_grad_some([g for g in self.optimizers.parameters if step % accumulate[g] == 0])
+        device_type = "cpu" if self.device.split(":")[0] in ("cpu", "mps") else self.device.split(":")[0]
+        model = self.pipeline.model
+        image_losses: Dict[str, torch.Tensor] = {}
+        metrics: Dict[str, torch.Tensor] = {}
+        views = self._views(step)
+        for camera, batch in views:
+            with torch.autocast(device_type=device_type, enabled=self.mixed_precision):
+                outputs = model.get_outputs(camera)
+                for k, v in model.get_metrics_dict(outputs, batch).items():
+                    metrics[k] = metrics.get(k, 0) + (v.detach() if torch.is_tensor(v) else v) / len(views)
+                losses = model.get_image_loss_dict(outputs, batch)
+                loss = functools.reduce(torch.add, losses.values())
+            self.grad_scaler.scale(loss).backward()
+            for k, v in losses.items():
+                image_losses[k] = image_losses.get(k, 0) + v.detach() / len(views)
+            del outputs, loss, losses
+        reduce_gradients(self.world, optimised_parameters(self.optimizers), self.batch.images)
+        with torch.autocast(device_type=device_type, enabled=self.mixed_precision):
+            step_losses = model.get_step_loss_dict()
+        step_loss = functools.reduce(torch.add, step_losses.values())
+        if step_loss.requires_grad:
+            self.grad_scaler.scale(step_loss).backward()
+        if model.needs_step_statistics:
+            model.use_step_statistics(reduce_statistics(self.world, model.step_statistics()))
+        self.optimizers.optimizer_scaler_step_some(
+            self.grad_scaler, [g for g in self.optimizers.parameters if step % accumulate[g] == accumulate[g] - 1])
+        if self.config.log_gradients:
+            for tag, value in model.named_parameters():
+                if value.grad is not None:
+                    metrics[f"Gradients/{tag}"] = value.grad.norm()
+        scale = self.grad_scaler.get_scale()
+        self.grad_scaler.update()
+        if scale <= self.grad_scaler.get_scale():  # no step was skipped: the schedules move on
+            self.optimizers.scheduler_step_all(step)
+        loss_dict = {**image_losses, **{k: v.detach() for k, v in step_losses.items()}}
+        return functools.reduce(torch.add, loss_dict.values()), loss_dict, metrics
+
+    def train(self) -> None:
+        try:
+            super().train()
+        except Exception as error:  # noqa: BLE001 - said once, then the process ends
+            if not self.world.distributed:
+                raise
+            self._stop(error)
+
+    def _stop(self, error: BaseException) -> None:
+        """One line naming this rank and the cause, then exit status 1 (the launcher stops the others)."""
+        lost = _communication_failure(error)
+        if lost is None and not isinstance(error, ReplicaMismatchError):
+            traceback.print_exc()
+        if lost is not None:
+            what = (f"lost the other processes ({lost}: one died, hung past --machine.timeout-s or was "
+                    "unreachable; the first to fail says why)")
+        else:
+            cause = str(error).strip().splitlines()[0] if str(error).strip() else ""
+            what = f"failed: {type(error).__name__}: {cause}"
+        print(f"geer: rank {self.world.rank} of {self.world.size} stopped at step {self.step}: {what}", flush=True)
+        raise SystemExit(1)
+
+    @check_main_thread
+    def eval_iteration(self, step: int) -> None:
+        super().eval_iteration(step)
+
+    @check_main_thread
+    def save_checkpoint(self, step: int) -> None:
+        """nerfstudio's checkpoint, written whole or not at all (a temporary file renamed into place)."""
+        self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+        path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
+        partial = self.base_dir / f".{path.name}.partial"  # not in the folder --load-dir lists
+        torch.save({
+            "step": step,
+            "pipeline": self.pipeline.state_dict(),
+            "optimizers": {k: v.state_dict() for k, v in self.optimizers.optimizers.items()},
+            "schedulers": {k: v.state_dict() for k, v in self.optimizers.schedulers.items()},
+            "scalers": self.grad_scaler.state_dict(),
+        }, partial)
+        os.replace(partial, path)
+        if self.config.save_only_latest_checkpoint:
+            for old in self.checkpoint_dir.glob("*.ckpt"):
+                if old != path:
+                    old.unlink()
+
+
+_LOST = ("Connection closed by peer", "Connection reset by peer", "Broken pipe", "Timed out", "timed out",
+         "Socket Timeout", "NCCL communicator was aborted", "NCCL error")
+
+
+def _communication_failure(error: BaseException):
+    """The short cause when a collective failed because another process went away or timed out, else None."""
+    text = str(error)
+    for marker in _LOST:
+        if marker in text:
+            return f"{dist_backend_name()}: {marker.lower()}"
+    if isinstance(error, getattr(torch.distributed, "DistError", ())):
+        return f"{dist_backend_name()}: {text.strip().splitlines()[0][:120] if text.strip() else type(error).__name__}"
+    return None
+
+
+def dist_backend_name() -> str:
+    return str(torch.distributed.get_backend()) if torch.distributed.is_initialized() else "torch.distributed"

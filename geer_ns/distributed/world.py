@@ -1,0 +1,121 @@
+"""The process group a training run is part of, and the few collectives the engine uses (torch.distributed).
+
+One process: no process group, every collective is the identity. Several (nerfstudio's launcher,
+`--machine.num-devices N`, `--machine.num-machines M`): gloo on CPU tensors, NCCL on CUDA tensors; the
+same calls either way, so one engine trains on 1 or N processes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, List, Sequence
+
+import torch
+import torch.distributed as dist
+from torch import Tensor
+
+# Gradient buckets of at most this many bytes (DistributedDataParallel's default bucket_cap_mb is 25).
+BUCKET_BYTES = 25 << 20
+
+
+@dataclass(frozen=True)
+class World:
+    """Where this process stands: its global rank, the number of processes, the backend."""
+
+    rank: int = 0
+    size: int = 1
+    backend: str = "none"
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+    @property
+    def distributed(self) -> bool:
+        return self.size > 1
+
+
+def current_world() -> World:
+    if dist.is_available() and dist.is_initialized():
+        return World(dist.get_rank(), dist.get_world_size(), str(dist.get_backend()))
+    return World()
+
+
+def _comm_device(like: Tensor) -> torch.device:
+    """NCCL reduces CUDA tensors only; gloo reduces CPU tensors (and copies CUDA ones through the host)."""
+    return like.device if dist.get_backend() != "gloo" else torch.device("cpu")
+
+
+def all_reduce_(tensors: Sequence[Tensor], op: str = "sum", bucket_bytes: int = BUCKET_BYTES) -> None:
+    """Reduce every tensor in place over all processes, flattened into buckets of one dtype and device
+    (one collective per bucket, all in flight at once). op: "sum" or "max". No-op on one process."""
+    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1 or not tensors:
+        return
+    reduce_op = {"sum": dist.ReduceOp.SUM, "max": dist.ReduceOp.MAX}[op]
+    pending = []
+    for bucket in _buckets(tensors, bucket_bytes):
+        flat = torch.cat([t.reshape(-1) for t in bucket]).to(_comm_device(bucket[0]))
+        pending.append((bucket, flat, dist.all_reduce(flat, op=reduce_op, async_op=True)))
+    for bucket, flat, work in pending:
+        work.wait()
+        offset = 0
+        for t in bucket:
+            t.copy_(flat[offset : offset + t.numel()].view_as(t))
+            offset += t.numel()
+
+
+def _buckets(tensors: Sequence[Tensor], bucket_bytes: int) -> List[List[Tensor]]:
+    """Consecutive runs of tensors with one dtype and device, each run cut at bucket_bytes."""
+    buckets: List[List[Tensor]] = []
+    size = 0
+    for t in tensors:
+        nbytes = t.numel() * t.element_size()
+        last = buckets[-1] if buckets else None
+        if last is None or last[0].dtype != t.dtype or last[0].device != t.device or size + nbytes > bucket_bytes:
+            buckets.append([t])
+            size = nbytes
+        else:
+            last.append(t)
+            size += nbytes
+    return buckets
+
+
+def all_gather_objects(obj: Any) -> List[Any]:
+    """[obj of rank 0, obj of rank 1, ...] (picklable objects); [obj] on one process."""
+    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+        return [obj]
+    out: List[Any] = [None] * dist.get_world_size()
+    dist.all_gather_object(out, obj)
+    return out
+
+
+def broadcast_object(obj: Any, src: int = 0) -> Any:
+    """Rank src's obj on every rank."""
+    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+        return obj
+    box = [obj]
+    dist.broadcast_object_list(box, src=src)
+    return box[0]
+
+
+def broadcast_(tensors: Sequence[Tensor], src: int = 0) -> None:
+    """Rank src's values into every rank's tensors, in place (the tensors match in shape on every rank)."""
+    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+        return
+    for t in tensors:
+        if t.numel() == 0:
+            continue
+        buffer = t.detach().contiguous().to(_comm_device(t))
+        dist.broadcast(buffer, src=src)
+        t.detach().copy_(buffer.view_as(t))
+
+
+def split_sizes(total: int, parts: int) -> List[int]:
+    """Sizes of `parts` contiguous blocks of `total` items, the first ones one larger where it does not divide."""
+    base, extra = divmod(total, parts)
+    return [base + (1 if r < extra else 0) for r in range(parts)]
+
+
+def ceil_div(a: int, b: int) -> int:
+    return int(math.ceil(a / b))

@@ -1,0 +1,121 @@
+"""What the multi-process tests run inside nerfstudio's launcher (nerfstudio.scripts.train.launch, the code
+`ns-train --machine.num-devices N` runs, with geer's launch fix): each process is a spawned interpreter that
+imports this module. `main` (the launcher's main_func) runs the plans in one launch (interpreters are slow to
+start) and leaves their results (checkpoints, JSON) under the config's output_dir for the tests to read.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from pathlib import Path
+
+from conftest import tiny_trainer_config
+
+# In images: the schedule of a refinement-and-reset run at an effective batch of 2 (both processes x 1 image,
+# or 1 process x 2 images): refine every 4 images (2 steps) after 4, opacity reset every 5 refinements. With
+# 5 training images refinements pause for ceil(5 / 2) + 2 = 5 steps after a reset: refinements at steps 6 and
+# 8, a reset at step 10, inside 12 steps.
+STEPS = 12
+
+
+def scenario_config(data: Path, out: Path, name: str, *, strategy: str = "default", images_per_step: int = 1,
+                    steps: int = STEPS):
+    config = tiny_trainer_config(data, out, name, steps * 2)  # images: 2 per step
+    config.steps_per_save = 1_000_000  # the final checkpoint only
+    config.machine.device_type = "cpu"
+    config.machine.timeout_s = 60.0
+    model = config.pipeline.model
+    model.strategy = strategy
+    model.warmup_length, model.refine_every, model.reset_alpha_every, model.stop_split_at = 4, 4, 5, 1000
+    model.densify_grad_thresh = 1e-7  # every seen Gaussian grows: refinements visibly change the count
+    model.mcmc_cap_max = 6000
+    config.pipeline.datamanager.images_per_step = images_per_step
+    return config
+
+
+def train(local_rank: int, world_size: int, config, global_rank: int = 0, callbacks=()):
+    """nerfstudio's train_loop (seed, set-up, train) with extra per-step callbacks."""
+    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+    from nerfstudio.scripts.train import _set_random_seed
+    from nerfstudio.utils import writer
+
+    writer.EVENT_WRITERS.clear()
+    _set_random_seed(config.machine.seed + global_rank)
+    trainer = config.setup(local_rank=local_rank, world_size=world_size)
+    trainer.setup()
+    for fn in callbacks:
+        trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
+                                                  lambda step, fn=fn: fn(trainer, step)))
+    trainer.train()
+    writer.EVENT_WRITERS.clear()
+    return trainer
+
+
+def main(local_rank: int, world_size: int, config, global_rank: int = 0):
+    """The replica plans, then the fault plan (which ends the launch: with exit status 1 when all is well)."""
+    replicas_plan(local_rank, world_size, config, global_rank)
+    fault_plan(local_rank, world_size, config, global_rank)
+
+
+def _write(path: Path, value) -> None:
+    path.write_text(json.dumps(value))
+
+
+def replicas_plan(local_rank, world_size, config, global_rank):
+    from geer_ns.distributed import trainer as engine
+    from geer_ns.distributed.replicas import ReplicaMismatchError, check_replicas_identical
+    from geer_ns.distributed.world import current_world
+
+    data, out = Path(config.pipeline.datamanager.data), Path(config.output_dir)
+    world = current_world()
+    results = {}
+
+    # 1. A process with another configuration: every rank stops at start-up, naming the field.
+    odd = scenario_config(data, out, "mismatch")
+    if global_rank == 1:
+        odd.pipeline.model.refine_every = 6
+    try:
+        train(local_rank, world_size, odd, global_rank)
+        results["mismatch"] = "trained"
+    except SystemExit as stop:
+        results["mismatch"] = f"exit {stop.code}"
+
+    # 2. The check can fail: without the gradient all-reduce the replicas drift apart at once.
+    local_only = engine.reduce_gradients
+    engine.reduce_gradients = lambda w, params, images: local_only(type(w)(), params, images)
+    try:
+        train(local_rank, world_size, scenario_config(data, out, "unsynced", steps=2), global_rank,
+              callbacks=[lambda trainer, step: check_replicas_identical(world, trainer.pipeline.model, step)])
+        results["unsynced"] = "identical"
+    except SystemExit:
+        results["unsynced"] = "diverged"
+    except ReplicaMismatchError:
+        results["unsynced"] = "diverged (raised)"
+    finally:
+        engine.reduce_gradients = local_only
+
+    # 3. Both strategies, a refinement and an opacity reset inside: checksums and counts after every step.
+    for strategy in ("default", "mcmc"):
+        name = f"equal_{strategy}"
+        per_step = []
+        train(local_rank, world_size, scenario_config(data, out, name, strategy=strategy), global_rank,
+              callbacks=[lambda trainer, step: per_step.append(
+                  (step, trainer.pipeline.model.num_points,
+                   check_replicas_identical(world, trainer.pipeline.model, step)))])
+        results[name] = per_step
+    if global_rank == 0:
+        _write(out / "replicas.json", results)
+
+
+def fault_plan(local_rank, world_size, config, global_rank):
+    """Rank 1 is killed (SIGKILL, no goodbye) before its 6th step; rank 0 must notice and stop."""
+    def kill_at(trainer, step):
+        if global_rank == 1 and step == 4:  # after step 4: rank 0 finds it gone in step 5's reduction
+            (out / "killed_at").write_text(repr(time.time()))
+            os.kill(os.getpid(), signal.SIGKILL)
+
+    data, out = Path(config.pipeline.datamanager.data), Path(config.output_dir)
+    train(local_rank, world_size, scenario_config(data, out, "killed", steps=40), global_rank, callbacks=[kill_at])

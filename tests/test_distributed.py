@@ -1,0 +1,186 @@
+"""Image-parallel training on 2 gloo processes (geer_ns/distributed) against 1 process with 2 images per step.
+
+The 2-process runs go through nerfstudio's own launcher (`launch`, what `ns-train --machine.num-devices 2`
+calls) with geer's launch fix; their plans are in distributed_harness.py. The reference is one process
+training the same image pairs (--pipeline.datamanager.images-per-step 2), with one CPU thread like each of the
+two processes: a step's gradient is then the same sum of the same two images' gradients (a + b = b + a in
+IEEE arithmetic), so the runs must agree bit for bit, densification included.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+import distributed_harness as harness
+from conftest import copy_room, train_in_process
+
+GAUSS = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
+
+
+@contextlib.contextmanager
+def _output_to(log: Path):
+    """This process's and its children's stdout and stderr into `log` (file descriptors: the spawned processes
+    inherit them)."""
+    saved = [os.dup(1), os.dup(2)]
+    with open(log, "w") as f:
+        os.dup2(f.fileno(), 1)
+        os.dup2(f.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+
+
+def _launch(config, log: Path) -> None:
+    """Two CPU processes through nerfstudio's launcher, their output in `log`."""
+    from nerfstudio.scripts.train import launch
+
+    with _output_to(log):
+        launch(harness.main, num_devices_per_machine=2, num_machines=1, machine_rank=0, dist_url="auto",
+               config=config, device_type="cpu")
+
+
+def _text(log: Path) -> str:
+    """The log as one line of words (rich wraps lines and adds times and source locations)."""
+    text = re.sub(r"\S+\.py:\d+|\[\d\d:\d\d:\d\d\]", " ", log.read_text())
+    return " ".join(text.split())
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    return copy_room(tmp_path_factory.mktemp("dist_data"), 5)
+
+
+@pytest.fixture(scope="module")
+def two_processes(room, tmp_path_factory):
+    """One launch of 2 processes: the replica plans, then a run whose rank 1 is killed (the launch's end)."""
+    out = tmp_path_factory.mktemp("dist_runs")
+    config = harness.scenario_config(room, out, "replicas")
+    start = time.perf_counter()
+    try:
+        _launch(config, out / "log.txt")
+        stop = None
+    except SystemExit as error:
+        stop = error
+    ended = time.time()
+    print(f"2 processes, the replica plans and the fault: {time.perf_counter() - start:.0f} s")
+    return out, json.loads((out / "replicas.json").read_text()), stop, ended, config
+
+
+@pytest.fixture(scope="module")
+def one_process(room, tmp_path_factory, single_thread):
+    out = tmp_path_factory.mktemp("dist_reference")
+    return {strategy: torch.load(train_in_process(harness.scenario_config(
+        room, out, f"equal_{strategy}", strategy=strategy, images_per_step=2)), map_location="cpu")
+        for strategy in ("default", "mcmc")}
+
+
+def _checkpoint(out: Path, name: str) -> dict:
+    return torch.load(sorted((out / name / "geer" / "run" / "nerfstudio_models").glob("*.ckpt"))[-1],
+                      map_location="cpu")
+
+
+def test_a_process_with_another_configuration_stops_every_rank_at_start_up(two_processes):
+    out, results = two_processes[:2]
+    assert results["mismatch"] == "exit 1"  # rank 0's; rank 1 stopped too, or it would not have reached plan 2
+    text = _text(out / "log.txt")
+    for rank in (0, 1):
+        assert f"geer: rank {rank} of 2 stopped at step 0: failed: ReplicaMismatchError: geer: the processes of " \
+               "this run disagree: rank 1 has config pipeline.model.refine_every = 6 where rank 0 has 4" in text
+
+
+def test_the_replica_check_catches_replicas_that_drift(two_processes):
+    results = two_processes[1]
+    assert results["unsynced"].startswith("diverged")
+
+
+@pytest.mark.parametrize("strategy", ["default", "mcmc"])
+def test_replicas_are_identical_after_every_step(two_processes, strategy):
+    results = two_processes[1]
+    per_step = results[f"equal_{strategy}"]
+    assert [step for step, _, _ in per_step] == list(range(harness.STEPS))
+    for step, count, sums in per_step:
+        assert len(sums) == 2 and sums[0] == sums[1], (step, sums)
+    counts = [count for _, count, _ in per_step]
+    assert len(set(counts)) > 1, counts  # the plan's refinements (or MCMC's relocation) changed the model
+
+
+@pytest.mark.parametrize("strategy", ["default", "mcmc"])
+def test_two_processes_equal_one_process_with_two_images_per_step(two_processes, one_process, strategy):
+    out = two_processes[0]
+    ranks, single = _checkpoint(out, f"equal_{strategy}"), one_process[strategy]
+    assert ranks["step"] == single["step"] == harness.STEPS - 1
+    for name in GAUSS:
+        a, b = ranks["pipeline"][f"_model.gauss_params.{name}"], single["pipeline"][f"_model.gauss_params.{name}"]
+        assert a.shape == b.shape, (name, a.shape, b.shape)
+        assert torch.equal(a, b), (name, float((a - b).abs().max()))
+    for group, state in single["optimizers"].items():
+        for key, value in state["state"].get(0, {}).items():
+            assert torch.equal(torch.as_tensor(ranks["optimizers"][group]["state"][0][key]), torch.as_tensor(value))
+
+
+def test_a_killed_process_stops_the_other_with_one_line_within_the_timeout(two_processes, capfd):
+    out, _, stop, ended, config = two_processes
+    assert stop is not None and stop.code == 1
+    text = _text(out / "log.txt") + " " + " ".join(capfd.readouterr().err.split())  # children + launcher
+    assert re.search(r"geer: rank 0 of 2 stopped at step 5: lost the other processes \(gloo: connection "
+                     r"(reset|closed) by peer: one died, hung past --machine.timeout-s or was unreachable; the first "
+                     r"to fail says why\)", text), text[-2000:]
+    assert re.search(r"geer: training stopped: rank 1 \(pid \d+\) was killed by signal SIGKILL; the other 1 "
+                     r"process\(es\) of this machine were stopped", text), text[-2000:]
+    killed_at = float((out / "killed_at").read_text())
+    print(f"from the kill to the end of the launch: {ended - killed_at:.1f} s (timeout {config.machine.timeout_s} s)")
+    assert ended - killed_at < config.machine.timeout_s
+    assert not list((out / "killed").rglob("*.partial")) and not list((out / "killed").rglob("*.ckpt"))
+
+
+# ----------------------------------------------------------------------------------------- ns-train
+def test_ns_train_on_two_cpu_processes_then_ns_eval_and_a_resume_on_one(tmp_path):
+    """The real command line on 2 gloo processes: it trains, rank 0 alone speaks and writes one checkpoint,
+    ns-eval scores it, and a run resumed from it on one process carries the images seen over."""
+    import subprocess
+    import sys
+
+    from nerfstudio.scripts.eval import ComputePSNR
+
+    from conftest import tiny_trainer_config
+
+    data = copy_room(tmp_path / "data", 8, n_eval=2)
+    images = 40  # 20 steps of 2 images
+    args = [str(Path(sys.executable).parent / "ns-train"), "geer", "--data", str(data),
+            "--output-dir", str(tmp_path), "--experiment-name", "room", "--timestamp", "two",
+            "--max-num-iterations", str(images), "--vis", "tensorboard", "--steps-per-eval-image", "0",
+            "--steps-per-eval-all-images", "0", "--pipeline.model.num-downscales", "1",
+            "--pipeline.model.resolution-schedule", "1000000", "--machine.num-devices", "2",
+            "--machine.device-type", "cpu"]
+    result = subprocess.run(args, capture_output=True, text=True, timeout=600,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    log = " ".join(re.sub(r"\S+\.py:\d+|\[\d\d:\d\d:\d\d\]", " ", result.stdout + result.stderr).split())
+    assert result.returncode == 0, log[-3000:]
+    assert log.count("geer: training on 2 process(es) (gloo, 1 CPU thread(s) each), 1 image(s) per process per "
+                     "step: an effective batch of 2 images") == 1, log[-3000:]
+    assert log.count("Training Finished") == 1 and log.count("geer: caching 6 train images") == 1  # rank 0 only
+    run = tmp_path / "room" / "geer" / "two"
+    assert [p.name for p in (run / "nerfstudio_models").iterdir()] == ["step-000000019.ckpt"]
+
+    ComputePSNR(load_config=run / "config.yml", output_path=tmp_path / "eval.json").main()
+    metrics = json.loads((tmp_path / "eval.json").read_text())["results"]
+    assert metrics["psnr"] > 10.0 and 0.0 < metrics["ssim"] <= 1.0
+
+    resumed = tiny_trainer_config(data, tmp_path, "resumed", 3)
+    resumed.load_dir = run / "nerfstudio_models"
+    last = torch.load(train_in_process(resumed), map_location="cpu")
+    # 20 steps of 2 images = 40 steps of 1: the resumed run goes on at step 40 for its 3 steps
+    assert last["step"] == 42
+    assert last["pipeline"]["_model._extra_state"]["images_per_step"] == 1
