@@ -46,11 +46,11 @@ from geer_ns.cameras import CameraModel
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, native_view
 from geer_ns.densify.mcmc_cpu import install_mcmc_cpu_ops
-from geer_ns.densify.signal import StepStatistics, ViewRecord, lateral_displacement, pbf_radii
+from geer_ns.densify.signal import StepStatistics, ViewRecord, ViewSignal, angular_signal, pbf_radii, pixel_signal
 from geer_ns.densify.strategy import GeerDefaultStrategy
 from geer_ns.render import render
 from geer_ns.render.backend import Backend, announce_backend
-from geer_ns.render.pbf import LambdaMode
+from geer_ns.render.pbf import LambdaMode, pbf_lambda_sq
 from geer_ns.render.transforms import view_transform
 from geer_ns.render_guard import RenderGuard, camera_problem, in_viewer_thread, is_viewer_interrupt
 
@@ -74,6 +74,16 @@ class GeerOwnOptions:
 
     strategy: Literal["default", "mcmc"] = "default"
     """Densification: gsplat's DefaultStrategy (3DGS heuristics) or MCMCStrategy."""
+    densify_signal: Literal["angular", "pixels"] = "angular"
+    """Densification statistics: "angular" (the same value for the same Gaussian at any field of view,
+    projection and resolution, in the units gsplat's thresholds were tuned on: geer_ns/densify/signal.py) or
+    "pixels" (geer's former signal: BEAP pixels, normalised by the image size)."""
+    max_gaussians: int = 0
+    """Most Gaussians densification may create (0: no limit); the strongest candidates grow first. With
+    strategy=mcmc, the cap of MCMCStrategy when set."""
+    prune_unseen: bool = True
+    """Prune Gaussians whose blend weight stayed below 1/255 on every training ray for a whole pass over the
+    training images (too faint, or hidden behind opaque surfaces in every view)."""
     renderer_backend: Backend = "auto"
     """geer_ns.render backend: auto (CPU tensors: the kernels' math compiled for the CPU, JIT-built once, else
     the PyTorch renderer, said once; CUDA tensors: the PyTorch renderer until the kernels are verified on a GPU),
@@ -112,12 +122,12 @@ class GeerModelConfig(SplatfactoModelConfig, GeerOwnOptions):
     eval_num_rays_per_chunk: tyro.conf.Suppress[int] = _model_config_default("eval_num_rays_per_chunk")
     prompt: tyro.conf.Suppress[Optional[str]] = _model_config_default("prompt")
     densify_grad_thresh: float = 0.0002
-    """means2d gradient threshold (BEAP pixels, after gsplat's width/2, height/2 scaling), as gsplat's default."""
+    """Gradient threshold of DefaultStrategy's growth, in gsplat's units (what they mean: densify-signal)."""
+    use_absgrad: bool = False
+    """Densify on AbsGS's per-pixel absolute gradients (the renderer's backward sums |dL_p/d position| over each
+    Gaussian's pixels) instead of the summed gradient."""
     # splatfacto options geer does not use: accepted (splatfacto command lines still parse), marked, and said
     # once at start-up when set (IGNORED_OPTIONS).
-    use_absgrad: bool = False
-    """IGNORED by geer: its means2d carries the summed gradient; per-pixel absolute gradients (AbsGS) are not
-    available."""
     rasterize_mode: Literal["classic", "antialiased"] = "classic"
     """IGNORED by geer (a gsplat rasterizer option): every Gaussian is evaluated exactly along each ray."""
     output_depth_during_training: bool = False
@@ -133,8 +143,7 @@ class GeerModelConfig(SplatfactoModelConfig, GeerOwnOptions):
 
 
 # splatfacto options geer accepts (so that splatfacto command lines still parse) but does not use.
-IGNORED_OPTIONS = ("use_absgrad", "rasterize_mode", "output_depth_during_training", "color_corrected_metrics",
-                   "n_split_samples")
+IGNORED_OPTIONS = ("rasterize_mode", "output_depth_during_training", "color_corrected_metrics", "n_split_samples")
 # geer's own options, listed first in `ns-train geer --help` (the method description).
 OWN_OPTIONS_HELP = (
     "geer's own options: --pipeline.model.renderer-backend {auto,torch,cuda,cpu}, --pipeline.model.lambda-mode "
@@ -227,7 +236,6 @@ class GeerModel(SplatfactoModel):
             self.bil_grids = BilateralGrid(num=self.num_train_data, grid_X=shape[0], grid_Y=shape[1], grid_W=shape[2])
         self.strategy, self.strategy_state = self._build_strategy()
         self.views: List[ViewRecord] = []  # this step's rendered training views, for the densification statistics
-        self.info: Dict[str, object] = {}  # the last view's record in gsplat's terms (means2d, radii, size)
         self._statistics: Optional[StepStatistics] = None  # the step's statistics, when the engine reduced them
         self._step_background: Optional[Tensor] = None  # one random background per step, for all its views
         self.loaded_images_per_step = self.config.images_per_step_total  # of the checkpoint loaded, if any
@@ -258,11 +266,10 @@ class GeerModel(SplatfactoModel):
     def _build_strategy(self):
         cfg = self.config
         self._say_ignored_options()
-        cfg.use_absgrad = False
         if cfg.strategy == "mcmc":
             install_mcmc_cpu_ops()
             strategy = MCMCStrategy(
-                cap_max=cfg.mcmc_cap_max,
+                cap_max=cfg.max_gaussians if cfg.max_gaussians > 0 else cfg.mcmc_cap_max,
                 noise_lr=cfg.mcmc_noise_lr,
                 refine_start_iter=cfg.warmup_length,
                 refine_stop_iter=cfg.stop_split_at,
@@ -273,6 +280,10 @@ class GeerModel(SplatfactoModel):
             return strategy, strategy.initialize_state()
         pause = -(-self.num_train_data // cfg.images_per_step_total)  # one pass over the images, in steps
         strategy = GeerDefaultStrategy(
+            max_gaussians=cfg.max_gaussians,
+            prune_unseen=cfg.prune_unseen,
+            images_per_pass=self.num_train_data,
+            images_per_step=cfg.images_per_step_total,
             prune_opa=cfg.cull_alpha_thresh,
             grow_grad2d=cfg.densify_grad_thresh,
             grow_scale3d=cfg.densify_size_thresh,
@@ -285,7 +296,6 @@ class GeerModel(SplatfactoModel):
             reset_every=cfg.reset_alpha_every * cfg.refine_every,
             refine_every=cfg.refine_every,
             pause_refine_after_reset=pause + cfg.refine_every,
-            absgrad=False,
             revised_opacity=False,
             verbose=True,
         )
@@ -360,21 +370,25 @@ class GeerModel(SplatfactoModel):
         background = self._get_background_color().to(means)
         c2w = self.camera_optimizer.apply_to_camera(camera)[0] if self.training else camera.camera_to_worlds[0]
         viewmat = world_to_camera_opencv(c2w.to(means.device, torch.float64))  # float64: see view_transform
-        offsets = None
+        scales, opacities = torch.exp(params["scales"]), torch.sigmoid(params["opacities"]).squeeze(-1)
         record = self.training and torch.is_grad_enabled()  # not for viewer renders during training
-        if record:
+        extra = {}
+        if record:  # the densification statistics' leaves (geer_ns/densify/signal.py)
+            signal = self._view_signal(view, view_transform(means.detach(), viewmat), scales, opacities)
             offsets = torch.zeros(means.shape[0], 2, dtype=means.dtype, device=means.device, requires_grad=True)
-            means = self._displaced_means(means, offsets, viewmat, view.steps)
+            means = means + torch.einsum("nij,nj->ni", signal.lateral, offsets) @ viewmat[:3, :3].to(means.dtype)
+            absgrad = torch.zeros_like(offsets, requires_grad=True) if self.config.use_absgrad else None
+            if absgrad is not None:
+                extra["absgrad"] = (signal.lateral, absgrad)
         colors, sh_degree = self._colors(params)
         announce_backend(self.config.renderer_backend, means.device, say=CONSOLE.log)
         out = render(
-            means, params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]).squeeze(-1),
-            colors, viewmat, view.rays, sh_degree=sh_degree, background=background,
-            lambda_mode=self.config.lambda_mode, max_pairs=self.config.max_pairs,
-            backend=self.config.renderer_backend,
+            means, params["quats"], scales, opacities, colors, viewmat, view.rays, sh_degree=sh_degree,
+            background=background, lambda_mode=self.config.lambda_mode, max_pairs=self.config.max_pairs,
+            backend=self.config.renderer_backend, **extra,
         )
         if record:
-            self._record_view(offsets, out, view)
+            self._record_view(view, signal, offsets, absgrad, out)
         self.last_size = (height, width)
         outputs = self._outputs(out, view, background)
         cam_idx = (camera.metadata or {}).get("cam_idx")
@@ -382,17 +396,21 @@ class GeerModel(SplatfactoModel):
             outputs["rgb"] = self._apply_bilateral_grid(outputs["rgb"][None], cam_idx, height, width)[0]
         return outputs
 
-    def _displaced_means(self, means: Tensor, offsets: Tensor, viewmat: Tensor, steps) -> Tensor:
-        """means + R^T lateral(offsets): the render depends on the offsets only through the image position."""
-        means_c = view_transform(means.detach(), viewmat)
-        return means + lateral_displacement(means_c, offsets, steps) @ viewmat[:3, :3].to(means.dtype)
+    def _view_signal(self, view: View, means_c: Tensor, scales: Tensor, opacities: Tensor) -> ViewSignal:
+        if self.config.densify_signal == "pixels":
+            return pixel_signal(means_c, view.steps, view.size)
+        lam2, _ = pbf_lambda_sq(opacities.detach(), self.config.lambda_mode)
+        return angular_signal(view.project, int(view.rays.valid.sum()), view.center_solid_angle, means_c, scales, lam2)
 
-    def _record_view(self, offsets: Tensor, out, view: View) -> None:
+    def _record_view(self, view: View, signal: ViewSignal, offsets: Tensor, absgrad: Optional[Tensor], out) -> None:
         height, width = view.size
-        radii = pbf_radii(out.pbf, out.visible, view.steps)
-        self.views.append(ViewRecord(offsets, out.visible.detach(), (width / 2.0, height / 2.0),
-                                     radii / float(max(width, height)), width, height))
-        self.info = {"means2d": offsets[None], "radii": radii[None], "width": width, "height": height}
+        visible = out.visible.detach()
+        radius = signal.radius if signal.radius is not None else \
+            pbf_radii(out.pbf, visible, view.steps) / float(max(width, height))
+        radius = torch.where(visible, radius, torch.zeros_like(radius))
+        weight = getattr(out, "max_weight", None)  # TODO(renderer): every backend reports it
+        weight = torch.ones_like(radius) if weight is None else weight.detach()
+        self.views.append(ViewRecord(offsets, absgrad, visible, signal.scale, radius, weight))
 
     def _get_background_color(self) -> Tensor:
         """splatfacto's, with one random colour per training step (drawn at its first view): every view of

@@ -62,39 +62,49 @@ def _beap_loss(model, camera, target):
     return ((model.get_outputs(camera)["rgb"] - target) ** 2).sum()
 
 
-def _moved_mean(mean_w: torch.Tensor, viewmat: torch.Tensor, d_theta: float) -> torch.Tensor:
-    """The mean moved so that its BEAP theta grows by d_theta, phi and distance to the camera unchanged."""
+def _moved_mean(mean_w: torch.Tensor, viewmat: torch.Tensor, signal: str, h: float) -> torch.Tensor:
+    """The mean moved by h along the first offset, at its distance from the camera: "pixels", its BEAP theta
+    grows by h radians (phi unchanged); "angular", its direction turns by h radians towards increasing theta."""
     rot, t = viewmat[:3, :3], viewmat[:3, 3]
     p = rot @ mean_w + t
-    theta, phi = torch.atan2(p[0], p[2]), torch.atan2(p[1], p[2])
-    d = torch.stack([torch.tan(theta + d_theta), torch.tan(phi), torch.ones_like(theta)])
-    p_new = p.norm() * d / d.norm()
+    if signal == "pixels":
+        theta, phi = torch.atan2(p[0], p[2]), torch.atan2(p[1], p[2])
+        d = torch.stack([torch.tan(theta + h), torch.tan(phi), torch.ones_like(theta)])
+        p_new = p.norm() * d / d.norm()
+    else:
+        u = p / p.norm()
+        e1 = torch.stack([u[2], torch.zeros_like(u[0]), -u[0]])
+        e1 = e1 / e1.norm()
+        p_new = p.norm() * (math.cos(h) * u + math.sin(h) * e1)
     return rot.T @ (p_new - t)
 
 
-def test_means2d_grad_is_the_loss_gradient_per_beap_pixel():
+@pytest.mark.parametrize("signal", ["angular", "pixels"])
+def test_the_offsets_gradient_is_the_loss_gradient_of_the_image_position(signal):
+    """offsets.grad against central differences of the loss under the move each signal defines: a BEAP
+    pixel in theta ("pixels"), a radian of direction ("angular")."""
     torch.manual_seed(0)
-    model = make_model(n=25).double()
+    model = make_model(n=25, densify_signal=signal).double()
     model.train()
     camera = fisheye_camera(32)
     view = beap_view(_model_camera(camera))
     target = torch.rand(*view.size, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
     loss = _beap_loss(model, camera, target)
     loss.backward()
-    grad = model.views[-1].offsets.grad  # [N, 2]
-    assert model.info["radii"].shape == (1, model.num_points)
-    visible = model.info["radii"][0] > 0
-    k = int(torch.argmax(grad[:, 0].abs() * visible))
+    record = model.views[-1]
+    grad = record.offsets.grad  # [N, 2]
+    assert record.radius.shape == (model.num_points,)
+    k = int(torch.argmax(grad[:, 0].abs() * record.visible))
     assert grad[k, 0].abs() > 1e-6
 
     viewmat = world_to_camera_opencv(camera.camera_to_worlds[0].double())
-    step = view.steps[0]
-    h = 1e-3  # pixels
+    unit = view.steps[0] if signal == "pixels" else 1.0  # radians per offset unit
+    h = 1e-3  # offset units
     mean0 = model.gauss_params["means"].data[k].clone()
     losses = []
     with torch.no_grad():
         for sign in (1.0, -1.0):
-            model.gauss_params["means"].data[k] = _moved_mean(mean0, viewmat, sign * h * step)
+            model.gauss_params["means"].data[k] = _moved_mean(mean0, viewmat, signal, sign * h * unit)
             losses.append(float(_beap_loss(model, camera, target)))
     model.gauss_params["means"].data[k] = mean0
     finite_difference = (losses[0] - losses[1]) / (2 * h)
@@ -226,7 +236,7 @@ def test_native_supervision_renders_the_camera_pixels_with_downscale():
     camera = fisheye_camera(32, kind="native")
     out = model.get_outputs(camera)
     assert out["rgb"].shape == (16, 16, 3)  # splatfacto's resolution schedule on the native rays
-    assert model.info["width"] == 16 and model.info["height"] == 16
+    assert model.views[-1].radius.shape == (model.num_points,)
     assert camera.width.item() == 32  # the batch camera is not modified
 
 

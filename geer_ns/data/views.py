@@ -45,6 +45,21 @@ class BeapView:
     def size(self) -> tuple[int, int]:
         return self.grid.height, self.grid.width
 
+    @property
+    def center_solid_angle(self) -> float:
+        """Solid angle of the cell on the optical axis (sr)."""
+        return self.grid.step_theta * self.grid.step_phi
+
+    def project(self, points_cam: Tensor) -> tuple[Tensor, Tensor]:
+        """Camera-frame points [..., 3] -> BEAP cell coordinates [..., 2] (x along theta, y along phi) and
+        whether the point lies in front of the camera inside the grid's angular range."""
+        x, y, z = points_cam.unbind(-1)
+        theta, phi = torch.atan2(x, z), torch.atan2(y, z)
+        g = self.grid
+        pixels = torch.stack([(theta - g.theta_min) / g.step_theta, (phi - g.phi_min) / g.step_phi], -1)
+        valid = (z > 0) & (theta >= g.theta_min) & (theta <= g.theta_max) & (phi >= g.phi_min) & (phi <= g.phi_max)
+        return pixels, valid
+
 
 @dataclass(frozen=True, eq=False)
 class NativeView:
@@ -57,6 +72,14 @@ class NativeView:
     @property
     def steps(self) -> tuple[float, float]:
         return self.step, self.step
+
+    @property
+    def center_solid_angle(self) -> float:
+        """Solid angle of a pixel at the principal point (sr)."""
+        return self.step * self.step
+
+    def project(self, points_cam: Tensor) -> tuple[Tensor, Tensor]:
+        return self.camera.project(points_cam)
 
     @property
     def size(self) -> tuple[int, int]:

@@ -1,20 +1,42 @@
 """The densification statistics of a training step: what each rendered view contributes, summed over views.
 
-gsplat's DefaultStrategy thresholds, per Gaussian, the mean over views of |dL/d(image position)| (in units of
-half the image, gsplat's normalisation) and the largest screen radius as a fraction of the image. geer renders
-along rays and has no 2-D splat, so each training view records a zero "offset" leaf per Gaussian that moves
-its mean laterally (see `lateral_displacement`): the render depends on it only through the image position, and
-its gradient after backward is dL/d(image position). `ViewRecord` keeps that leaf and what turns its gradient
-into the statistic; `StepStatistics` sums the views of a step (the views of every process, once reduced).
+gsplat's DefaultStrategy thresholds, per Gaussian, the mean over views of |dL/d(image position)| and the
+largest screen radius. geer renders along rays and has no 2-D splat, so each training view records a zero
+"offset" leaf per Gaussian that moves its mean laterally (`ViewSignal.lateral`): the render depends on it only
+through the Gaussian's direction from the camera, and its gradient after backward is dL/d(that direction).
+`ViewRecord` keeps the leaf and what turns its gradient into the statistic; `StepStatistics` sums a step's
+views (the views of every process, once reduced).
+
+One meaning at every field of view, projection and resolution (`angular_signal`, the default). A view's loss
+is a mean over its P supervised pixels, so dL/d(direction) of one Gaussian is (1/P) x the sum of its pixels'
+error gradients: wider views and finer resolutions dilute it, and pixel units stretch it (BEAP cells by up
+to 1/cos of the off-axis angle, x11 at 85 degrees). The statistic undoes both:
+
+    gradient  = |dL_v/d alpha| * P_v * omega_v(u) / (4 t_ref)      alpha: the direction, radians
+    screen    = rho / (2 t_ref)                                      rho: the angular radius, radians
+
+omega_v(u) is the solid angle of one pixel of the view at the Gaussian's direction u, so P_v omega_v(u)
+dL_v/d alpha is the gradient of the view's error summed over its pixels, each weighted by the solid angle it
+covers: the integral of the error over the sphere, which no field of view, projection or pixel count changes.
+t_ref = tan(30 deg) is the reference camera gsplat's thresholds were tuned on (a 60-degree pinhole, the
+3DGS captures' 50-70 degrees): for it at its image centre both statistics are gsplat's own (|dL/d position|
+in units of half the image, radius / image width). rho is where the Gaussian's alpha falls to 1/255 as seen
+from the camera (its bounding sphere's half-angle, lambda = the PBF's). `pixel_signal` is the former
+definition (BEAP pixels, gsplat's normalisation by the image size), kept for comparisons.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import Sequence, Tuple
+from typing import Callable, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
+
+# The reference camera of gsplat's thresholds: a pinhole 60 degrees across (see the module docstring).
+REFERENCE_HALF_WIDTH_TAN = math.tan(math.radians(30.0))
+Projection = Callable[[Tensor], Tuple[Tensor, Tensor]]  # camera-frame points [N,3] -> (pixels [N,2], valid [N])
 
 
 def angle_jacobian_pinv(means_c: Tensor) -> Tensor:
@@ -40,16 +62,6 @@ def angle_jacobian_pinv(means_c: Tensor) -> Tensor:
     return pinv.to(means_c.dtype)
 
 
-def lateral_displacement(means_c: Tensor, means2d: Tensor, steps: Tuple[float, float]) -> Tensor:
-    """View-space move [N,3] that shifts each mean's BEAP position by means2d [N,2] pixels (to first order).
-
-    Adding it to the means (zero when means2d = 0) makes means2d.grad = dL/d(image position in pixels),
-    the quantity gsplat's DefaultStrategy thresholds.
-    """
-    angles = means2d * means2d.new_tensor(steps)
-    return torch.einsum("nij,nj->ni", angle_jacobian_pinv(means_c), angles)
-
-
 def pbf_radii(pbf, visible: Tensor, steps: Tuple[float, float]) -> Tensor:
     """[N] image half-extent in pixels from the PBF's angular bounds; 0 when not rendered."""
     half_theta = (pbf.theta_hi - pbf.theta_lo) / (2.0 * steps[0])
@@ -58,23 +70,88 @@ def pbf_radii(pbf, visible: Tensor, steps: Tuple[float, float]) -> Tensor:
     return torch.where(visible, radii, torch.zeros_like(radii)).detach()
 
 
+def tangent_basis(means_c: Tensor) -> Tensor:
+    """[N,3,2] orthonormal directions across each mean's viewing ray u: e1 along increasing theta =
+    atan2(x, z) (horizontal), e2 = u x e1 (downwards, increasing phi); e1 = x where the ray is vertical."""
+    p = means_c.detach().double()
+    u = p / p.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    e1 = torch.stack([u[:, 2], torch.zeros_like(u[:, 0]), -u[:, 0]], -1)
+    norm = e1.norm(dim=-1, keepdim=True)
+    e1 = torch.where(norm > 1e-12, e1 / norm.clamp_min(1e-300), p.new_tensor([1.0, 0.0, 0.0]).expand_as(e1))
+    e2 = torch.linalg.cross(u, e1, dim=-1)
+    return torch.stack([e1, e2], -1)
+
+
+def pixel_solid_angle(project: Projection, means_c: Tensor, fallback: float, step: float = 1e-4) -> Tensor:
+    """[N] solid angle (sr) of one pixel of a view at each mean's direction: 1 / |det d(pixel)/d(direction)|,
+    by forward differences of `project` over `step` radians across the ray; `fallback` where the camera
+    cannot project there (such a Gaussian's centre is outside the view)."""
+    p = means_c.detach().double()
+    u = p / p.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    basis = tangent_basis(p)
+    c, s = math.cos(step), math.sin(step)
+    points = torch.cat([u, c * u + s * basis[..., 0], c * u + s * basis[..., 1]])
+    pixels, valid = project(points)
+    pixels, valid = pixels.double().reshape(3, -1, 2), valid.reshape(3, -1).all(0)
+    d1, d2 = (pixels[1] - pixels[0]) / step, (pixels[2] - pixels[0]) / step
+    det = (d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]).abs()
+    ok = valid & torch.isfinite(det) & (det > 0)
+    return torch.where(ok, 1.0 / torch.where(ok, det, torch.ones_like(det)), torch.full_like(det, fallback))
+
+
+def angular_radius(means_c: Tensor, scales: Tensor, lam2: Tensor) -> Tensor:
+    """[N] half-angle (radians) of the sphere of radius lambda x the largest scale around each mean, as seen
+    from the camera (pi/2 when the camera is inside it)."""
+    reach = torch.sqrt(lam2.detach().double()) * scales.detach().double().amax(dim=-1)
+    distance = means_c.detach().double().norm(dim=-1).clamp_min(1e-300)
+    return torch.asin((reach / distance).clamp(max=1.0))
+
+
+@dataclass
+class ViewSignal:
+    """How one view measures the statistics: the offsets' view-space moves, and the scale of their gradient."""
+
+    lateral: Tensor  # [N, 3, 2] view-space move of each mean per unit offset (columns)
+    scale: Tensor  # [N, 1] or [1, 2]: offsets' gradient -> the statistic's units
+    radius: Optional[Tensor]  # [N] screen statistic before masking by visibility (None: from the render's PBF)
+
+
+def angular_signal(project: Projection, supervised_pixels: int, center_solid_angle: float, means_c: Tensor,
+                   scales: Tensor, lam2: Tensor) -> ViewSignal:
+    """The invariant statistics of the module docstring; offsets in radians of direction."""
+    distance = means_c.detach().norm(dim=-1, keepdim=True)[..., None]
+    lateral = (tangent_basis(means_c) * distance.double()).to(means_c.dtype)
+    omega = pixel_solid_angle(project, means_c, center_solid_angle)
+    scale = (supervised_pixels * omega / (4.0 * REFERENCE_HALF_WIDTH_TAN))[:, None]
+    radius = angular_radius(means_c, scales, lam2) / (2.0 * REFERENCE_HALF_WIDTH_TAN)
+    return ViewSignal(lateral, scale.to(means_c.dtype), radius.to(means_c.dtype))
+
+
+def pixel_signal(means_c: Tensor, steps: Tuple[float, float], size: Tuple[int, int]) -> ViewSignal:
+    """The former statistics: offsets in BEAP pixels (theta, phi steps), gsplat's normalisation by half the
+    image's height and width, the screen radius from the PBF in pixels / the image's larger side."""
+    height, width = size
+    lateral = angle_jacobian_pinv(means_c) * means_c.new_tensor(steps)
+    return ViewSignal(lateral, means_c.new_tensor([[width / 2.0, height / 2.0]]), None)
+
+
 @dataclass
 class ViewRecord:
     """One rendered training view's part of the densification statistics."""
 
-    offsets: Tensor  # [N, 2] zero leaf; .grad after backward: dL/d(image position) in pixels
+    offsets: Tensor  # [N, 2] zero leaf; .grad after backward: dL/d(offsets)
+    absgrad: Optional[Tensor]  # [N, 2] zero leaf whose .grad the renderer fills with sum_pixels |dL_p/d(offsets)|
     visible: Tensor  # [N] bool: the view rendered the Gaussian
-    grad_scale: Tuple[float, float]  # pixels -> the statistic's units (gsplat: half the image width, height)
-    radius: Tensor  # [N] screen-size statistic (gsplat: radius / max(width, height)); 0 where not visible
-    width: int
-    height: int
+    scale: Tensor  # [N, 1] or [1, 2]: offsets' gradient -> the statistic's units (ViewSignal.scale)
+    radius: Tensor  # [N] screen-size statistic; 0 where not visible
+    weight: Tensor  # [N] the largest blend weight (transmittance x alpha) over the view's rays
 
     def gradient_norms(self) -> Tensor:
-        """[N] |dL/d(image position)| in the statistic's units; 0 where not visible or never reached."""
-        if self.offsets.grad is None:
+        """[N] the gradient statistic (AbsGS's per-pixel absolute sums where recorded); 0 where not visible."""
+        leaf = self.absgrad if self.absgrad is not None else self.offsets
+        if leaf.grad is None:
             return torch.zeros_like(self.radius)
-        grad = self.offsets.grad.detach() * self.offsets.new_tensor(self.grad_scale)
-        norms = grad.norm(dim=-1).to(self.radius.dtype)
+        norms = (leaf.grad.detach() * self.scale).norm(dim=-1).to(self.radius.dtype)
         return torch.where(self.visible, norms, torch.zeros_like(norms))
 
 
@@ -85,6 +162,7 @@ class StepStatistics:
     grad: Tensor  # [N] sum over views of the gradient norm
     views: Tensor  # [N] float: number of views that rendered the Gaussian
     radius: Tensor  # [N] largest screen-size statistic over views
+    weight: Tensor  # [N] largest blend weight over views
 
     @staticmethod
     def of_views(records: Sequence[ViewRecord], n: int, device) -> "StepStatistics":
@@ -93,11 +171,10 @@ class StepStatistics:
         grad = torch.zeros(n, device=device)
         views = torch.zeros(n, device=device)
         radius = torch.zeros(n, device=device)
+        weight = torch.zeros(n, device=device)
         for record in records:
             grad = grad + record.gradient_norms().to(grad)
             views = views + record.visible.to(views.dtype)
             radius = torch.maximum(radius, record.radius.to(radius))
-        return StepStatistics(grad, views, radius)
-
-    def tensors(self) -> Tuple[Tensor, Tensor, Tensor]:
-        return self.grad, self.views, self.radius
+            weight = torch.maximum(weight, record.weight.to(weight))
+        return StepStatistics(grad, views, radius, weight)

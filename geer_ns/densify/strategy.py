@@ -1,23 +1,42 @@
-"""gsplat's DefaultStrategy fed geer's step statistics.
+"""gsplat's DefaultStrategy fed geer's step statistics, with what it adds and a record of why each Gaussian grew.
 
 gsplat computes its statistics from `info["means2d"].grad` of one batch of cameras in one process. geer's
 training step renders its views one by one (each its own backward) and may run on several processes, so the
 statistics are summed per view by geer (densify.signal.StepStatistics), reduced over the processes by the
-engine, and handed to the strategy as `info["statistics"]`; everything else (when to refine, split / duplicate
-/ prune / reset, the optimizer-state surgery) is gsplat's.
+engine, and handed to the strategy as `info["statistics"]`. When to refine, split / duplicate / prune / reset
+and the optimizer-state surgery are gsplat's (its ops); the growth and prune rules are gsplat's too, written out
+here so that each refinement can say how many Gaussians each rule moved (`log`, one line per refinement), and
+with two additions:
+
+* `max_gaussians`: growth stops at a budget; when the candidates exceed it, those furthest above a threshold
+  (gradient or screen size, relative to it) grow first;
+* `prune_unseen`: a Gaussian whose blend weight stayed below 1/255 on every training ray of a whole pass over
+  the training images (too faint everywhere, or hidden behind opaque surfaces in every view) is pruned; the
+  weights come from the renderer's forward (RenderOutput.max_weight).
 """
 
 from __future__ import annotations
 
-from typing import Any, Dict
+from dataclasses import dataclass, field
+from typing import Any, Dict, List
 
 import torch
 from gsplat.strategy import DefaultStrategy
+from gsplat.strategy.ops import duplicate, remove, split
 
 from geer_ns.densify.signal import StepStatistics
 
+VISIBLE_WEIGHT = 1.0 / 255.0  # the renderer's own threshold: a pair below it is skipped
 
+
+@dataclass
 class GeerDefaultStrategy(DefaultStrategy):
+    max_gaussians: int = 0  # 0: no budget
+    prune_unseen: bool = False
+    images_per_pass: int = 1  # training images: the unseen rule waits for a whole pass over them
+    images_per_step: int = 1
+    log: List[Dict[str, int]] = field(default_factory=list)  # one entry per refinement, counts by rule
+
     def step_pre_backward(self, params, optimizers, state, step, info) -> None:
         """Nothing to prepare: every view's offsets are leaves, whose gradients autograd keeps."""
 
@@ -25,10 +44,78 @@ class GeerDefaultStrategy(DefaultStrategy):
         stats: StepStatistics = info["statistics"]
         n = len(params["means"])
         device = params["means"].device
-        for key in ("grad2d", "count") + (("radii",) if self.refine_scale2d_stop_iter > 0 else ()):
+        for key in ("grad2d", "count", "weight") + (("radii",) if self.refine_scale2d_stop_iter > 0 else ()):
             if state.get(key) is None:
                 state[key] = torch.zeros(n, device=device)
         state["grad2d"] += stats.grad.to(state["grad2d"])
         state["count"] += stats.views.to(state["count"])
         if self.refine_scale2d_stop_iter > 0:
             state["radii"] = torch.maximum(state["radii"], stats.radius.to(state["radii"]))
+        state["weight"] = torch.maximum(state["weight"], stats.weight.to(state["weight"]))
+        state["weight_images"] = int(state.get("weight_images", 0)) + self.images_per_step  # not per Gaussian
+
+    @torch.no_grad()
+    def _grow_gs(self, params, optimizers, state: Dict[str, Any], step: int):
+        n = len(params["means"])
+        grads = state["grad2d"] / state["count"].clamp_min(1)
+        is_grad_high = grads > self.grow_grad2d
+        largest = torch.exp(params["scales"]).max(dim=-1).values
+        is_small = largest <= self.grow_scale3d * state["scene_scale"]
+        is_dupli = is_grad_high & is_small
+        is_split_grad = is_grad_high & ~is_small
+        is_split_screen = torch.zeros_like(is_grad_high)
+        over = grads / self.grow_grad2d
+        if step < self.refine_scale2d_stop_iter:
+            is_split_screen = state["radii"] > self.grow_scale2d
+            over = torch.maximum(over, state["radii"] / self.grow_scale2d)
+        is_split = is_split_grad | is_split_screen
+        entry = {"step": step, "before": n, "duplicated (gradient)": int(is_dupli.sum()),
+                 "split (gradient)": int(is_split_grad.sum()),
+                 "split (screen size only)": int((is_split_screen & ~is_split_grad).sum())}
+        if self.max_gaussians > 0:  # each duplicate and each split adds one Gaussian
+            room = max(self.max_gaussians - n, 0)
+            wanted = is_dupli.long() + is_split.long()
+            if int(wanted.sum()) > room:
+                order = torch.argsort(torch.where(wanted > 0, over, torch.full_like(over, -1.0)), descending=True)
+                allowed = torch.zeros_like(is_dupli)
+                allowed[order[torch.cumsum(wanted[order], 0) <= room]] = True
+                is_dupli, is_split = is_dupli & allowed, is_split & allowed
+                entry["held back by max_gaussians"] = int(wanted.sum()) - int(is_dupli.sum() + is_split.sum())
+        n_dupli, n_split = int(is_dupli.sum()), int(is_split.sum())
+        if n_dupli > 0:
+            duplicate(params=params, optimizers=optimizers, state=state, mask=is_dupli)
+        is_split = torch.cat([is_split, torch.zeros(n_dupli, dtype=torch.bool, device=is_split.device)])
+        if n_split > 0:
+            split(params=params, optimizers=optimizers, state=state, mask=is_split,
+                  revised_opacity=self.revised_opacity)
+        self._entry = entry
+        return n_dupli, n_split
+
+    @torch.no_grad()
+    def _prune_gs(self, params, optimizers, state: Dict[str, Any], step: int) -> int:
+        entry = getattr(self, "_entry", {"step": step, "before": len(params["means"])})
+        entry["after growth"] = len(params["means"])
+        rules = {"pruned (opacity)": torch.sigmoid(params["opacities"].flatten()) < self.prune_opa}
+        if step > self.reset_every:
+            largest = torch.exp(params["scales"]).max(dim=-1).values
+            rules["pruned (3D size)"] = largest > self.prune_scale3d * state["scene_scale"]
+            if step < self.refine_scale2d_stop_iter:
+                rules["pruned (screen size)"] = state["radii"] > self.prune_scale2d
+        if self.prune_unseen and int(state.get("weight_images", 0)) >= self.images_per_pass:
+            rules["pruned (unseen)"] = state["weight"] < VISIBLE_WEIGHT
+            state["weight"] = torch.zeros_like(state["weight"])
+            state["weight_images"] = 0
+        is_prune = torch.zeros_like(rules["pruned (opacity)"])
+        for name, mask in rules.items():
+            entry[name] = int((mask & ~is_prune).sum())  # each Gaussian counted under its first rule
+            is_prune |= mask
+        n_prune = int(is_prune.sum())
+        if n_prune > 0:
+            remove(params=params, optimizers=optimizers, state=state, mask=is_prune)
+        entry["after"] = len(params["means"])
+        self.log.append(entry)
+        if self.verbose:
+            said = ", ".join(f"{k} {v}" for k, v in entry.items() if k not in ("step", "before", "after") and v)
+            print(f"geer: step {step}: {entry['before']} -> {entry['after']} Gaussians ({said or 'no change'})")
+        self._entry = None
+        return n_prune
