@@ -23,6 +23,8 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from geer_ns.errors import DatasetError  # defined below host_fixes, which reports it; re-exported here
+
 __all__ = ["DatasetError", "VALID_CAMERA_MODELS", "check_image_file", "check_transforms_json"]
 
 # Orthonormality tolerance of a pose's rotation block (|R R^T - I| entries): exporters write ~1e-7;
@@ -31,10 +33,6 @@ ROTATION_TOLERANCE = 1e-3
 _INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 _DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
 _MAX_REPORTED = 20  # stop collecting after this many problems
-
-
-class DatasetError(ValueError):
-    """A dataset problem, reported as one line naming the file, the frame or line, and the field."""
 
 
 def _renderable_camera_models() -> Tuple[str, ...]:

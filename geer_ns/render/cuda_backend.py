@@ -40,6 +40,7 @@ import torch
 from torch import Tensor
 
 from .associate import pbf_cull_pieces
+from .outputs import RenderOutput, images
 from .pbf import PBF, LambdaMode
 from .raygrid import RayGrid
 from .transforms import camera_offsets, view_transform
@@ -261,10 +262,6 @@ def render_cuda(
 ):
     """rasterize.render on the kernels (inputs already validated by render). `ops` defaults to the CUDA
     extension; pass load_cpu_ops() to run the same pipeline on the CPU."""
-    from .rasterize import (
-        RenderOutput,  # late: rasterize imports backend, which may import this module
-    )
-
     if ops is None:
         ops = load_extension()
     if lambda_mode not in ("opacity", "paper"):
@@ -302,16 +299,9 @@ def render_cuda(
         whiten, o_u, rgb, opacities.contiguous(), pbf_cull_pieces(bounds), dirs, grid.ray_cull_bounds(dtype),
         grid.warp_cull_bounds(dtype), grid.valid.contiguous(), ids, ranges, grid.height, grid.width, grid.tile_size, ops,
     )
-    out_rgb = rgb_sum
-    if background is not None:
-        out_rgb = out_rgb + (1.0 - acc)[:, None] * background.to(dtype)
-    expected_depth = depth_sum / acc.clamp_min(1e-10)
-    shape = (grid.height, grid.width)
+    out_rgb, out_depth, out_acc = images(grid.height, grid.width, rgb_sum, depth_sum, acc, background)
 
     visible = counts > 0
     tile_counts = (ranges[:, 1] - ranges[:, 0]).long()
     pbf = PBF(bounds[:, 0], bounds[:, 1], bounds[:, 2], bounds[:, 3], alive, inside)
-    return RenderOutput(
-        out_rgb.reshape(*shape, 3), expected_depth.reshape(*shape, 1), acc.reshape(*shape, 1), visible,
-        tile_counts, means_c, pbf, None,
-    )
+    return RenderOutput(out_rgb, out_depth, out_acc, visible, tile_counts, means_c, pbf, None)

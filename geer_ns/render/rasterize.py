@@ -16,9 +16,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .associate import TileLists, associate
+from .associate import associate
 from .backend import Backend, resolve_backend
 from .blend import blend_lists
+from .cuda_backend import load_cpu_ops, render_cuda
+from .outputs import RenderOutput, images
 from .pbf import PBF, LambdaMode, compute_pbf, pbf_lambda_sq
 from .raygrid import RayGrid
 from .sh import sh_to_color
@@ -37,18 +39,6 @@ class Preprocessed:
     opacities: Tensor  # [N]
     depth: Tensor  # [N] Euclidean distance of the mean, the sort key
     pbf: PBF
-
-
-@dataclass
-class RenderOutput:
-    rgb: Tensor  # [H, W, 3], background composited
-    depth: Tensor  # [H, W, 1] expected distance along the ray (0 where nothing was hit)
-    accumulation: Tensor  # [H, W, 1]
-    visible: Tensor  # [N] bool: associated with at least one active tile
-    tile_counts: Tensor  # [n_tiles] Gaussians per tile
-    means_c: Tensor  # [N, 3] view-space means; .grad is the densification signal
-    pbf: PBF
-    tiles: TileLists | None  # None for the brute-force reference
 
 
 def preprocess(
@@ -74,16 +64,6 @@ def preprocess(
         degree = int(math.isqrt(colors.shape[1]) - 1) if sh_degree is None else sh_degree
         rgb = sh_to_color(colors, camera_offsets(means, viewmat), degree)
     return Preprocessed(means_c, w, o_u, rgb, opacities, means_c.detach().norm(dim=-1), pbf)
-
-
-def _assemble(
-    grid: RayGrid, rgb: Tensor, depth: Tensor, acc: Tensor, background: Tensor | None
-) -> tuple[Tensor, Tensor, Tensor]:
-    if background is not None:
-        rgb = rgb + (1.0 - acc)[:, None] * background
-    expected_depth = depth / acc.clamp_min(1e-10)
-    shape = (grid.height, grid.width)
-    return rgb.reshape(*shape, 3), expected_depth.reshape(*shape, 1), acc.reshape(*shape, 1)
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background) -> None:
@@ -118,8 +98,6 @@ def render(
     _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background)
     chosen = resolve_backend(backend, means.device, pose_grad=viewmat.requires_grad and torch.is_grad_enabled())
     if chosen != "torch":  # the kernels (CUDA), or their math compiled for the CPU
-        from .cuda_backend import load_cpu_ops, render_cuda
-
         return render_cuda(means, quats, scales, opacities, colors, viewmat, grid, sh_degree=sh_degree,
                            background=background, lambda_mode=lambda_mode,
                            ops=load_cpu_ops() if chosen == "cpu" else None)
@@ -130,7 +108,7 @@ def render(
     tiles = associate(pre.pbf, grid, pre.depth)
     rgb, depth, acc = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs, grid.valid, grid.tile_rays,
                                   tiles.gaussians, tiles.counts, max_pairs)
-    out_rgb, out_depth, out_acc = _assemble(grid, rgb, depth, acc, background)
+    out_rgb, out_depth, out_acc = images(grid.height, grid.width, rgb, depth, acc, background)
     visible = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
     listed = tiles.gaussians[grid.tile_active]
     visible[listed[listed >= 0]] = True
@@ -168,6 +146,6 @@ def render_brute_force(
     counts = torch.full((ray_index.shape[0],), order.numel(), dtype=torch.long, device=means.device)
     rgb, depth, acc = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs, grid.valid, ray_index,
                                   lists, counts, max_pairs)
-    out_rgb, out_depth, out_acc = _assemble(grid, rgb, depth, acc, background)
+    out_rgb, out_depth, out_acc = images(grid.height, grid.width, rgb, depth, acc, background)
     visible = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
     return RenderOutput(out_rgb, out_depth, out_acc, visible, means.new_zeros(0).long(), pre.means_c, pre.pbf, None)
