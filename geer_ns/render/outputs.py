@@ -8,6 +8,7 @@ from torch import Tensor
 
 from .associate import TileLists
 from .pbf import PBF
+from .subgradients import floor_at
 
 # Expected depth divides by the accumulation; below this a ray saw nothing and its depth is 0.
 MIN_ACCUMULATION = 1e-10
@@ -31,5 +32,5 @@ def images(height: int, width: int, rgb: Tensor, depth_sum: Tensor, acc: Tensor,
     accumulation [H, W, 1])."""
     if background is not None:
         rgb = rgb + (1.0 - acc)[:, None] * background.to(rgb.dtype)
-    expected_depth = depth_sum / acc.clamp_min(MIN_ACCUMULATION)
+    expected_depth = depth_sum / floor_at(acc, MIN_ACCUMULATION)
     return rgb.reshape(height, width, 3), expected_depth.reshape(height, width, 1), acc.reshape(height, width, 1)
