@@ -15,14 +15,14 @@ from typing import Literal
 
 import torch
 
-from . import cuda_backend
+from . import cuda_backend, extensions
 
 Backend = Literal["auto", "torch", "cuda", "cpu"]
 
 
 def cuda_extension_available() -> bool:
     """Whether the geer CUDA extension can be used: a GPU, and csrc/ builds and loads (JIT, cached)."""
-    return cuda_backend.extension_available()
+    return extensions.extension_available()
 
 
 _warned: set[str] = set()
@@ -38,7 +38,7 @@ def _warn_once(message: str) -> None:
 def cpu_ops_available() -> bool:
     """Whether csrc/cpu_ops.cpp builds and loads here (built once per process, cached on disk)."""
     try:
-        cuda_backend.load_cpu_ops()
+        extensions.load_cpu_ops()
     except Exception:  # noqa: BLE001 - any build/load failure means "not available"; the cause is kept
         return False
     return True
@@ -53,7 +53,7 @@ def resolve_backend(backend: Backend, device: torch.device, pose_grad: bool = Fa
         if device.type != "cpu":
             raise RuntimeError(f"backend='cpu' requested but the inputs live on {device}")
         try:
-            cuda_backend.load_cpu_ops()  # built once, cached
+            extensions.load_cpu_ops()  # built once, cached
         except Exception as exc:
             raise RuntimeError("backend='cpu' requested but csrc/cpu_ops.cpp could not be built or loaded") from exc
         return "cpu"
@@ -71,7 +71,7 @@ def resolve_backend(backend: Backend, device: torch.device, pose_grad: bool = Fa
         if device.type == "cpu":
             if cpu_ops_available():
                 return "cpu"
-            why = cuda_backend.build_error("geer_cpu_ops")
+            why = extensions.build_error("geer_cpu_ops")
             _warn_once(f"geer: csrc/cpu_ops.cpp could not be built or loaded ({why}); "
                        "rendering with the much slower PyTorch renderer")
             return "torch"
@@ -101,7 +101,7 @@ def announce_backend(backend: Backend, device: torch.device, say=print) -> None:
     _announced.add(key)
     chosen = resolve_backend(backend, device)
     if chosen == "cpu":
-        lanes = cuda_backend.load_cpu_ops().render_lanes(False)
+        lanes = extensions.load_cpu_ops().render_lanes(False)
         how = f"packs of {lanes} rays (AVX2)" if lanes > 1 else "one ray at a time (no AVX2 in this build)"
         say(f"geer: renderer: the kernels' code compiled for the CPU ({torch.get_num_threads()} threads, {how})")
     else:

@@ -19,7 +19,8 @@ from torch import Tensor
 from .associate import associate
 from .backend import Backend, resolve_backend
 from .blend import blend_lists
-from .cuda_backend import load_cpu_ops, render_cuda
+from .cuda_backend import render_cuda
+from .extensions import load_cpu_ops
 from .outputs import RenderOutput, images
 from .pbf import PBF, LambdaMode, compute_pbf, pbf_lambda_sq
 from .raygrid import RayGrid
