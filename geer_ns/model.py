@@ -441,7 +441,7 @@ class GeerModel(SplatfactoModel):
         announce_backend(self.config.renderer_backend, means.device, say=CONSOLE.log)
         out = render(
             means, params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]).squeeze(-1),
-            colors, viewmat, view.rays, sh_degree=sh_degree, background=background,
+            colors, viewmat, view.rays.to(means.device), sh_degree=sh_degree, background=background,
             lambda_mode=self.config.lambda_mode, max_pairs=self.config.max_pairs,
             backend=self.config.renderer_backend,
         )

@@ -68,9 +68,10 @@ def preprocess(
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background) -> None:
-    check_gaussians(means, quats, scales, opacities, colors, viewmat=viewmat, background=background)  # one sync
     if not isinstance(grid, RayGrid):
         raise TypeError(f"grid: expected a RayGrid, got {type(grid).__name__}")
+    check_gaussians(means, quats, scales, opacities, colors, viewmat=viewmat, background=background,
+                    grid=grid)  # one sync
 
 
 def render(
@@ -92,7 +93,8 @@ def render(
 
     means [N,3], quats [N,4] (wxyz), scales [N,3] (> 0), opacities [N] in [0,1], colors [N,3] (RGB) or
     [N,K,3] (SH coefficients, degree `sh_degree`, default the largest K allows), viewmat [4,4]
-    world-to-camera (OpenCV axes), grid: the view's rays. float32 or float64 (everything follows means).
+    world-to-camera (OpenCV axes, rigid: validate.ROTATION_TOLERANCE), grid: the view's rays. float32 or float64
+    (everything follows means); every tensor, the grid's too, on the means' device.
     `max_pairs` caps the (ray, Gaussian) pairs the PyTorch renderer holds at once, forward and backward
     (memory model: blend.py); the kernels need no such cap.
     """
@@ -102,7 +104,6 @@ def render(
         return render_cuda(means, quats, scales, opacities, colors, viewmat, grid, sh_degree=sh_degree,
                            background=background, lambda_mode=lambda_mode,
                            ops=load_cpu_ops() if chosen == "cpu" else None)
-    grid = grid.to(means.device)
     dirs = grid.dirs.to(means.dtype)
     # viewmat keeps its dtype: the view transform runs in float64 (transforms.view_transform)
     pre = preprocess(means, quats, scales, opacities, colors, viewmat, sh_degree, lambda_mode)
@@ -135,7 +136,6 @@ def render_brute_force(
     The tiled renderer must match it exactly whenever association is complete.
     """
     _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background)
-    grid = grid.to(means.device)
     dirs = grid.dirs.to(means.dtype)
     pre = preprocess(means, quats, scales, opacities, colors, viewmat.to(means.dtype), sh_degree)
     order = torch.sort(pre.depth, stable=True).indices
