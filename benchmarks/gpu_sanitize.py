@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
         leaves = [t.to(args.device, dtype).requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
         viewmat = torch.eye(4, dtype=dtype, device=args.device)
         bg = torch.full((3,), 0.1, dtype=dtype, device=args.device)
-        out = render(*leaves, viewmat, grid, background=bg, backend=args.backend)
+        out = render(*leaves, viewmat, grid.to(args.device), background=bg, backend=args.backend)
         w = torch.rand(out.rgb.shape, generator=gen, dtype=torch.float64).to(args.device, dtype)
         loss = (out.rgb * w).sum() + 0.1 * out.depth.sum() + out.accumulation.sum()
         loss.backward()

@@ -6,9 +6,11 @@
 //   pbf.py         lambda^2 rule, _plane_bounds (rotated-frame tangent solve), mirror_tangent
 //   (association, tile pyramid and pair keys: geer_associate.h)
 //   transmittance  ray frame, D^2 = |m_u / |d_u||^2, t*, the half-line rule q(max(t*, 0)), alpha =
-//                  min(0.99, sigma exp(-q/2)) kept where q <= 2 ln(255 sigma), one gradient at every clamp
+//                  min(0.99, sigma exp(-q/2)) kept where q <= 2 ln(255 sigma)
 //   composite.py   front-to-back blending, stop before T < 1e-4
 //   sh.py          real SH up to degree 3, +0.5, clamp at 0
+// One rule at every clamp (subgradients.py): a value exactly on its clamp gets the clamped side's
+// derivative, 0; max(x, lo) passes the gradient where x > lo, min(x, hi) where x < hi (torch's rule).
 // and the analytic backward of each (paper App. C, two-stage layout: the per-pair part runs in the
 // render kernel, the per-Gaussian part in the preprocess backward).
 //
@@ -472,7 +474,7 @@ GEER_HD void preprocess_backward_gaussian(const Vec3<T>& mean_c, const T* quat, 
         for (int j = 0; j < 3; ++j) gw.m[3 * i + j] = g_w_render[3 * i + j] - go[i] * mu[j];
     const Vec3<T> gm = matTvec(w, g_o);
     g_mean_c = Vec3<T>{-gm.x, -gm.y, -gm.z};
-    // Scales (C.10): dW[i][j]/ds_i = -R_v[j][i] / s_i^2 = -W[i][j] / s_i (no gradient below MIN_SCALE).
+    // Scales (C.10): dW[i][j]/ds_i = -R_v[j][i] / s_i^2 = -W[i][j] / s_i (no gradient at or below MIN_SCALE).
     Mat3<T> g_rot_v;
     for (int i = 0; i < 3; ++i) {
         const T inv_s = T(1) / clamp_scale(scales[i]);
@@ -481,7 +483,7 @@ GEER_HD void preprocess_backward_gaussian(const Vec3<T>& mean_c, const T* quat, 
             acc += gw.m[3 * i + j] * rot_v.m[3 * j + i];
             g_rot_v.m[3 * j + i] = gw.m[3 * i + j] * inv_s;
         }
-        g_scale[i] = scales[i] >= T(kMinScale) ? -acc * inv_s * inv_s : T(0);
+        g_scale[i] = scales[i] > T(kMinScale) ? -acc * inv_s * inv_s : T(0);
     }
     // Rotation (C.11-C.14, written for R(q) of a unit quaternion, then projected for |q| != 1).
     const Mat3<T> g = matTmul(rot_c, g_rot_v);  // dL/dR
@@ -507,7 +509,7 @@ GEER_HD void preprocess_backward_gaussian(const Vec3<T>& mean_c, const T* quat, 
 }
 
 // dL/drgb -> dL/dcoeffs [K][3] (bands <= degree written, others untouched) and dL/d(dir) (dir = mean -
-// camera centre, world). The clamp at 0 passes the gradient where the value is >= 0 (torch clamp_min).
+// camera centre, world). The clamp at 0 passes the gradient where the value is > 0 (subgradients.floor_at).
 template <typename T>
 GEER_HD void sh_backward(const T* coeffs, int degree, const Vec3<T>& dir, const Vec3<T>& g_rgb, T* g_coeffs,
                          Vec3<T>& g_dir) {
@@ -519,14 +521,14 @@ GEER_HD void sh_backward(const T* coeffs, int degree, const Vec3<T>& dir, const 
     const int nb = num_sh_bases(degree);
     Vec3<T> raw{T(0.5), T(0.5), T(0.5)};
     for (int k = 0; k < nb; ++k) raw = raw + b[k] * load3(coeffs + 3 * k);
-    const Vec3<T> g{raw.x >= T(0) ? g_rgb.x : T(0), raw.y >= T(0) ? g_rgb.y : T(0), raw.z >= T(0) ? g_rgb.z : T(0)};
+    const Vec3<T> g{raw.x > T(0) ? g_rgb.x : T(0), raw.y > T(0) ? g_rgb.y : T(0), raw.z > T(0) ? g_rgb.z : T(0)};
     Vec3<T> g_d{T(0), T(0), T(0)};
     for (int k = 0; k < nb; ++k) {
         store3(g_coeffs + 3 * k, b[k] * g);
         g_d = g_d + dot(load3(coeffs + 3 * k), g) * db[k];
     }
     g_dir = Vec3<T>{T(0), T(0), T(0)};
-    if (degree >= 1 && n >= Limits<T>::tiny()) g_dir = (T(1) / n) * (g_d - dot(d, g_d) * d);
+    if (degree >= 1 && n > Limits<T>::tiny()) g_dir = (T(1) / n) * (g_d - dot(d, g_d) * d);
     else if (degree >= 1) g_dir = (T(1) / Limits<T>::tiny()) * g_d;
 }
 

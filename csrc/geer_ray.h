@@ -73,7 +73,7 @@ template <typename L> struct PairEval {
     Vec3<L> d_u;   // W d
     Vec3<L> m_hat; // m_u / |d_u|
     L inv_norm;    // 1 / |d_u| (|d_u|^2 clamped at tiny)
-    Mask clamped;  // |d_u|^2 < tiny: inv_norm does not depend on d_u
+    Mask clamped;  // |d_u|^2 <= tiny: inv_norm does not depend on d_u
     L dist_sq;     // D^2: q on the whole line, at t*
     L t_star;      // distance along the unit ray to the line's maximum response
     Mask front;    // t* > 0: the line's maximum lies on the half-line t >= 0, q = D^2; else q = |o_u|^2
@@ -95,7 +95,7 @@ template <typename T, typename L> GEER_HD PairEval<L> eval_pair(const GaussFrame
     const L a = x_dot(splat3<L>(g.along), d);
     const L nsq = x_dot(e.d_u, e.d_u);
     const L tiny = splat<L>(Limits<T>::tiny());
-    e.clamped = nsq < tiny;
+    e.clamped = nsq <= tiny;
     e.inv_norm = g_rsqrt(g_max(nsq, tiny));
     e.m_hat = Vec3<L>{x_mul(e.inv_norm, m.x), x_mul(e.inv_norm, m.y), x_mul(e.inv_norm, m.z)};  // no overflow
     e.dist_sq = x_dot(e.m_hat, e.m_hat);
@@ -178,10 +178,11 @@ GEER_HD void pair_response_backward(const PairEval<L>& e, const Vec3<L>& o_u, co
 }
 
 // dL/dq, dL/d(depth position) of one kept pair -> dL/d(o_u), dL/dW through the half-line rule.
-// One gradient at every clamp, defined here and followed by the twin's autograd (transmittance.py):
+// One gradient at every clamp, the rule of subgradients.py (a tie takes the clamped side), as the twin's masks
+// (transmittance.py):
 //   max(t*, 0)   the t* branch where t* > 0, the camera-centre branch q = |o_u|^2 (no W, no depth
 //                gradient) where t* <= 0. q is C^1 across t* = 0 (both branches: value |o_u|^2,
-//                gradient 2 o_u), so only depth has a kink there, and it takes the derivative 0.
+//                gradient 2 o_u), so only depth has a kink there, and at the tie it takes the derivative 0.
 //   min(raw, 0.99), the 1/255 skip, the 1e-4 stop: see ray_backward_step.
 template <typename T, typename L>
 GEER_HD void half_line_backward(const PairEval<L>& e, const Vec3<L>& o_u, const Vec3<L>& d, L g_q, L g_depth_t,
@@ -229,7 +230,7 @@ template <typename L> GEER_HD void pair_grad_zero(PairGrad<L>& p) {
 // it, skips whole warps (render.cu); the CPU build visits only the lanes its forward recorded as blending
 // the pair (cpu_ops.cpp); tests/test_cpu_backend.py checks that the two give the same bits. Subgradients at
 // the clamps:
-//   alpha = min(raw, 0.99)  the derivative of raw where raw <= 0.99, none where raw > 0.99;
+//   alpha = min(raw, 0.99)  the derivative of raw where raw < 0.99, none where raw >= 0.99 (subgradients.py);
 //   skip (q <= q_max) and stop (T_after >= 1e-4)  piecewise constant: a blended pair gets its ordinary
 //                           derivative (also exactly on a threshold, where it is blended), others none;
 //   max(t*, 0)              half_line_backward.
@@ -253,7 +254,7 @@ GEER_HD typename Lane<L>::Mask ray_backward_step(RayBackward<L>& s, const GaussF
 
     pair_grad_zero(p);
     for (int c = 0; c < 3; ++c) p.rgb[c] = w * s.g_rgb[c];
-    const Mask unclamped = e.raw <= splat<L>(T(kAlphaMax));
+    const Mask unclamped = e.raw < splat<L>(T(kAlphaMax));
     p.opacity = lane_select(unclamped, g_alpha * e.gauss, zero);
     const L g_q = lane_select(unclamped, T(-0.5) * g_alpha * e.raw, zero);
     Vec3<L> g_o;

@@ -18,6 +18,8 @@ from typing import Optional
 import numpy as np
 import torch
 
+from geer_ns.errors import DatasetError
+
 _LOG = logging.getLogger("geer_ns")
 
 # --------------------------------------------------------------------------------------------------
@@ -279,8 +281,6 @@ def report_dataset_errors_without_traceback() -> None:
         return
 
     def hook(kind, value, traceback):
-        from geer_ns.data.dataset_checks import DatasetError
-
         if isinstance(value, DatasetError):
             print(value, file=sys.stderr)
         else:

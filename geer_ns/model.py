@@ -383,9 +383,9 @@ class GeerModel(SplatfactoModel):
         colors, sh_degree = self._colors(params)
         announce_backend(self.config.renderer_backend, means.device, say=CONSOLE.log)
         out = render(
-            means, params["quats"], scales, opacities, colors, viewmat, view.rays, sh_degree=sh_degree,
-            background=background, lambda_mode=self.config.lambda_mode, max_pairs=self.config.max_pairs,
-            backend=self.config.renderer_backend, **extra,
+            means, params["quats"], scales, opacities, colors, viewmat, view.rays.to(means.device),
+            sh_degree=sh_degree, background=background, lambda_mode=self.config.lambda_mode,
+            max_pairs=self.config.max_pairs, backend=self.config.renderer_backend, **extra,
         )
         if record:
             self._record_view(view, signal, offsets, absgrad, out)

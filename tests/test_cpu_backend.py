@@ -138,7 +138,7 @@ def test_the_kernels_one_ray_per_thread_path_gives_the_cpu_paths_bits(ops, monke
 
 
 def test_the_cpu_build_renders_packs_where_torch_dispatches_avx2(ops):
-    """cuda_backend.cpu_cflags adds -mavx2 where torch's CPU dispatch level has it; the build then renders
+    """extensions.cpu_cflags adds -mavx2 where torch's CPU dispatch level has it; the build then renders
     8 float32 / 4 float64 rays per pack. A flag lost on the way shows here, not as a silent 1.6x slowdown."""
     if torch.backends.cpu.get_cpu_capability() not in ("AVX2", "AVX512"):
         assert ops.render_lanes(False) == 1 and ops.render_lanes(True) == 1

@@ -40,8 +40,8 @@ def cuda_ops():
 
 
 def _grids(dtype):
-    """{name: (grid, whether the scene should surround the camera)}."""
-    return {name: (grid, name in WIDE_GRIDS) for name, grid in reference_grids(dtype).items()}
+    """{name: (grid on the GPU, whether the scene should surround the camera)}."""
+    return {name: (grid.to(DEV), name in WIDE_GRIDS) for name, grid in reference_grids(dtype).items()}
 
 
 def _scene(n, seed, around, dtype, **kw):
@@ -115,7 +115,7 @@ def test_gradients_match_twin_float64(cuda_ops, grid_name, degree):
 
 
 def test_float32_gradients_close_to_float64(cuda_ops):
-    grid = RayGrid.beap(64, 64, math.radians(60), math.radians(60), tile_size=16)
+    grid = RayGrid.beap(64, 64, math.radians(60), math.radians(60), tile_size=16).to(DEV)
     scene = random_scene(200, 8, spread=0.5, scale_range=(0.05, 0.3), opacity_range=(0.1, 0.8))
     g64 = _grads(lambda *a: render(*a, torch.eye(4, dtype=F64, device=DEV), grid, backend="torch"),
                  [t.to(DEV) for t in scene], 1)
@@ -131,7 +131,7 @@ def test_tile_sizes_and_long_lists(cuda_ops, tile_size):
     backward spills there), and lists much longer than one shared-memory batch (256 float32 / 128 float64
     Gaussians), with rays stopping inside a batch."""
     for dtype in (F32, F64):
-        grid = RayGrid.beap(40, 36, math.radians(50), math.radians(45), tile_size=tile_size, dtype=dtype)
+        grid = RayGrid.beap(40, 36, math.radians(50), math.radians(45), tile_size=tile_size, dtype=dtype).to(DEV)
         scene = _scene(1500, 3, False, dtype, spread=0.3, scale_range=(0.05, 0.2), opacity_range=(0.02, 0.3))
         vm = torch.eye(4, dtype=dtype, device=DEV)
         ref = render(*scene, vm, grid, backend="torch")

@@ -140,3 +140,40 @@ def test_split_lists_naming_no_frame_or_missing_name_the_file_and_field(tmp_path
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
     with pytest.raises(DatasetError, match=r"transforms\.json: `val_filenames` is missing"):
         _parse(GeerNerfstudioDataParserConfig(data=tmp_path), "val")
+
+
+def _said_eval_mode_all(config) -> bool:
+    """Whether parsing both splits with `config` prints nerfstudio's warning about --eval-mode all."""
+    import re
+
+    from nerfstudio.utils.rich_utils import CONSOLE
+
+    parser = config.setup()
+    with CONSOLE.capture() as said:
+        for split in ("train", "val"):
+            parser.get_dataparser_outputs(split)
+    return re.search(r"Be\s+careful\s+with\s+'--eval-mode=all'", said.get()) is not None
+
+
+@pytest.mark.parametrize("lists", [False, True])
+@pytest.mark.parametrize("eval_mode", ["fraction", "all"])
+def test_the_eval_mode_all_warning_is_the_users_only(tmp_path, eval_mode, lists):
+    """geer's parser parses every image through nerfstudio's once; the warning about --eval-mode all appears
+    exactly where nerfstudio's own parser prints it for the user's settings (all, and no split lists in the
+    file), never for geer's internal parse. The parse keeps every image either way."""
+    room = default_scene_dir()
+    meta = json.loads((room / "transforms.json").read_text())
+    meta.pop("ply_file_path", None)
+    for f in meta["frames"]:
+        f["file_path"], f["mask_path"] = str(room / f["file_path"]), str(room / f["mask_path"])
+    for key in ("train_filenames", "val_filenames", "test_filenames"):
+        if lists:
+            meta[key] = [str(room / name) for name in meta[key]]
+        else:
+            meta.pop(key)
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    ours = _said_eval_mode_all(GeerNerfstudioDataParserConfig(data=tmp_path, eval_mode=eval_mode))
+    theirs = _said_eval_mode_all(NerfstudioDataParserConfig(data=tmp_path, eval_mode=eval_mode))
+    assert ours == theirs == (eval_mode == "all" and not lists)
+    everything = GeerNerfstudioDataParserConfig(data=tmp_path, eval_mode=eval_mode).setup().parse_once().everything
+    assert len(everything.image_filenames) == len(meta["frames"])

@@ -62,9 +62,20 @@ def trained(tmp_path_factory):
     result = _run(args, timeout=900)
     elapsed = time.perf_counter() - start
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    (out / "ns-train.log").write_text(result.stdout + result.stderr)
     run_dir = out / "room" / "geer" / "test"
     print(f"ns-train geer: {STEPS} steps in {elapsed:.0f} s")
     return run_dir
+
+
+def test_a_default_start_warns_about_no_choice_the_user_did_not_make(trained):
+    """geer's parser parses every image through nerfstudio's once; that must not print nerfstudio's warning
+    about --eval-mode all, which the user did not choose (the user's own choice: test_nerfstudio_parser)."""
+    import re
+
+    log = (trained.parents[2] / "ns-train.log").read_text()
+    assert "geer: renderer:" in log  # the start-up lines are in the log
+    assert not re.search(r"Be\s+careful\s+with\s+'--eval-mode=all'", log)
 
 
 def test_ns_train_fits_the_training_views(trained):

@@ -23,18 +23,17 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from geer_ns.errors import DatasetError  # defined below host_fixes, which reports it; re-exported here
+from geer_ns.render.validate import ROTATION_TOLERANCE
+
 __all__ = ["DatasetError", "VALID_CAMERA_MODELS", "check_image_file", "check_transforms_json"]
 
-# Orthonormality tolerance of a pose's rotation block (|R R^T - I| entries): exporters write ~1e-7;
-# anything beyond 1e-3 is a scaled, sheared or garbled matrix, not rounding.
-ROTATION_TOLERANCE = 1e-3
+# Orthonormality of a pose's rotation block: |R R^T - I| (Frobenius, as render/validate.py measures a viewmat)
+# <= ROTATION_TOLERANCE, 1e-3: exporters write ~1e-7; beyond it is a scaled, sheared or garbled matrix, not
+# rounding. render() refuses viewmats beyond the same bound, so every pose that passes here renders.
 _INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 _DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
 _MAX_REPORTED = 20  # stop collecting after this many problems
-
-
-class DatasetError(ValueError):
-    """A dataset problem, reported as one line naming the file, the frame or line, and the field."""
 
 
 def _renderable_camera_models() -> Tuple[str, ...]:
@@ -289,7 +288,7 @@ def _check_pose(where: str, matrix: Any, problems: _Problems) -> None:
     if (lengths < 1e-8).any():
         problems.add(f"{where}: {name} row {int(np.argmin(lengths))} of the rotation has zero length; expected a rotation")
         return
-    err = np.abs(rot @ rot.T - np.eye(3)).max()
+    err = np.linalg.norm(rot @ rot.T - np.eye(3))
     if err > ROTATION_TOLERANCE or np.linalg.det(rot) <= 0:
         what = f"not orthonormal (|R R^T - I| = {err:.2g})" if err > ROTATION_TOLERANCE else "a reflection (det < 0)"
         problems.add(

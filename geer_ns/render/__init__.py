@@ -4,7 +4,8 @@ from .associate import TileLists, associate
 from .backend import resolve_backend
 from .composite import composite
 from .pbf import PBF, compute_pbf, mirror_tangent, pbf_lambda_sq
-from .rasterize import RenderOutput, preprocess, render, render_batch, render_brute_force
+from .outputs import RenderOutput
+from .rasterize import preprocess, render, render_batch, render_brute_force
 from .raygrid import RayGrid, beap_directions
 from .sh import sh_to_color
 from .transforms import quat_to_rotmat, to_view_space, whitening

@@ -15,14 +15,14 @@ from typing import Literal
 
 import torch
 
+from . import cuda_backend, extensions
+
 Backend = Literal["auto", "torch", "cuda", "cpu"]
 
 
 def cuda_extension_available() -> bool:
     """Whether the geer CUDA extension can be used: a GPU, and csrc/ builds and loads (JIT, cached)."""
-    from .cuda_backend import extension_available
-
-    return extension_available()
+    return extensions.extension_available()
 
 
 _warned: set[str] = set()
@@ -37,10 +37,8 @@ def _warn_once(message: str) -> None:
 
 def cpu_ops_available() -> bool:
     """Whether csrc/cpu_ops.cpp builds and loads here (built once per process, cached on disk)."""
-    from .cuda_backend import load_cpu_ops
-
     try:
-        load_cpu_ops()
+        extensions.load_cpu_ops()
     except Exception:  # noqa: BLE001 - any build/load failure means "not available"; the cause is kept
         return False
     return True
@@ -54,10 +52,8 @@ def resolve_backend(backend: Backend, device: torch.device, pose_grad: bool = Fa
     if backend == "cpu":
         if device.type != "cpu":
             raise RuntimeError(f"backend='cpu' requested but the inputs live on {device}")
-        from .cuda_backend import load_cpu_ops
-
         try:
-            load_cpu_ops()  # built once, cached
+            extensions.load_cpu_ops()  # built once, cached
         except Exception as exc:
             raise RuntimeError("backend='cpu' requested but csrc/cpu_ops.cpp could not be built or loaded") from exc
         return "cpu"
@@ -68,8 +64,6 @@ def resolve_backend(backend: Backend, device: torch.device, pose_grad: bool = Fa
             raise RuntimeError("backend='cuda' requested but the geer CUDA extension could not be built or loaded")
         return "cuda"
     if backend == "auto":
-        from .cuda_backend import CUDA_VERIFIED
-
         if pose_grad:
             _warn_once("geer: camera pose gradients are requested; rendering with the PyTorch renderer (the "
                        "compiled backends do not compute them)")
@@ -77,15 +71,14 @@ def resolve_backend(backend: Backend, device: torch.device, pose_grad: bool = Fa
         if device.type == "cpu":
             if cpu_ops_available():
                 return "cpu"
-            from .cuda_backend import build_error
-
-            _warn_once(f"geer: csrc/cpu_ops.cpp could not be built or loaded ({build_error('geer_cpu_ops')}); "
+            why = extensions.build_error("geer_cpu_ops")
+            _warn_once(f"geer: csrc/cpu_ops.cpp could not be built or loaded ({why}); "
                        "rendering with the much slower PyTorch renderer")
             return "torch"
         # Kernels not yet verified on a GPU are opt-in (backend="cuda"); auto never triggers a build for them.
         if device.type != "cuda":
             return "torch"
-        if not CUDA_VERIFIED:
+        if not cuda_backend.CUDA_VERIFIED:
             _warn_once("geer: CUDA tensors are rendered by the PyTorch renderer: the CUDA kernels are not yet "
                        "verified on a GPU (pass backend='cuda' to use them anyway)")
             return "torch"
@@ -108,9 +101,7 @@ def announce_backend(backend: Backend, device: torch.device, say=print) -> None:
     _announced.add(key)
     chosen = resolve_backend(backend, device)
     if chosen == "cpu":
-        from .cuda_backend import load_cpu_ops
-
-        lanes = load_cpu_ops().render_lanes(False)
+        lanes = extensions.load_cpu_ops().render_lanes(False)
         how = f"packs of {lanes} rays (AVX2)" if lanes > 1 else "one ray at a time (no AVX2 in this build)"
         say(f"geer: renderer: the kernels' code compiled for the CPU ({torch.get_num_threads()} threads, {how})")
     else:

@@ -10,9 +10,8 @@ gradients of W, o_u, colour and opacity) and `_Preprocess` (PreprocessCUDA: to m
 The view transform means_c = R_c mu + t stays in PyTorch so that `means_c.grad` is the same densification
 signal as the twin's. Background and expected depth are PyTorch ops on the kernel outputs.
 
-The extension is built on first use with torch.utils.cpp_extension.load (JIT, cached under .cache/ in the
-repository or $GEER_EXT_DIR; TORCH_CUDA_ARCH_LIST defaults to "9.0"). Importing this module never builds
-anything and works without a GPU.
+The extension is built on first use (extensions.py: JIT, one cached folder per configuration). Importing this
+module never builds anything and works without a GPU.
 
 Every operation also exists on the CPU (csrc/cpu_ops.cpp, same names and signatures, built by
 `load_cpu_ops`), which runs the kernels' math and per-block orchestration (csrc/geer_blocks.h) over ATen's
@@ -29,17 +28,21 @@ kept in index order by the stable sort; float64: the rank from a stable sort).
 from __future__ import annotations
 
 import math
-import os
-import platform
-import threading
-from pathlib import Path
 from types import ModuleType
-from typing import Any
 
 import torch
 from torch import Tensor
 
 from .associate import pbf_cull_pieces
+from .extensions import (  # noqa: F401 - the loaders, re-exported where callers have always found them
+    _errors,
+    _modules,
+    build_error,
+    extension_available,
+    load_cpu_ops,
+    load_extension,
+)
+from .outputs import RenderOutput, images
 from .pbf import PBF, LambdaMode
 from .raygrid import RayGrid
 from .transforms import camera_offsets, view_transform
@@ -48,97 +51,6 @@ from .transforms import camera_offsets, view_transform
 # run on a GPU against the twin. backend="auto" must keep choosing the PyTorch twin while this is False; a
 # GPU session sets it to True once tests/test_cuda_gpu.py passes there.
 CUDA_VERIFIED = False
-
-_CSRC = Path(__file__).resolve().parents[2] / "csrc"
-_CUDA_SOURCES = ("bindings.cpp", "preprocess.cu", "associate.cu", "render.cu", "preprocess_backward.cu",
-                 "launch_probe.cu")
-_CPU_SOURCES = ("cpu_ops.cpp", "cpu_render.cpp")
-
-_lock = threading.Lock()
-_modules: dict[str, ModuleType] = {}
-_errors: dict[str, BaseException] = {}
-
-
-def build_root() -> Path:
-    """Where JIT builds are cached: $GEER_EXT_DIR, else <repo>/.cache/geer_ext (git-ignored)."""
-    env = os.environ.get("GEER_EXT_DIR")
-    return Path(env) if env else _CSRC.parent / ".cache" / "geer_ext"
-
-
-def _load(name: str, sources: tuple[str, ...], cuda: bool, verbose: bool) -> ModuleType:
-    with _lock:
-        if name in _modules:
-            return _modules[name]
-        if name in _errors:
-            raise RuntimeError(f"building {name} failed earlier in this process") from _errors[name]
-        from torch.utils import cpp_extension
-
-        build_dir = build_root() / name
-        build_dir.mkdir(parents=True, exist_ok=True)
-        kwargs: dict[str, Any] = {}
-        if cuda:
-            os.environ.setdefault("TORCH_CUDA_ARCH_LIST", "9.0")
-            # No --use_fast_math: the kernels must round like the twin (tan, exp, atan2, division).
-            kwargs["extra_cuda_cflags"] = ["-O3", "-lineinfo"]
-        try:
-            module = cpp_extension.load(
-                name=name,
-                sources=[str(_CSRC / s) for s in sources],
-                extra_cflags=cpu_cflags(),
-                extra_include_paths=[str(_CSRC)],
-                build_directory=str(build_dir),
-                with_cuda=cuda,
-                verbose=verbose,
-                **kwargs,
-            )
-        except BaseException as exc:  # remember: a failed build is not retried on every render
-            _errors[name] = exc
-            raise
-        _modules[name] = module
-        return module
-
-
-def cpu_cflags() -> list[str]:
-    """C++ flags of both builds. -ffp-contract=off: pair decisions without FMA drift (geer_math.h);
-    -fno-math-errno: sqrt inline. -mavx2 where the CPU has it (torch's own dispatch level): the CPU build's
-    render then evaluates packs of 8 float32 / 4 float64 rays (csrc/geer_packs.h). No -march=native: see
-    cpu_render.cpp warp_grad_sum on GCC 12's -O3 AVX-512 code."""
-    flags = ["-O3", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"]
-    if platform.machine() in ("x86_64", "AMD64"):
-        avx2 = torch.backends.cpu.get_cpu_capability() in ("AVX2", "AVX512")
-        # Without AVX2 GCC notes that 256-bit pack arguments change the ABI: harmless here (inline functions of
-        # one translation unit), and the render stage then runs one ray at a time anyway.
-        flags.append("-mavx2" if avx2 else "-Wno-psabi")
-    return flags
-
-
-def build_error(name: str) -> str:
-    """One line on why building extension `name` failed in this process ('' if it did not)."""
-    exc = _errors.get(name)
-    return "" if exc is None else f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1] if str(exc).strip() else ''}"
-
-
-def load_extension(verbose: bool = False) -> ModuleType:
-    """The CUDA extension (built on first call; minutes on a cold cache)."""
-    return _load("geer_cuda", _CUDA_SOURCES, cuda=True, verbose=verbose)
-
-
-def load_cpu_ops(verbose: bool = False) -> ModuleType:
-    """csrc/ compiled for the CPU with the CUDA extension's operations: the kernels' math and per-block
-    orchestration checked without a GPU, and `backend="cpu"` (multi-threaded C++, analytic backward)."""
-    return _load("geer_cpu_ops", _CPU_SOURCES, cuda=False, verbose=verbose)
-
-
-def extension_available() -> bool:
-    """Whether the CUDA extension can be used here: a GPU is present and the extension builds and loads.
-    Never raises; on a machine without CUDA it returns False without trying to build."""
-    if not torch.cuda.is_available():
-        return False
-    try:
-        load_extension()
-    except Exception:  # noqa: BLE001 - any build/load failure means "not available"
-        return False
-    return True
 
 
 # ----------------------------------------------------------------------------------------- autograd
@@ -261,10 +173,6 @@ def render_cuda(
 ):
     """rasterize.render on the kernels (inputs already validated by render). `ops` defaults to the CUDA
     extension; pass load_cpu_ops() to run the same pipeline on the CPU."""
-    from .rasterize import (
-        RenderOutput,  # late: rasterize imports backend, which may import this module
-    )
-
     if ops is None:
         ops = load_extension()
     if lambda_mode not in ("opacity", "paper"):
@@ -302,16 +210,9 @@ def render_cuda(
         whiten, o_u, rgb, opacities.contiguous(), pbf_cull_pieces(bounds), dirs, grid.ray_cull_bounds(dtype),
         grid.warp_cull_bounds(dtype), grid.valid.contiguous(), ids, ranges, grid.height, grid.width, grid.tile_size, ops,
     )
-    out_rgb = rgb_sum
-    if background is not None:
-        out_rgb = out_rgb + (1.0 - acc)[:, None] * background.to(dtype)
-    expected_depth = depth_sum / acc.clamp_min(1e-10)
-    shape = (grid.height, grid.width)
+    out_rgb, out_depth, out_acc = images(grid.height, grid.width, rgb_sum, depth_sum, acc, background)
 
     visible = counts > 0
     tile_counts = (ranges[:, 1] - ranges[:, 0]).long()
     pbf = PBF(bounds[:, 0], bounds[:, 1], bounds[:, 2], bounds[:, 3], alive, inside)
-    return RenderOutput(
-        out_rgb.reshape(*shape, 3), expected_depth.reshape(*shape, 1), acc.reshape(*shape, 1), visible,
-        tile_counts, means_c, pbf, None,
-    )
+    return RenderOutput(out_rgb, out_depth, out_acc, visible, tile_counts, means_c, pbf, None)

@@ -17,14 +17,17 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from .associate import TileLists, associate
+from .associate import associate
 from .backend import Backend, resolve_backend
 from .blend import blend_lists
+from .cuda_backend import render_cuda
+from .extensions import load_cpu_ops
+from .outputs import RenderOutput, images
 from .pbf import PBF, LambdaMode, compute_pbf, pbf_lambda_sq
 from .raygrid import RayGrid
 from .sh import sh_to_color
 from .transforms import camera_offsets, covariance_factor, to_view_space, whitening
-from .validate import check_gaussians, check_shape, check_tensor
+from .validate import check_gaussians, check_shape
 
 
 @dataclass
@@ -38,18 +41,6 @@ class Preprocessed:
     opacities: Tensor  # [N]
     depth: Tensor  # [N] Euclidean distance of the mean, the sort key
     pbf: PBF
-
-
-@dataclass
-class RenderOutput:
-    rgb: Tensor  # [H, W, 3], background composited
-    depth: Tensor  # [H, W, 1] expected distance along the ray (0 where nothing was hit)
-    accumulation: Tensor  # [H, W, 1]
-    visible: Tensor  # [N] bool: associated with at least one active tile
-    tile_counts: Tensor  # [n_tiles] Gaussians per tile
-    means_c: Tensor  # [N, 3] view-space means; .grad is the densification signal
-    pbf: PBF
-    tiles: TileLists | None  # None for the brute-force reference
 
 
 def preprocess(
@@ -77,20 +68,11 @@ def preprocess(
     return Preprocessed(means_c, w, o_u, rgb, opacities, means_c.detach().norm(dim=-1), pbf)
 
 
-def _assemble(
-    grid: RayGrid, rgb: Tensor, depth: Tensor, acc: Tensor, background: Tensor | None
-) -> tuple[Tensor, Tensor, Tensor]:
-    if background is not None:
-        rgb = rgb + (1.0 - acc)[:, None] * background
-    expected_depth = depth / acc.clamp_min(1e-10)
-    shape = (grid.height, grid.width)
-    return rgb.reshape(*shape, 3), expected_depth.reshape(*shape, 1), acc.reshape(*shape, 1)
-
-
 def _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background) -> None:
-    check_gaussians(means, quats, scales, opacities, colors, viewmat=viewmat, background=background)  # one sync
     if not isinstance(grid, RayGrid):
         raise TypeError(f"grid: expected a RayGrid, got {type(grid).__name__}")
+    check_gaussians(means, quats, scales, opacities, colors, viewmat=viewmat, background=background,
+                    grid=grid)  # one sync
 
 
 def render(
@@ -112,13 +94,28 @@ def render(
 
     means [N,3], quats [N,4] (wxyz), scales [N,3] (> 0), opacities [N] in [0,1], colors [N,3] (RGB) or
     [N,K,3] (SH coefficients, degree `sh_degree`, default the largest K allows), viewmat [4,4]
-    world-to-camera (OpenCV axes), grid: the view's rays. float32 or float64 (everything follows means).
+    world-to-camera (OpenCV axes, rigid: validate.ROTATION_TOLERANCE), grid: the view's rays. float32 or float64
+    (everything follows means); every tensor, the grid's too, on the means' device.
     `max_pairs` caps the (ray, Gaussian) pairs the PyTorch renderer holds at once, forward and backward
     (memory model: blend.py); the kernels need no such cap.
     """
     _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background)
-    return _render_checked(means, quats, scales, opacities, colors, viewmat, grid, sh_degree, background, lambda_mode,
-                           backend, max_pairs)
+    chosen = resolve_backend(backend, means.device, pose_grad=viewmat.requires_grad and torch.is_grad_enabled())
+    if chosen != "torch":  # the kernels (CUDA), or their math compiled for the CPU
+        return render_cuda(means, quats, scales, opacities, colors, viewmat, grid, sh_degree=sh_degree,
+                           background=background, lambda_mode=lambda_mode,
+                           ops=load_cpu_ops() if chosen == "cpu" else None)
+    dirs = grid.dirs.to(means.dtype)
+    # viewmat keeps its dtype: the view transform runs in float64 (transforms.view_transform)
+    pre = preprocess(means, quats, scales, opacities, colors, viewmat, sh_degree, lambda_mode)
+    tiles = associate(pre.pbf, grid, pre.depth)
+    rgb, depth, acc = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs, grid.valid, grid.tile_rays,
+                                  tiles.gaussians, tiles.counts, max_pairs)
+    out_rgb, out_depth, out_acc = images(grid.height, grid.width, rgb, depth, acc, background)
+    visible = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
+    listed = tiles.gaussians[grid.tile_active]
+    visible[listed[listed >= 0]] = True
+    return RenderOutput(out_rgb, out_depth, out_acc, visible, tiles.counts, pre.means_c, pre.pbf, tiles)
 
 
 def render_batch(
@@ -137,45 +134,18 @@ def render_batch(
     max_pairs: int = 1 << 20,
 ) -> list[RenderOutput]:
     """Render C cameras of one scene: viewmats [C,4,4], grids one RayGrid for every camera or one per camera
-    (mixed rigs). Each view is what `render` gives for it, outputs and gradients; the scene is checked once.
-    Views are rendered one after the other: their lists and pairs differ, and one view's pairs at a time is
-    what bounds the memory (a training step with several images also runs each image's backward before the
-    next image's forward: geer_ns/distributed/trainer.py)."""
+    (mixed rigs). Each view is what `render` gives for it (checks included), outputs and gradients. Views are
+    rendered one after the other: their lists and pairs differ, and one view's pairs at a time is what bounds
+    the memory (a training step with several images also runs each image's backward before the next image's
+    forward: geer_ns/distributed/trainer.py)."""
     check_shape("viewmats", viewmats, (None, 4, 4))
     views = viewmats.shape[0]
     grids = [grids] * views if isinstance(grids, RayGrid) else list(grids)
     if len(grids) != views:
         raise ValueError(f"grids: expected one RayGrid or {views} (one per viewmat), got {len(grids)}")
-    for grid in grids:
-        if not isinstance(grid, RayGrid):
-            raise TypeError(f"grids: expected RayGrids, got {type(grid).__name__}")
-    check_gaussians(means, quats, scales, opacities, colors, background=background)
-    check_tensor("viewmats", viewmats, (views, 4, 4))
-    return [_render_checked(means, quats, scales, opacities, colors, viewmats[c], grids[c], sh_degree, background,
-                            lambda_mode, backend, max_pairs) for c in range(views)]
-
-
-def _render_checked(means, quats, scales, opacities, colors, viewmat, grid, sh_degree, background, lambda_mode,
-                    backend, max_pairs) -> RenderOutput:
-    chosen = resolve_backend(backend, means.device, pose_grad=viewmat.requires_grad and torch.is_grad_enabled())
-    if chosen != "torch":  # the kernels (CUDA), or their math compiled for the CPU
-        from .cuda_backend import load_cpu_ops, render_cuda
-
-        return render_cuda(means, quats, scales, opacities, colors, viewmat, grid, sh_degree=sh_degree,
-                           background=background, lambda_mode=lambda_mode,
-                           ops=load_cpu_ops() if chosen == "cpu" else None)
-    grid = grid.to(means.device)
-    dirs = grid.dirs.to(means.dtype)
-    # viewmat keeps its dtype: the view transform runs in float64 (transforms.view_transform)
-    pre = preprocess(means, quats, scales, opacities, colors, viewmat, sh_degree, lambda_mode)
-    tiles = associate(pre.pbf, grid, pre.depth)
-    rgb, depth, acc = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs, grid.valid, grid.tile_rays,
-                                  tiles.gaussians, tiles.counts, max_pairs)
-    out_rgb, out_depth, out_acc = _assemble(grid, rgb, depth, acc, background)
-    visible = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
-    listed = tiles.gaussians[grid.tile_active]
-    visible[listed[listed >= 0]] = True
-    return RenderOutput(out_rgb, out_depth, out_acc, visible, tiles.counts, pre.means_c, pre.pbf, tiles)
+    return [render(means, quats, scales, opacities, colors, viewmats[c], grids[c], sh_degree=sh_degree,
+                   background=background, lambda_mode=lambda_mode, backend=backend, max_pairs=max_pairs)
+            for c in range(views)]
 
 
 def render_brute_force(
@@ -197,7 +167,6 @@ def render_brute_force(
     The tiled renderer must match it exactly whenever association is complete.
     """
     _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background)
-    grid = grid.to(means.device)
     dirs = grid.dirs.to(means.dtype)
     pre = preprocess(means, quats, scales, opacities, colors, viewmat.to(means.dtype), sh_degree)
     order = torch.sort(pre.depth, stable=True).indices
@@ -209,6 +178,6 @@ def render_brute_force(
     counts = torch.full((ray_index.shape[0],), order.numel(), dtype=torch.long, device=means.device)
     rgb, depth, acc = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs, grid.valid, ray_index,
                                   lists, counts, max_pairs)
-    out_rgb, out_depth, out_acc = _assemble(grid, rgb, depth, acc, background)
+    out_rgb, out_depth, out_acc = images(grid.height, grid.width, rgb, depth, acc, background)
     visible = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
     return RenderOutput(out_rgb, out_depth, out_acc, visible, means.new_zeros(0).long(), pre.means_c, pre.pbf, None)

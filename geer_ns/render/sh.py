@@ -11,6 +11,8 @@ import math
 import torch
 from torch import Tensor
 
+from .subgradients import floor_at
+
 _C0 = 0.5 / math.sqrt(math.pi)  # 0.28209479177387814
 _C1 = math.sqrt(3.0 / (4.0 * math.pi))
 _C2 = (
@@ -38,7 +40,8 @@ def num_sh_bases(degree: int) -> int:
 def sh_to_color(coeffs: Tensor, dirs: Tensor, degree: int) -> Tensor:
     """RGB [N, 3] from SH coefficients [N, K, 3] (K >= (degree+1)^2) and view directions [N, 3].
 
-    Directions need not be normalised. Output is clamped at 0 from below (as gsplat does).
+    Directions need not be normalised. Output is clamped at 0 from below (as gsplat does); a colour exactly
+    at 0 gets no gradient (subgradients.floor_at, as csrc/geer_math.h sh_backward).
     """
     if not 0 <= degree <= 3:
         raise ValueError(f"sh_degree must be in 0..3, got {degree}")
@@ -48,7 +51,7 @@ def sh_to_color(coeffs: Tensor, dirs: Tensor, degree: int) -> Tensor:
         )
     result = _C0 * coeffs[:, 0]
     if degree >= 1:
-        d = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(dirs.dtype).tiny)
+        d = dirs / floor_at(dirs.norm(dim=-1, keepdim=True), torch.finfo(dirs.dtype).tiny)
         x, y, z = (t[:, None] for t in d.unbind(-1))
         result = result - _C1 * y * coeffs[:, 1] + _C1 * z * coeffs[:, 2] - _C1 * x * coeffs[:, 3]
         if degree >= 2:
@@ -72,4 +75,4 @@ def sh_to_color(coeffs: Tensor, dirs: Tensor, degree: int) -> Tensor:
                     + _C3[5] * z * (xx - yy) * coeffs[:, 14]
                     + _C3[6] * x * (xx - 3 * yy) * coeffs[:, 15]
                 )
-    return (result + 0.5).clamp_min(0.0)
+    return floor_at(result + 0.5, 0.0)

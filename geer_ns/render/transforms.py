@@ -12,6 +12,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .subgradients import floor_at
+
 # Scales below this are clamped: they would push W = S^-1 R^T past float32's range (1/1e-12 * 1e4 m
 # stays far below 3e38 even squared). A 1e-12 scale is already a perfect needle/disk in practice.
 MIN_SCALE = 1e-12
@@ -65,10 +67,10 @@ def to_view_space(means: Tensor, quats: Tensor, viewmat: Tensor) -> tuple[Tensor
 
 def whitening(rot_v: Tensor, scales: Tensor) -> Tensor:
     """W = S^-1 R_v^T [N, 3, 3]: maps view-space offsets into the canonical frame."""
-    inv_s = 1.0 / scales.clamp_min(MIN_SCALE)
+    inv_s = 1.0 / floor_at(scales, MIN_SCALE)  # no gradient at or below MIN_SCALE
     return inv_s[:, :, None] * rot_v.transpose(-1, -2)
 
 
 def covariance_factor(rot_v: Tensor, scales: Tensor) -> Tensor:
     """M = R_v S [N, 3, 3], with view-space covariance Sigma_c = M M^T (kept factored for stability)."""
-    return rot_v * scales.clamp_min(MIN_SCALE)[:, None, :]
+    return rot_v * floor_at(scales, MIN_SCALE)[:, None, :]

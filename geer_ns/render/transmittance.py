@@ -18,14 +18,17 @@ the camera position and ray direction (q is even C^1 across t* = 0: both branche
 gradient 2 o_u there), it is bounded by the same lambda-ellipsoid as the PBF (complete with no new
 bounds), and it costs one comparison. Depth uses the same clamped t.
 
-Gradients at the clamps follow csrc/geer_ray.h (half_line_backward, ray_backward_step) exactly; they are
-written out below with explicit masks rather than left to how torch differentiates clamp/max.
+Gradients at the clamps follow csrc/geer_ray.h (half_line_backward, ray_backward_step) exactly, with the one
+rule of subgradients.py (a value exactly on its clamp gets the clamped side's derivative, 0); they are written
+out below with explicit masks rather than left to how torch differentiates clamp/max.
 """
 
 from __future__ import annotations
 
 import torch
 from torch import Tensor
+
+from .subgradients import cap_at, floor_at
 
 ALPHA_MAX = 0.99
 
@@ -53,7 +56,7 @@ def canonical_ray_response(o_u: Tensor, w: Tensor, dirs: Tensor) -> tuple[Tensor
     rows = frame.flatten(-3, -2) @ dirs.transpose(-1, -2)  # [..., K*7, P]
     rows = rows.unflatten(-2, (frame.shape[-3], 7)).transpose(-1, -3)  # [..., P, 7, K]
     d_u, moment, along = rows[..., 0:3, :], rows[..., 3:6, :], rows[..., 6, :]
-    inv_norm = torch.rsqrt((d_u * d_u).sum(-2).clamp_min(torch.finfo(d_u.dtype).tiny))
+    inv_norm = torch.rsqrt(floor_at((d_u * d_u).sum(-2), torch.finfo(d_u.dtype).tiny))
     m_hat = moment * inv_norm[..., None, :]  # normalise before squaring: no overflow for 1e-8 scales
     dist_sq = (m_hat * m_hat).sum(-2)
     t_star = -along * inv_norm * inv_norm
@@ -84,10 +87,11 @@ def pair_alpha(q: Tensor, opacity: Tensor, mask: Tensor) -> Tensor:
     """Compositing alpha of each (ray, Gaussian) pair: min(0.99, sigma exp(-q/2)) where q <= q_max and
     `mask`, else 0 (q from half_line_sq; opacity broadcast to q's shape).
 
-    Subgradients: the cap passes the derivative where raw <= 0.99 and none above; the 1/255 skip is a
-    threshold on q (a kept pair, also one exactly on it, gets its ordinary derivative, a skipped one none).
+    Subgradients: the cap passes the derivative where raw < 0.99 and none from 0.99 up (subgradients.cap_at);
+    the 1/255 skip is a threshold on q (a kept pair, also one exactly on it, gets its ordinary derivative, a
+    skipped one none).
     """
     keep = mask & (q <= alpha_level_sq(opacity))
     raw = opacity * torch.exp(-0.5 * q)
-    alpha = torch.where(raw > ALPHA_MAX, torch.full_like(raw, ALPHA_MAX), raw)
+    alpha = cap_at(raw, ALPHA_MAX)
     return torch.where(keep, alpha, torch.zeros_like(alpha))

@@ -1,17 +1,27 @@
 """Input checks: bad input fails here, with the tensor's name, not deep inside a stage.
 
-Shapes and dtypes are host facts (free). Value checks (finite, scales > 0, opacities in [0, 1], non-zero
-quaternions) are reductions on the device: they are all stacked into one flag vector and read with a single
-host sync per render call (one per training step), and only when a flag is set are the details computed
-for the error message.
+Shapes, dtypes and devices are host facts (free): every tensor of a render call, the RayGrid's included, must
+be on the Gaussians' device (render moves nothing, as torch does not). Value checks (finite, scales > 0,
+opacities in [0, 1], non-zero quaternions, a rigid viewmat) are reductions on the device: they are all stacked
+into one flag vector and read with a single host sync per render call (one per training step), and only when
+a flag is set are the details computed for the error message.
 """
 
 from __future__ import annotations
+
+from dataclasses import fields, is_dataclass
 
 import torch
 from torch import Tensor
 
 SUPPORTED_DTYPES = (torch.float32, torch.float64)
+
+# A viewmat's rotation block must be orthonormal within this, |R R^T - I| (Frobenius: the same for R and R^T, so
+# for a camera-to-world pose and its world-to-camera inverse), in float32 and float64 alike: a float64 viewmat
+# is usually built from float32 poses (nerfstudio keeps camera_to_worlds in float32, ~1e-7 off), and dataset
+# files are refused beyond the same bound (data/dataset_checks.py), so every pose a dataset may hold renders.
+# A scaled, sheared or singular matrix is far beyond it (a 1 % scale gives 3.5e-2).
+ROTATION_TOLERANCE = 1e-3
 
 
 def check_shape(name: str, t: Tensor, shape: tuple[int | None, ...]) -> None:
@@ -55,6 +65,46 @@ def check_tensor(name: str, t: Tensor, shape: tuple[int | None, ...]) -> None:
     _raise_first([_non_finite(name, t)])
 
 
+def check_same_device(device: torch.device, named: dict[str, Tensor]) -> None:
+    """Every tensor on `device` (the means'); a host fact, no device work."""
+    for name, t in named.items():
+        if t.device != device:
+            fix = "grid.to(means.device)" if name.startswith("grid.") else f"{name}.to(means.device)"
+            raise ValueError(f"{name}: on {t.device}, but means are on {device}; every tensor of a render call "
+                             f"must be on one device (pass {fix})")
+
+
+def _rigid_viewmat(viewmat: Tensor) -> list[tuple[Tensor, object]]:
+    """Flags (and messages) for a viewmat that is no rigid world-to-camera transform [R | t; 0 0 0 1]."""
+    vm = viewmat.detach().to(torch.float64)
+    rot = vm[:3, :3]
+    off = torch.linalg.matrix_norm(rot @ rot.T - torch.eye(3, dtype=vm.dtype, device=vm.device))  # Frobenius
+    det = torch.dot(rot[0], torch.linalg.cross(rot[1], rot[2]))
+    last = (vm[3] - vm.new_tensor([0.0, 0.0, 0.0, 1.0])).abs().amax()
+    fix = "pass a rigid world-to-camera transform (rotation and translation; scale the scene, not the camera)"
+
+    def not_orthonormal() -> str:
+        d, lengths = float(det), ", ".join(f"{float(n):.4g}" for n in rot.norm(dim=1))
+        what = (f"singular (det {d:.3g})" if abs(d) < ROTATION_TOLERANCE else
+                f"not orthonormal (|R R^T - I| = {float(off):.3g} > {ROTATION_TOLERANCE:g}; row lengths {lengths})")
+        return f"viewmat: the rotation block viewmat[:3, :3] is {what}: a scaled, sheared or degenerate matrix; {fix}"
+
+    return [
+        (off > ROTATION_TOLERANCE, not_orthonormal),
+        (det <= 0, lambda: f"viewmat: the rotation block viewmat[:3, :3] has det {float(det):.3g}, a reflection; "
+                           "expected det +1 (a right-handed OpenCV camera frame: x right, y down, z forward)"),
+        (last > ROTATION_TOLERANCE, lambda: f"viewmat: last row is {[round(float(v), 6) for v in vm[3]]}; expected "
+                                            "[0, 0, 0, 1] (a 4x4 world-to-camera matrix; transposed?)"),
+    ]
+
+
+def grid_tensors(grid) -> dict[str, Tensor]:
+    """A RayGrid's tensors by name (grid.dirs, grid.valid, ...), for the device check."""
+    if not is_dataclass(grid):
+        return {}
+    return {f"grid.{f.name}": v for f in fields(grid) if isinstance(v := getattr(grid, f.name), Tensor)}
+
+
 def check_gaussians(
     means: Tensor,
     quats: Tensor,
@@ -64,9 +114,10 @@ def check_gaussians(
     *,
     viewmat: Tensor | None = None,
     background: Tensor | None = None,
+    grid=None,
 ) -> int:
-    """The Gaussians (and, when given, the view's matrix and background) of one render call: shapes and
-    dtypes on the host, every value rule in one device reduction read with one sync. Returns N."""
+    """The Gaussians (and, when given, the view's matrix, background and RayGrid) of one render call: shapes,
+    dtypes and devices on the host, every value rule in one device reduction read with one sync. Returns N."""
     check_shape("means", means, (None, 3))
     n = means.shape[0]
     check_shape("quats", quats, (n, 4))
@@ -83,9 +134,10 @@ def check_gaussians(
     if background is not None:
         check_shape("background", background, (3,))
         named["background"] = background
+    check_same_device(means.device, {**named, **({} if grid is None else grid_tensors(grid))})
     checks = [_non_finite(name, t) for name, t in named.items()]
-    # Viewmat and background may live elsewhere (a CPU pose for CUDA Gaussians): their flags join on means' device.
-    checks = [(flag.to(means.device), message) for flag, message in checks]
+    if viewmat is not None:
+        checks += _rigid_viewmat(viewmat)
     checks += [
         ((scales <= 0).any(), "scales: must be > 0 (pass exp(log_scales))"),
         (((opacities < 0) | (opacities > 1)).any(), "opacities: must lie in [0, 1] (pass sigmoid(logits))"),

@@ -1,0 +1,159 @@
+"""JIT builds of csrc/: the CUDA extension and its CPU build, each configuration cached in its own folder.
+
+torch.utils.cpp_extension.load keeps one build per folder and rebuilds when the sources or flags differ from
+the last build there, so two configurations sharing a folder evict each other (a test run and a viewer on one
+checkout rebuilt for minutes, alternately). Here the folder, and the module name, carry a key: a hash of the
+sources' and headers' contents and paths, the flags, torch's version and build, Python's version and the
+compiler. A configuration is built once and then only loaded; two never share a folder. Processes loading
+the same key at once are serialised by torch's lock in that folder (an OS file lock: a killed build leaves no
+stale lock). A build is said before it starts (it takes a minute or more) and when it ends, with its time.
+
+Folders: $GEER_EXT_DIR, else <repo>/.cache/geer_ext (git-ignored), one `<name>_<key>` per configuration; old
+ones can be deleted at any time. TORCH_CUDA_ARCH_LIST defaults to "9.0". Importing this module builds nothing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import sys
+import threading
+import time
+from pathlib import Path
+from types import ModuleType
+from typing import Sequence
+
+import torch
+
+CSRC = Path(__file__).resolve().parents[2] / "csrc"
+_CUDA_SOURCES = ("bindings.cpp", "preprocess.cu", "associate.cu", "render.cu", "preprocess_backward.cu",
+                 "launch_probe.cu")
+_CPU_SOURCES = ("cpu_ops.cpp", "cpu_render.cpp")
+_HEADER_SUFFIXES = (".h", ".cuh", ".hpp")
+# What a build is called when it announces itself, and how long it takes on a cold cache.
+_WHAT = {"geer_cpu_ops": ("the CPU renderer", "about a minute"), "geer_cuda": ("the CUDA kernels", "a few minutes")}
+
+_lock = threading.Lock()
+_modules: dict[str, ModuleType] = {}  # by extension name: one configuration per process
+_errors: dict[str, BaseException] = {}
+
+
+def build_root() -> Path:
+    """Where JIT builds are cached: $GEER_EXT_DIR, else <repo>/.cache/geer_ext (git-ignored)."""
+    env = os.environ.get("GEER_EXT_DIR")
+    return Path(env) if env else CSRC.parent / ".cache" / "geer_ext"
+
+
+def cpu_cflags() -> list[str]:
+    """C++ flags of both builds. -ffp-contract=off: pair decisions without FMA drift (geer_math.h);
+    -fno-math-errno: sqrt inline. -mavx2 where the CPU has it (torch's own dispatch level): the CPU build's
+    render then evaluates packs of 8 float32 / 4 float64 rays (csrc/geer_packs.h). No -march=native: see
+    cpu_render.cpp warp_grad_sum on GCC 12's -O3 AVX-512 code."""
+    flags = ["-O3", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"]
+    if platform.machine() in ("x86_64", "AMD64"):
+        avx2 = torch.backends.cpu.get_cpu_capability() in ("AVX2", "AVX512")
+        # Without AVX2 GCC notes that 256-bit pack arguments change the ABI: harmless here (inline functions of
+        # one translation unit), and the render stage then runs one ray at a time anyway.
+        flags.append("-mavx2" if avx2 else "-Wno-psabi")
+    return flags
+
+
+def build_key(sources: Sequence[Path], include_dir: Path, cflags: Sequence[str], cuda_cflags: Sequence[str],
+              cuda: bool) -> str:
+    """16 hex digits naming one configuration: everything that changes what the compiler produces."""
+    digest = hashlib.sha256()
+    headers = sorted(p for p in include_dir.iterdir() if p.suffix in _HEADER_SUFFIXES)
+    for path in [*sources, *headers]:
+        digest.update(str(path.resolve()).encode())  # two checkouts' command lines differ: not one folder
+        digest.update(path.read_bytes())
+    facts = {"cflags": list(cflags), "cuda_cflags": list(cuda_cflags), "cuda": cuda, "torch": torch.__version__,
+             "torch_cuda": torch.version.cuda, "python": sys.version, "cxx": os.environ.get("CXX", ""),
+             "arch": os.environ.get("TORCH_CUDA_ARCH_LIST", "") if cuda else ""}
+    digest.update(json.dumps(facts, sort_keys=True).encode())
+    return digest.hexdigest()[:16]
+
+
+def _say(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def build_and_load(name: str, sources: Sequence[Path], *, cuda: bool, cflags: Sequence[str],
+                   include_dir: Path | None = None, verbose: bool = False) -> ModuleType:
+    """Load configuration (sources, flags) of extension `name` from its own folder, building it first if that
+    folder holds no build yet (said before and after). Not memoised: see _load."""
+    from torch.utils import cpp_extension
+
+    sources = [Path(s) for s in sources]
+    include_dir = sources[0].parent if include_dir is None else include_dir
+    cuda_cflags = ["-O3", "-lineinfo"] if cuda else []  # no --use_fast_math: round like the twin
+    module_name = f"{name}_{build_key(sources, include_dir, cflags, cuda_cflags, cuda)}"
+    folder = build_root() / module_name
+    folder.mkdir(parents=True, exist_ok=True)
+    what, how_long = _WHAT.get(name, (name, "a minute or more"))
+    fresh = not (folder / f"{module_name}.so").exists()
+    if fresh:
+        _say(f"geer: building {what} (first use of this configuration, {how_long}) in {folder} ...")
+    start = time.perf_counter()
+    try:
+        module = cpp_extension.load(
+            name=module_name, sources=[str(s) for s in sources], extra_cflags=list(cflags),
+            extra_cuda_cflags=cuda_cflags or None, extra_include_paths=[str(include_dir)],
+            build_directory=str(folder), with_cuda=cuda, verbose=verbose,
+        )
+    except BaseException:
+        if fresh:
+            _say(f"geer: building {what} failed after {time.perf_counter() - start:.0f} s")
+        raise
+    if fresh:
+        _say(f"geer: built {what} in {time.perf_counter() - start:.0f} s")
+    return module
+
+
+def _load(name: str, sources: tuple[str, ...], cuda: bool, verbose: bool) -> ModuleType:
+    """Extension `name` from csrc/, built or loaded once per process; a failure is remembered, not retried."""
+    with _lock:
+        if name in _modules:
+            return _modules[name]
+        if name in _errors:
+            raise RuntimeError(f"building {name} failed earlier in this process") from _errors[name]
+        if cuda:
+            os.environ.setdefault("TORCH_CUDA_ARCH_LIST", "9.0")
+        try:
+            module = build_and_load(name, [CSRC / s for s in sources], cuda=cuda, cflags=cpu_cflags(),
+                                    include_dir=CSRC, verbose=verbose)
+        except BaseException as exc:  # remember: a failed build is not retried on every render
+            _errors[name] = exc
+            raise
+        _modules[name] = module
+        return module
+
+
+def build_error(name: str) -> str:
+    """One line on why building extension `name` failed in this process ('' if it did not)."""
+    exc = _errors.get(name)
+    return "" if exc is None else f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1] if str(exc).strip() else ''}"
+
+
+def load_extension(verbose: bool = False) -> ModuleType:
+    """The CUDA extension (built on first call; minutes on a cold cache)."""
+    return _load("geer_cuda", _CUDA_SOURCES, cuda=True, verbose=verbose)
+
+
+def load_cpu_ops(verbose: bool = False) -> ModuleType:
+    """csrc/ compiled for the CPU with the CUDA extension's operations: the kernels' math and per-block
+    orchestration checked without a GPU, and `backend="cpu"` (multi-threaded C++, analytic backward)."""
+    return _load("geer_cpu_ops", _CPU_SOURCES, cuda=False, verbose=verbose)
+
+
+def extension_available() -> bool:
+    """Whether the CUDA extension can be used here: a GPU is present and the extension builds and loads.
+    Never raises; on a machine without CUDA it returns False without trying to build."""
+    if not torch.cuda.is_available():
+        return False
+    try:
+        load_extension()
+    except Exception:  # noqa: BLE001 - any build/load failure means "not available"
+        return False
+    return True

@@ -1,0 +1,36 @@
+"""What a render returns, and the last step both backends share: background, expected depth, image shape."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from torch import Tensor
+
+from .associate import TileLists
+from .pbf import PBF
+from .subgradients import floor_at
+
+# Expected depth divides by the accumulation; below this a ray saw nothing and its depth is 0.
+MIN_ACCUMULATION = 1e-10
+
+
+@dataclass
+class RenderOutput:
+    rgb: Tensor  # [H, W, 3], background composited
+    depth: Tensor  # [H, W, 1] expected distance along the ray (0 where nothing was hit)
+    accumulation: Tensor  # [H, W, 1]
+    visible: Tensor  # [N] bool: associated with at least one active tile
+    tile_counts: Tensor  # [n_tiles] Gaussians per tile
+    means_c: Tensor  # [N, 3] view-space means; .grad is the densification signal
+    pbf: PBF
+    tiles: TileLists | None  # None for the brute-force reference and the kernels
+
+
+def images(height: int, width: int, rgb: Tensor, depth_sum: Tensor, acc: Tensor,
+           background: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-ray sums [R, 3], [R], [R] -> (rgb with background [H, W, 3], expected depth [H, W, 1],
+    accumulation [H, W, 1])."""
+    if background is not None:
+        rgb = rgb + (1.0 - acc)[:, None] * background.to(rgb.dtype)
+    expected_depth = depth_sum / floor_at(acc, MIN_ACCUMULATION)
+    return rgb.reshape(height, width, 3), expected_depth.reshape(height, width, 1), acc.reshape(height, width, 1)

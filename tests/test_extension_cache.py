@@ -1,0 +1,87 @@
+"""Builds of the extensions are cached per configuration (geer_ns/render/extensions.py): two configurations of
+one extension get two folders and, once built, load without a rebuild, in any order and in a new process; a
+build says so before it starts and when it ends.
+
+The two configurations are of a tiny pybind11 module (one define apart, seconds to build) going through the
+same build_and_load as csrc/; the real CPU build is checked to live in the folder of its own key.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from geer_ns.render import extensions
+
+ROOT = Path(__file__).resolve().parents[1]
+TOY = """
+#include <pybind11/pybind11.h>
+#ifndef GEER_TOY_VALUE
+#define GEER_TOY_VALUE 0
+#endif
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) { m.def("value", [] { return GEER_TOY_VALUE; }); }
+"""
+
+
+def _flags(value: int) -> list[str]:
+    return ["-O0", f"-DGEER_TOY_VALUE={value}"]
+
+
+@pytest.fixture
+def toy(tmp_path, monkeypatch):
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "toy.cpp").write_text(TOY)
+    (src / "toy.h").write_text("// a header: part of the key\n")
+    monkeypatch.setenv("GEER_EXT_DIR", str(tmp_path / "ext"))
+    return src / "toy.cpp"
+
+
+def test_the_key_follows_sources_headers_and_flags(toy):
+    key = lambda flags: extensions.build_key([toy], toy.parent, flags, [], False)  # noqa: E731
+    first = key(_flags(1))
+    assert key(_flags(1)) == first and key(_flags(2)) != first
+    (toy.parent / "toy.h").write_text("// changed\n")
+    assert key(_flags(1)) != first
+    assert len(first) == 16
+
+
+def test_two_configurations_build_once_and_then_only_load(toy, capfd):
+    a = extensions.build_and_load("geer_toy", [toy], cuda=False, cflags=_flags(1))
+    b = extensions.build_and_load("geer_toy", [toy], cuda=False, cflags=_flags(2))
+    assert (a.value(), b.value()) == (1, 2)
+    said = capfd.readouterr().err
+    assert said.count("geer: building geer_toy (first use of this configuration") == 2
+    assert said.count("geer: built geer_toy in ") == 2
+    folders = sorted(p for p in (toy.parent.parent / "ext").iterdir())
+    assert [p.name.rsplit("_", 1)[0] for p in folders] == ["geer_toy", "geer_toy"]
+    built = {p: os.stat(p).st_mtime_ns for f in folders for p in f.iterdir() if p.suffix in (".so", ".o")}
+    assert len(built) == 4
+    # A new process loads both, B first: nothing is compiled again and nothing is announced.
+    code = textwrap.dedent(f"""
+        from pathlib import Path
+        from geer_ns.render import extensions
+        toy = Path({str(toy)!r})
+        for value in (2, 1):
+            module = extensions.build_and_load("geer_toy", [toy], cuda=False, cflags=["-O0", f"-DGEER_TOY_VALUE={{value}}"])
+            assert module.value() == value
+        print("loaded")
+    """)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env)
+    assert result.returncode == 0 and "loaded" in result.stdout, result.stderr[-3000:]
+    assert "geer: build" not in result.stderr, result.stderr[-3000:]
+    assert {p: os.stat(p).st_mtime_ns for p in built} == built
+
+
+def test_the_cpu_build_lives_in_the_folder_of_its_key():
+    ops = extensions.load_cpu_ops()
+    sources = [extensions.CSRC / s for s in extensions._CPU_SOURCES]
+    key = extensions.build_key(sources, extensions.CSRC, extensions.cpu_cflags(), [], False)
+    assert Path(ops.__file__).parent == extensions.build_root() / f"geer_cpu_ops_{key}"
+    assert key != extensions.build_key(sources, extensions.CSRC, extensions.cpu_cflags() + ["-DX"], [], False)
