@@ -13,6 +13,11 @@ with two additions:
 * `prune_unseen`: a Gaussian whose blend weight stayed below 1/255 on every training ray of a whole pass over
   the training images (too faint everywhere, or hidden behind opaque surfaces in every view) is pruned; the
   weights come from the renderer's forward (RenderOutput.max_weight).
+
+Splits draw their samples from each Gaussian's identity (densify/identity.py), so they do not depend on where
+the Gaussian's row is: the same in a replica or a shard. A split is a gsplat duplicate whose two copies then
+move: each by a sample of the Gaussian's own distribution, both at 1/1.6 of its scale, both with a fresh
+optimizer state (the 3DGS rule).
 """
 
 from __future__ import annotations
@@ -21,10 +26,13 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, List
 
 import torch
+import torch.nn.functional as F
 from gsplat.strategy import DefaultStrategy
-from gsplat.strategy.ops import duplicate, remove, split
+from gsplat.strategy.ops import duplicate, remove
 
+from geer_ns.densify.identity import child_ids, normals
 from geer_ns.densify.signal import StepStatistics
+from geer_ns.render.transforms import quat_to_rotmat
 
 VISIBLE_WEIGHT = 1.0 / 255.0  # the renderer's own threshold: a pair below it is skipped
 
@@ -44,6 +52,8 @@ class GeerDefaultStrategy(DefaultStrategy):
         stats: StepStatistics = info["statistics"]
         n = len(params["means"])
         device = params["means"].device
+        if state.get("id") is None:  # a model's Gaussians are numbered once, in their first step
+            state["id"] = torch.arange(n, device=device)
         for key in ("grad2d", "count", "weight") + (("radii",) if self.refine_scale2d_stop_iter > 0 else ()):
             if state.get(key) is None:
                 state[key] = torch.zeros(n, device=device)
@@ -83,13 +93,36 @@ class GeerDefaultStrategy(DefaultStrategy):
                 entry["held back by max_gaussians"] = int(wanted.sum()) - int(is_dupli.sum() + is_split.sum())
         n_dupli, n_split = int(is_dupli.sum()), int(is_split.sum())
         if n_dupli > 0:
+            ids = state["id"][is_dupli]
             duplicate(params=params, optimizers=optimizers, state=state, mask=is_dupli)
-        is_split = torch.cat([is_split, torch.zeros(n_dupli, dtype=torch.bool, device=is_split.device)])
+            state["id"][n:] = child_ids(ids, step, 0)
         if n_split > 0:
-            split(params=params, optimizers=optimizers, state=state, mask=is_split,
-                  revised_opacity=self.revised_opacity)
+            self._split(params, optimizers, state, torch.where(is_split)[0], step)
         self._entry = entry
         return n_dupli, n_split
+
+    @torch.no_grad()
+    def _split(self, params, optimizers, state: Dict[str, Any], rows, step: int) -> None:
+        """Each Gaussian of `rows` becomes two: itself and a duplicate appended, each moved by its own sample of
+        the Gaussian (child 1 and 2 of its id), at 1/1.6 of its scale, with a fresh optimizer state."""
+        n, ids = len(params["means"]), state["id"][rows]
+        mask = torch.zeros(n, dtype=torch.bool, device=rows.device)
+        mask[rows] = True
+        duplicate(params=params, optimizers=optimizers, state=state, mask=mask)  # copies: rows n.., fresh state
+        scales = torch.exp(params["scales"][rows])
+        rot = quat_to_rotmat(F.normalize(params["quats"][rows], dim=-1))
+        for child, where in ((1, rows), (2, torch.arange(n, n + len(rows), device=rows.device))):
+            sample = torch.einsum("nij,nj->ni", rot, scales * normals(ids, step, child).to(scales))
+            params["means"].data[where] += sample
+            params["scales"].data[where] = torch.log(scales / 1.6)
+            if self.revised_opacity:
+                opacity = 1.0 - torch.sqrt(1.0 - torch.sigmoid(params["opacities"][rows]))
+                params["opacities"].data[where] = torch.logit(opacity)
+            state["id"][where] = child_ids(ids, step, child)
+        for name in params:  # the rows that stay in place start afresh too
+            for value in optimizers[name].state[params[name]].values():
+                if isinstance(value, torch.Tensor) and value.dim() > 0:
+                    value[rows] = 0
 
     @torch.no_grad()
     def _prune_gs(self, params, optimizers, state: Dict[str, Any], step: int) -> int:
