@@ -12,6 +12,8 @@ import signal
 import time
 from pathlib import Path
 
+import torch
+
 from conftest import tiny_trainer_config
 
 # In images: the schedule of a refinement-and-reset run at an effective batch of 2 (both processes x 1 image,
@@ -55,8 +57,10 @@ def train(local_rank: int, world_size: int, config, global_rank: int = 0, callba
 
 
 def main(local_rank: int, world_size: int, config, global_rank: int = 0):
-    """The replica plans, then the fault plan (which ends the launch: with exit status 1 when all is well)."""
+    """The replica plans, the sharded renders, then the fault plan (which ends the launch: with exit status 1
+    when all is well)."""
     replicas_plan(local_rank, world_size, config, global_rank)
+    sharded_render_plan(global_rank, Path(config.output_dir))
     fault_plan(local_rank, world_size, config, global_rank)
 
 
@@ -119,3 +123,54 @@ def fault_plan(local_rank, world_size, config, global_rank):
 
     data, out = Path(config.pipeline.datamanager.data), Path(config.output_dir)
     train(local_rank, world_size, scenario_config(data, out, "killed", steps=40), global_rank, callbacks=[kill_at])
+
+
+# ------------------------------------------------------------------------------------- sharded renders
+SHARD_CASES = ("fisheye180", "equirect360", "beap_other_rank_and_none")
+
+
+def shard_case(name: str, dtype):
+    """(scene, viewmats [2,4,4], grids, loss weights) of a sharded-render case; rank r holds rows r::2.
+    beap_other_rank_and_none: rank 0's camera sees only rank 1's Gaussians (rank 0's are behind it), rank 1's
+    camera sees none of them."""
+    from conftest import random_scene, random_viewmat, reference_grids
+
+    grids = reference_grids(dtype)
+    if name == "beap_other_rank_and_none":
+        scene = list(random_scene(240, 31, dtype=dtype))
+        behind = torch.arange(240) % 2 == 0  # rank 0's rows
+        scene[0] = torch.where(behind[:, None], scene[0] * torch.tensor([1.0, 1.0, -1.0], dtype=dtype), scene[0])
+        away = torch.eye(4, dtype=dtype)
+        away[:3, :3] = torch.tensor([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]], dtype=dtype)  # looks along +x
+        away[:3, 3] = -away[:3, :3] @ torch.tensor([0.0, 60.0, 0.0], dtype=dtype)  # from far above the scene
+        viewmats = torch.stack([torch.eye(4, dtype=dtype), away])
+        grid_pair = [grids["beap"], grids["beap"]]
+    else:
+        scene = list(random_scene(300, 32, dtype=dtype, around=True))
+        viewmats = torch.stack([random_viewmat(7, dtype=dtype, translation_scale=0.2),
+                                random_viewmat(8, dtype=dtype, translation_scale=0.2)])
+        grid_pair = [grids[name], grids[name]]
+    gen = torch.Generator().manual_seed(5)
+    weights = [torch.randn(g.num_rays, 3, generator=gen, dtype=dtype) for g in grid_pair]
+    return scene, viewmats, grid_pair, weights
+
+
+def shard_loss(out, weights):
+    return (out.rgb.reshape(-1, 3) * weights).sum() + 0.1 * out.depth.sum() + out.accumulation.sum()
+
+
+def sharded_render_plan(rank: int, out: Path) -> None:
+    """Each case and precision: this rank's camera rendered from both shards, one backward of the rank's loss;
+    the image, the shard's gradients and what each camera saw of the shard go to shards_<case>_<dtype>_<rank>.pt."""
+    from geer_ns.distributed.shards import render_sharded, shard_rows
+
+    for name in SHARD_CASES:
+        for dtype in (torch.float32, torch.float64):
+            scene, viewmats, grids, weights = shard_case(name, dtype)
+            rows = shard_rows(rank, 2)
+            shard = [t[rows].clone().requires_grad_(True) for t in scene]
+            image, views = render_sharded(*shard, viewmats, grids)
+            shard_loss(image, weights[rank]).backward()
+            torch.save({"rgb": image.rgb.detach(), "depth": image.depth.detach(), "acc": image.accumulation.detach(),
+                        "grads": [t.grad for t in shard], "seen": views.seen, "sent": views.sent},
+                       out / f"shards_{name}_{str(dtype)[6:]}_{rank}.pt")

@@ -21,6 +21,7 @@ import torch
 
 import distributed_harness as harness
 from conftest import copy_room, train_in_process
+from geer_ns.render import render as _render
 
 GAUSS = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
 
@@ -144,6 +145,38 @@ def test_a_killed_process_stops_the_other_with_one_line_within_the_timeout(two_p
     print(f"from the kill to the end of the launch: {ended - killed_at:.1f} s (timeout {config.machine.timeout_s} s)")
     assert ended - killed_at < config.machine.timeout_s
     assert not list((out / "killed").rglob("*.partial")) and not list((out / "killed").rglob("*.ckpt"))
+
+
+# ---------------------------------------------------------------------------------- sharded renders
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("case", harness.SHARD_CASES)
+def test_a_sharded_render_is_the_single_process_render(two_processes, case, dtype):
+    """Each rank's camera, rendered from both ranks' shards (geer_ns/distributed/shards.py), against one process
+    rendering the whole scene: images and every gradient bit for bit (the same pairs in the same order, a sum of
+    the same two per-camera gradients), on a 180-degree fisheye, a 360-degree panorama and a BEAP grid whose
+    rank-0 camera sees only rank 1's Gaussians and rank-1 camera sees none."""
+    out = two_processes[0]
+    scene, viewmats, grids, weights = harness.shard_case(case, dtype)
+    full = [t.clone().requires_grad_(True) for t in scene]
+    renders = [_render(*full, viewmats[r], grids[r]) for r in range(2)]
+    sum(harness.shard_loss(image, weights[r]) for r, image in enumerate(renders)).backward()
+    ranks = [torch.load(out / f"shards_{case}_{str(dtype)[6:]}_{r}.pt") for r in range(2)]
+    for r, (image, got) in enumerate(zip(renders, ranks)):
+        for key, want in (("rgb", image.rgb), ("depth", image.depth), ("acc", image.accumulation)):
+            assert torch.equal(got[key], want.detach()), (r, key, float((got[key] - want).abs().max()))
+        rows = slice(r, None, 2)
+        for name, mine, reference in zip(("means", "quats", "scales", "opacities", "colors"), got["grads"], full):
+            assert torch.equal(mine, reference.grad[rows]), (r, name, float((mine - reference.grad[rows]).abs().max()))
+    if case == "beap_other_rank_and_none":
+        assert float(renders[0].accumulation.max()) > 0.5 and float(renders[1].accumulation.max()) == 0.0
+        assert not ranks[0]["seen"][0].any() and ranks[1]["seen"][0].any()  # camera 0: rank 1's rows only
+        assert not ranks[0]["seen"][1].any() and not ranks[1]["seen"][1].any()  # camera 1: nothing
+    else:
+        assert all(float(image.accumulation.max()) > 0.5 for image in renders)
+        for got in ranks:  # what a rank sends is what the cameras see of its shard
+            assert got["sent"] == sum(int(m.sum()) for m in got["seen"]) > 0
+        if case == "fisheye180":
+            assert ranks[0]["sent"] < 300  # a 180-degree camera does not see everything: not all rows travel
 
 
 # ----------------------------------------------------------------------------------------- ns-train

@@ -86,6 +86,8 @@ class GeerTrainer(Trainer):
 
     def _setup(self, test_mode) -> None:
         super().setup(test_mode)  # pipeline, optimisers, viewer, checkpoint
+        if not self.world.is_main:
+            self.pipeline.model.strategy.verbose = False  # rank 0 says what densification did
         if self.world.distributed:
             check_consistent(self.world, fingerprint(self))
             broadcast_replica(self.world, self.pipeline.model, self.optimizers)

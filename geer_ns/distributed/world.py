@@ -7,7 +7,6 @@ same calls either way, so one engine trains on 1 or N processes.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any, List, Sequence
 
@@ -109,13 +108,3 @@ def broadcast_(tensors: Sequence[Tensor], src: int = 0) -> None:
         buffer = t.detach().contiguous().to(_comm_device(t))
         dist.broadcast(buffer, src=src)
         t.detach().copy_(buffer.view_as(t))
-
-
-def split_sizes(total: int, parts: int) -> List[int]:
-    """Sizes of `parts` contiguous blocks of `total` items, the first ones one larger where it does not divide."""
-    base, extra = divmod(total, parts)
-    return [base + (1 if r < extra else 0) for r in range(parts)]
-
-
-def ceil_div(a: int, b: int) -> int:
-    return int(math.ceil(a / b))

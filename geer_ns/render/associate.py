@@ -67,11 +67,43 @@ def _overlaps(lo: Tensor, hi: Tensor, pieces: tuple[Tensor, Tensor, Tensor, Tens
 def associate(pbf: PBF, grid: RayGrid, depth: Tensor, xi: float = 1.0) -> TileLists:
     """Per-tile Gaussian lists sorted front to back by `depth` [N] (Euclidean distance of the mean)."""
     device = depth.device
+    g, tiles, tests = _tile_pairs(pbf, grid, xi)
+
+    # Sort by (tile, depth rank): rank from a stable depth sort, so ties keep the lower index first.
+    order = torch.sort(depth, stable=True).indices
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(order.numel(), device=device)
+    key = tiles * max(1, order.numel()) + rank[g]
+    perm = torch.sort(key).indices
+    tiles, g = tiles[perm], g[perm]
+
+    counts = torch.bincount(tiles, minlength=grid.num_tiles)
+    k = int(counts.max()) if counts.numel() else 0
+    offsets = torch.cumsum(counts, 0) - counts
+    pos = torch.arange(tiles.numel(), device=device) - offsets[tiles]
+    gaussians = torch.full((grid.num_tiles, k), -1, dtype=torch.long, device=device)
+    gaussians[tiles, pos] = g
+    return TileLists(gaussians, counts, tests)
+
+
+@torch.no_grad()
+def seen_by(pbf: PBF, grid: RayGrid, xi: float = 1.0) -> Tensor:
+    """[N] bool: the Gaussians the association lists in at least one of the grid's active tiles (the ones a
+    render of the view can blend), without building the lists."""
+    g, _, _ = _tile_pairs(pbf, grid, xi)
+    seen = torch.zeros(pbf.alive.shape[0], dtype=torch.bool, device=pbf.alive.device)
+    seen[g] = True
+    return seen
+
+
+def _tile_pairs(pbf: PBF, grid: RayGrid, xi: float) -> tuple[Tensor, Tensor, int]:
+    """(Gaussian ids, tile ids, tests): every (Gaussian, active tile) whose ranges overlap, by the pyramid search."""
+    device = pbf.alive.device
     theta_pieces = _interval_pieces(pbf.theta_lo, pbf.theta_hi, xi)
     phi_pieces = _interval_pieces(pbf.phi_lo, pbf.phi_hi, xi)
     pyr = grid.tile_pyramid(xi=xi)
     # Candidates (Gaussian g, node idx within the level), from the single top node down to the tiles.
-    g = torch.nonzero(pbf.alive).squeeze(1) if grid.num_tiles else depth.new_zeros(0, dtype=torch.long)
+    g = torch.nonzero(pbf.alive).squeeze(1) if grid.num_tiles else torch.zeros(0, dtype=torch.long, device=device)
     idx = torch.zeros_like(g)
     tests = 0
     for level in range(len(pyr.levels) - 1, -1, -1):
@@ -89,20 +121,4 @@ def associate(pbf: PBF, grid: RayGrid, depth: Tensor, xi: float = 1.0) -> TileLi
         cy = 2 * (idx // nx)[:, None] + torch.tensor([0, 0, 1, 1], device=device)
         ok = (cx < cnx) & (cy < cny)
         g, idx = g[:, None].expand(-1, 4)[ok], (cy * cnx + cx)[ok]
-    tiles = idx
-
-    # Sort by (tile, depth rank): rank from a stable depth sort, so ties keep the lower index first.
-    order = torch.sort(depth, stable=True).indices
-    rank = torch.empty_like(order)
-    rank[order] = torch.arange(order.numel(), device=device)
-    key = tiles * max(1, order.numel()) + rank[g]
-    perm = torch.sort(key).indices
-    tiles, g = tiles[perm], g[perm]
-
-    counts = torch.bincount(tiles, minlength=grid.num_tiles)
-    k = int(counts.max()) if counts.numel() else 0
-    offsets = torch.cumsum(counts, 0) - counts
-    pos = torch.arange(tiles.numel(), device=device) - offsets[tiles]
-    gaussians = torch.full((grid.num_tiles, k), -1, dtype=torch.long, device=device)
-    gaussians[tiles, pos] = g
-    return TileLists(gaussians, counts, tests)
+    return g, idx, tests

@@ -1,0 +1,149 @@
+"""Gaussian-parallel rendering: every process holds a shard of the Gaussians; a camera is rendered by the process
+that supervises it, from every shard's Gaussians the camera can see.
+
+    every process, for every camera   view transform, PBF and the association's tile search on its shard: the
+                                      rows the camera sees (render.associate.seen_by); their colour
+    all-to-all                        each camera's rows to the camera's process (torch.distributed.nn, so
+                                      differentiable: the backward is the reverse all-to-all of the gradients)
+    the camera's process              render() of the received Gaussians, exactly as one process renders a
+                                      scene: the same per-Gaussian stage, the same pairs, the same order
+
+What travels, per (Gaussian, camera): the raw parameters and the evaluated colour, 14 numbers (mean 3,
+quaternion 4, scale 3, opacity 1, RGB 3; + 2 for the absgrad sink). That is the smallest exact representation:
+the per-view frame the render stage reads (W 9, o_u 3, PBF 4, depth 1, colour 3, opacity 1: 21 numbers) is
+larger, and the SH coefficients (48 at degree 3) are evaluated where they live. The receiver recomputes the
+frame from them exactly as a single process does, and receives the shards in rank order, each in its own row
+order: every tile list holds the pairs one process's would, in the same depth order.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, List, Optional, Sequence, Tuple
+
+import torch
+import torch.distributed as dist
+import torch.distributed.nn.functional as dist_nn
+from torch import Tensor
+
+from geer_ns.distributed.world import current_world
+from geer_ns.render import RayGrid, render
+from geer_ns.render.associate import seen_by
+from geer_ns.render.outputs import RenderOutput
+from geer_ns.render.rasterize import preprocess
+from geer_ns.render.sh import sh_to_color
+from geer_ns.render.transforms import camera_offsets, view_transform
+
+PAYLOAD = 14  # mean 3, quaternion 4, scale 3, opacity 1, RGB 3
+
+
+def shard_rows(rank: int, processes: int) -> slice:
+    """Rank `rank`'s rows of a model: every `processes`-th row (round robin). Every region of the scene, seen by
+    whichever camera, is then spread evenly over the processes: each does 1/N of every camera's per-Gaussian
+    work and sends 1/N of its rows (contiguous blocks of a spatially ordered point cloud would leave a camera's
+    work to the few processes holding its region). Row order only decides ties of equal depth, which only
+    exact copies have; a duplicate stays on its original's shard, after it, as in one process."""
+    return slice(rank, None, processes)
+
+
+@dataclass
+class ShardViews:
+    """What a process learns about its own shard in every camera of an exchange (for densification)."""
+
+    seen: List[Tensor]  # per camera [N] bool: the rows it sent (the Gaussians the camera sees)
+    max_weight: List[Tensor]  # per camera [N]: each row's largest blend weight there (0 where not seen)
+    sent: int  # rows sent in all (payload rows: the traffic is sent x (14 or 16) numbers, both ways)
+
+
+def _colours(colors: Tensor, means: Tensor, viewmat: Tensor, sh_degree: Optional[int]) -> Tensor:
+    if colors.ndim == 2:
+        return colors
+    degree = int(math.isqrt(colors.shape[1]) - 1) if sh_degree is None else sh_degree
+    return sh_to_color(colors, camera_offsets(means, viewmat), degree)
+
+
+def _exchange_counts(send: Tensor) -> Tensor:
+    recv = torch.empty_like(send)
+    dist.all_to_all_single(recv, send)
+    return recv
+
+
+def render_sharded(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    grids: Sequence[RayGrid],
+    *,
+    sh_degree: Optional[int] = None,
+    background: Optional[Tensor] = None,
+    lambda_mode: str = "opacity",
+    backend: str = "auto",
+    max_pairs: int = 1 << 20,
+    absgrad_sinks: Optional[Sequence[Tensor]] = None,
+    lateral: Optional[Callable[[Tensor], Tensor]] = None,
+) -> Tuple[RenderOutput, ShardViews]:
+    """Render this process's camera from every process's shard (a collective: every process calls it with
+    its shard and the same cameras). Shard tensors as render() takes them; means [N,3], or [C,N,3] with the
+    means each camera sees (densification's per-view offsets); viewmats [C,4,4] and grids: every process's
+    camera in rank order (C = the number of processes); absgrad_sinks: per camera a [N,2] leaf (render's
+    absgrad), `lateral` turning the received view-space means into render's absgrad basis. Returns the render
+    of this process's camera (over the received Gaussians) and what each camera saw of this shard."""
+    world = current_world()
+    cams = viewmats.shape[0]
+    if cams != world.size or len(grids) != world.size:
+        raise ValueError(f"render_sharded: one camera per process expected ({world.size}), got {cams} viewmats "
+                         f"and {len(grids)} grids")
+    per_camera = means if means.ndim == 3 else means.expand(cams, *means.shape)
+    blocks, seen = [], []
+    for q in range(cams):
+        with torch.no_grad():
+            pre = preprocess(per_camera[q].detach(), quats.detach(), scales.detach(), opacities.detach(),
+                             means.new_zeros(means.shape[-2], 3), viewmats[q], lambda_mode=lambda_mode)
+            rows = torch.nonzero(seen_by(pre.pbf, grids[q])).squeeze(1)
+        m = per_camera[q][rows]
+        columns = [m, quats[rows], scales[rows], opacities[rows, None], _colours(colors[rows], m, viewmats[q], sh_degree)]
+        if absgrad_sinks is not None:
+            columns.append(absgrad_sinks[q][rows])
+        blocks.append(torch.cat(columns, -1))
+        mask = torch.zeros(means.shape[-2], dtype=torch.bool, device=means.device)
+        mask[rows] = True
+        seen.append(mask)
+    send_counts = torch.tensor([b.shape[0] for b in blocks], dtype=torch.int64)
+    payload = torch.cat(blocks)
+    if world.distributed:
+        recv_counts = _exchange_counts(send_counts)
+        received = payload.new_empty(int(recv_counts.sum()), payload.shape[1])
+        received = dist_nn.all_to_all_single(received, payload, recv_counts.tolist(), send_counts.tolist())
+    else:
+        recv_counts, received = send_counts, payload
+    me = world.rank
+    r_means, r_quats, r_scales, r_opac, r_rgb = received[:, :PAYLOAD].split([3, 4, 3, 1, 3], dim=1)
+    extra = {}
+    if absgrad_sinks is not None:
+        basis = lateral(view_transform(r_means.detach(), viewmats[me]))
+        extra["absgrad"] = (basis, received[:, PAYLOAD:])
+    out = render(r_means, r_quats, r_scales, r_opac.squeeze(1), r_rgb, viewmats[me], grids[me], background=background,
+                 lambda_mode=lambda_mode, backend=backend, max_pairs=max_pairs, **extra)
+    weights = _weights_home(out, received.shape[0], send_counts, recv_counts, world.distributed, payload)
+    max_weight = []
+    for q, chunk in enumerate(weights.split(send_counts.tolist())):
+        w = torch.zeros(means.shape[-2], dtype=chunk.dtype, device=chunk.device)
+        w[seen[q]] = chunk
+        max_weight.append(w)
+    return out, ShardViews(seen, max_weight, int(send_counts.sum()))
+
+
+def _weights_home(out: RenderOutput, received: int, send_counts: Tensor, recv_counts: Tensor, distributed: bool,
+                  like: Tensor) -> Tensor:
+    """Each sent row's largest blend weight in its camera, back at its owner (the reverse exchange)."""
+    weight = getattr(out, "max_weight", None)
+    weight = like.new_ones(received) if weight is None else weight.detach().to(like.dtype)
+    if not distributed:
+        return weight
+    home = like.new_empty(int(send_counts.sum()))
+    dist.all_to_all_single(home, weight.contiguous(), send_counts.tolist(), recv_counts.tolist())
+    return home
