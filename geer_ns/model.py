@@ -46,7 +46,7 @@ from geer_ns.cameras import CameraModel
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, native_view
 from geer_ns.densify.mcmc_cpu import install_mcmc_cpu_ops
-from geer_ns.densify.signal import StepStatistics, ViewRecord, ViewSignal, angular_signal, pbf_radii, pixel_signal
+from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angular_signal, pbf_radii, pixel_signal
 from geer_ns.densify.strategy import GeerDefaultStrategy
 from geer_ns.render import render
 from geer_ns.render.backend import Backend, announce_backend
@@ -84,6 +84,10 @@ class GeerOwnOptions:
     prune_unseen: bool = True
     """Prune Gaussians whose blend weight stayed below 1/255 on every training ray for a whole pass over the
     training images (too faint, or hidden behind opaque surfaces in every view)."""
+    distributed: Literal["images", "gaussians"] = "images"
+    """With several processes (--machine.num-devices): "images", every process holds the whole model and trains
+    on its own images; "gaussians", each holds a shard of the Gaussians (scenes larger than one device), and
+    every camera is rendered from the shards' Gaussians it sees (geer_ns/distributed/shards.py)."""
     renderer_backend: Backend = "auto"
     """geer_ns.render backend: auto (CPU tensors: the kernels' math compiled for the CPU, JIT-built once, else
     the PyTorch renderer, said once; CUDA tensors: the PyTorch renderer until the kernels are verified on a GPU),
@@ -179,6 +183,13 @@ def central_region(camera: CameraModel, dirs: Tensor, half_angles: Optional[Tupl
     return (theta.abs() <= half_angles[0]) & (phi.abs() <= half_angles[1])
 
 
+def exact_activation(fn, x: Tensor) -> Tensor:
+    """fn(x) evaluated in float64 and rounded to x's dtype. torch's float32 exp and sigmoid round an element by
+    where it falls in the tensor (vectorised body, scalar tail); a shard or a subset of the Gaussians then gets
+    other bits than the whole model. In float64 those differences are below what rounding to float32 keeps."""
+    return fn(x.double()).to(x.dtype) if x.dtype == torch.float32 else fn(x)
+
+
 def downscale_mask(mask: Tensor, factor: int) -> Tensor:
     """[H,W,1] bool -> [H/f,W/f,1]: a coarse cell is valid only if its whole block is."""
     if factor == 1:
@@ -238,6 +249,8 @@ class GeerModel(SplatfactoModel):
         self.views: List[ViewRecord] = []  # this step's rendered training views, for the densification statistics
         self._statistics: Optional[StepStatistics] = None  # the step's statistics, when the engine reduced them
         self._step_background: Optional[Tensor] = None  # one random background per step, for all its views
+        self.scene_gaussians: Optional[int] = None  # Gaussians over every shard (the regularisers' mean)
+        self.display_gaussians: Optional[Dict[str, Tensor]] = None  # what eval / the viewer render, if not these
         self.loaded_images_per_step = self.config.images_per_step_total  # of the checkpoint loaded, if any
         self.render_guard = RenderGuard()
 
@@ -344,7 +357,8 @@ class GeerModel(SplatfactoModel):
     def _gaussians(self) -> Optional[Dict[str, Tensor]]:
         """Parameters to render (cropped to the viewer's box when one is set); None if nothing is left."""
         names = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
-        params = {name: self.gauss_params[name] for name in names}
+        shown = self.display_gaussians if self.display_gaussians is not None and not self.training else None
+        params = {name: (self.gauss_params if shown is None else shown)[name] for name in names}
         if self.crop_box is not None and not self.training:
             keep = self.crop_box.within(self.means).squeeze()
             if keep.sum() == 0:
@@ -356,7 +370,13 @@ class GeerModel(SplatfactoModel):
         if self.config.sh_degree > 0:
             colors = torch.cat([params["features_dc"][:, None, :], params["features_rest"]], dim=1)
             return colors, min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
-        return torch.sigmoid(params["features_dc"]), None
+        return exact_activation(torch.sigmoid, params["features_dc"]), None
+
+    @staticmethod
+    def activated(params: Dict[str, Tensor]) -> Tuple[Tensor, Tensor]:
+        """(scales, opacities) the renderer takes: exp of the log-scales, sigmoid of the opacity logits."""
+        return (exact_activation(torch.exp, params["scales"]),
+                exact_activation(torch.sigmoid, params["opacities"]).squeeze(-1))
 
     def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, List]]:
         if not isinstance(camera, Cameras):
@@ -369,26 +389,35 @@ class GeerModel(SplatfactoModel):
         means = params["means"]
         background = self._get_background_color().to(means)
         c2w = self.camera_optimizer.apply_to_camera(camera)[0] if self.training else camera.camera_to_worlds[0]
-        viewmat = world_to_camera_opencv(c2w.to(means.device, torch.float64))  # float64: see view_transform
-        scales, opacities = torch.exp(params["scales"]), torch.sigmoid(params["opacities"]).squeeze(-1)
-        record = self.training and torch.is_grad_enabled()  # not for viewer renders during training
-        extra = {}
-        if record:  # the densification statistics' leaves (geer_ns/densify/signal.py)
-            signal = self._view_signal(view, view_transform(means.detach(), viewmat), scales, opacities)
-            offsets = torch.zeros(means.shape[0], 2, dtype=means.dtype, device=means.device, requires_grad=True)
-            means = means + torch.einsum("nij,nj->ni", signal.lateral, offsets) @ viewmat[:3, :3].to(means.dtype)
-            absgrad = torch.zeros_like(offsets, requires_grad=True) if self.config.use_absgrad else None
-            if absgrad is not None:
-                extra["absgrad"] = (signal.lateral, absgrad)
+        viewmat = self.viewmat(c2w, means.device)
+        scales, opacities = self.activated(params)
+        probe = None
+        if self.training and torch.is_grad_enabled():  # not for viewer renders during training
+            probe = self.probe(view, means, viewmat, scales, opacities)
+            means = probe.displace(means, viewmat)
         colors, sh_degree = self._colors(params)
         announce_backend(self.config.renderer_backend, means.device, say=CONSOLE.log)
         out = render(
             means, params["quats"], scales, opacities, colors, viewmat, view.rays.to(means.device),
             sh_degree=sh_degree, background=background, lambda_mode=self.config.lambda_mode,
-            max_pairs=self.config.max_pairs, backend=self.config.renderer_backend, **extra,
+            max_pairs=self.config.max_pairs, backend=self.config.renderer_backend,
+            **({} if probe is None or probe.absgrad is None else {"absgrad": (probe.signal.lateral, probe.absgrad)}),
         )
-        if record:
-            self._record_view(view, signal, offsets, absgrad, out)
+        if probe is not None:
+            radius = None
+            if probe.signal.radius is None:  # pixel_signal: the PBF's extent in pixels of the image's larger side
+                radius = pbf_radii(out.pbf, out.visible, view.steps) / float(max(height, width))
+            self.views.append(probe.record(out.visible.detach(), self._max_weight(out), radius))
+        return self.view_outputs(out, view, background, camera)
+
+    @staticmethod
+    def viewmat(camera_to_world: Tensor, device) -> Tensor:
+        """The world-to-camera matrix (OpenCV axes) of a nerfstudio pose, in float64 (see view_transform)."""
+        return world_to_camera_opencv(camera_to_world.to(device, torch.float64))
+
+    def view_outputs(self, out, view: View, background: Tensor, camera: Cameras) -> Dict[str, Tensor]:
+        """nerfstudio's outputs of a render of `camera` (and its bilateral grid while training)."""
+        height, width = view.size
         self.last_size = (height, width)
         outputs = self._outputs(out, view, background)
         cam_idx = (camera.metadata or {}).get("cam_idx")
@@ -396,21 +425,21 @@ class GeerModel(SplatfactoModel):
             outputs["rgb"] = self._apply_bilateral_grid(outputs["rgb"][None], cam_idx, height, width)[0]
         return outputs
 
-    def _view_signal(self, view: View, means_c: Tensor, scales: Tensor, opacities: Tensor) -> ViewSignal:
+    def probe(self, view: View, means: Tensor, viewmat: Tensor, scales: Tensor, opacities: Tensor) -> ViewProbe:
+        """The densification leaves of a training view of these Gaussians (geer_ns/densify/signal.py)."""
+        means_c = view_transform(means.detach(), viewmat)
         if self.config.densify_signal == "pixels":
-            return pixel_signal(means_c, view.steps, view.size)
-        lam2, _ = pbf_lambda_sq(opacities.detach(), self.config.lambda_mode)
-        return angular_signal(view.project, int(view.rays.valid.sum()), view.center_solid_angle, means_c, scales, lam2)
+            signal = pixel_signal(means_c, view.steps, view.size)
+        else:
+            lam2, _ = pbf_lambda_sq(opacities.detach(), self.config.lambda_mode)
+            signal = angular_signal(view.project, int(view.rays.valid.sum()), view.center_solid_angle, means_c,
+                                    scales, lam2)
+        return ViewProbe.zeros(signal, means, self.config.use_absgrad)
 
-    def _record_view(self, view: View, signal: ViewSignal, offsets: Tensor, absgrad: Optional[Tensor], out) -> None:
-        height, width = view.size
-        visible = out.visible.detach()
-        radius = signal.radius if signal.radius is not None else \
-            pbf_radii(out.pbf, visible, view.steps) / float(max(width, height))
-        radius = torch.where(visible, radius, torch.zeros_like(radius))
+    @staticmethod
+    def _max_weight(out) -> Tensor:
         weight = getattr(out, "max_weight", None)  # TODO(renderer): every backend reports it
-        weight = torch.ones_like(radius) if weight is None else weight.detach()
-        self.views.append(ViewRecord(offsets, absgrad, visible, signal.scale, radius, weight))
+        return torch.ones_like(out.visible, dtype=torch.float32) if weight is None else weight.detach()
 
     def _get_background_color(self) -> Tensor:
         """splatfacto's, with one random colour per training step (drawn at its first view): every view of
@@ -545,7 +574,11 @@ class GeerModel(SplatfactoModel):
             return torch.tensor(0.0, device=self.device)
         scale = torch.exp(self.scales)
         ratio = scale.amax(dim=-1) / scale.amin(dim=-1)
-        return 0.1 * (torch.clamp_min(ratio, self.config.max_gauss_ratio) - self.config.max_gauss_ratio).mean()
+        return 0.1 * self._scene_mean(torch.clamp_min(ratio, self.config.max_gauss_ratio) - self.config.max_gauss_ratio)
+
+    def _scene_mean(self, values: Tensor) -> Tensor:
+        """The mean over the scene's Gaussians: all of them, also where this model holds one shard."""
+        return values.mean() if self.scene_gaussians is None else values.sum() / self.scene_gaussians
 
     # ------------------------------------------------------------------------------------ metrics
     def _lpips(self):

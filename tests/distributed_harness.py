@@ -61,6 +61,7 @@ def main(local_rank: int, world_size: int, config, global_rank: int = 0):
     when all is well)."""
     replicas_plan(local_rank, world_size, config, global_rank)
     sharded_render_plan(global_rank, Path(config.output_dir))
+    sharded_training_plan(local_rank, world_size, config, global_rank)
     fault_plan(local_rank, world_size, config, global_rank)
 
 
@@ -69,7 +70,7 @@ def _write(path: Path, value) -> None:
 
 
 def replicas_plan(local_rank, world_size, config, global_rank):
-    from geer_ns.distributed import trainer as engine
+    from geer_ns.distributed import replicas as engine
     from geer_ns.distributed.replicas import ReplicaMismatchError, check_replicas_identical
     from geer_ns.distributed.world import current_world
 
@@ -174,3 +175,51 @@ def sharded_render_plan(rank: int, out: Path) -> None:
             torch.save({"rgb": image.rgb.detach(), "depth": image.depth.detach(), "acc": image.accumulation.detach(),
                         "grads": [t.grad for t in shard], "seen": views.seen, "sent": views.sent},
                        out / f"shards_{name}_{str(dtype)[6:]}_{rank}.pt")
+
+
+# ---------------------------------------------------------------------------------- sharded training
+def sharded_config(data: Path, out: Path, name: str, **kw):
+    """The replica plans' schedule, Gaussian-parallel (or, images_per_step=2, its one-process reference),
+    black background: final renders compare without a random colour."""
+    config = scenario_config(data, out, name, **kw)
+    config.pipeline.model.background_color = "black"
+    config.pipeline.model.sh_degree = 0  # RGB colours: no SH, whose shards evaluate in torch, one process in C++
+    return config
+
+
+def sharded_render_of(trainer, index: int = 0):
+    """Training camera `index` rendered by every process from its shard (both render the same camera)."""
+    from geer_ns.distributed.sharded import sharded_outputs
+    from geer_ns.distributed.world import current_world
+
+    dm, model = trainer.pipeline.datamanager, trainer.pipeline.model
+    camera = dm.train_camera(index)
+    with torch.no_grad():
+        return sharded_outputs(model, [camera, camera], current_world().rank)["rgb"]
+
+
+def sharded_training_plan(local_rank, world_size, config, global_rank):
+    """Gaussian-parallel training (a refinement and a reset inside), its gathered checkpoint and a collective
+    render; then a one-process checkpoint (the test's reference, made before the launch) re-sharded over the
+    two processes and rendered."""
+    data, out = Path(config.pipeline.datamanager.data), Path(config.output_dir)
+    cfg = sharded_config(data, out, "sharded")
+    cfg.pipeline.model.distributed = "gaussians"
+    per_step = []
+    if global_rank == 0:
+        cfg.save_config()  # config.yml, as ns-train writes it: ns-eval reads the gathered checkpoint through it
+    trainer = train(local_rank, world_size, cfg, global_rank, callbacks=[lambda t, step: per_step.append(
+        (step, t.pipeline.model.num_points, t.pipeline.model.scene_gaussians))])
+    image = sharded_render_of(trainer)
+    back = sharded_config(data, out, "from_one_process")
+    back.pipeline.model.distributed = "gaussians"
+    back.load_dir = Path((out / "reference_checkpoints.txt").read_text())
+    from nerfstudio.utils import writer
+
+    writer.EVENT_WRITERS.clear()
+    resumed = back.setup(local_rank=local_rank, world_size=world_size)
+    resumed.setup()
+    image_back = sharded_render_of(resumed)
+    if global_rank == 0:
+        torch.save({"per_step": per_step, "image": image, "image_back": image_back,
+                    "shard_back": resumed.pipeline.model.num_points}, out / "sharded.pt")

@@ -324,11 +324,16 @@ class GeerDataManager(FullImageDatamanager):
         device, `cam_idx`), with the view it is supervised in."""
         data = dict(self.cached_train[index])  # a copy: the cache is not mutated (nerfstudio issue 3335)
         data["image"] = data["image"].to(self.device)
+        data.pop(VIEW_KEY)
+        return self.train_camera(index), data
+
+    def train_camera(self, index: int) -> Cameras:
+        """Training camera `index` (`cam_idx` and the view it is supervised in), without its image."""
         camera = self.train_cameras[index : index + 1].to(self.device)
         camera.metadata = dict(camera.metadata or {})
         camera.metadata["cam_idx"] = index
-        camera.metadata[VIEW_KEY] = data.pop(VIEW_KEY)
-        return camera, data
+        camera.metadata[VIEW_KEY] = self.cached_train[index][VIEW_KEY]
+        return camera
 
 
 def _is_fisheye(cameras: Cameras, idx: int) -> bool:

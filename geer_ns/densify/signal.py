@@ -119,8 +119,7 @@ class ViewSignal:
 def angular_signal(project: Projection, supervised_pixels: int, center_solid_angle: float, means_c: Tensor,
                    scales: Tensor, lam2: Tensor) -> ViewSignal:
     """The invariant statistics of the module docstring; offsets in radians of direction."""
-    distance = means_c.detach().norm(dim=-1, keepdim=True)[..., None]
-    lateral = (tangent_basis(means_c) * distance.double()).to(means_c.dtype)
+    lateral = lateral_basis(means_c)
     omega = pixel_solid_angle(project, means_c, center_solid_angle)
     scale = (supervised_pixels * omega / (4.0 * REFERENCE_HALF_WIDTH_TAN))[:, None]
     radius = angular_radius(means_c, scales, lam2) / (2.0 * REFERENCE_HALF_WIDTH_TAN)
@@ -133,6 +132,37 @@ def pixel_signal(means_c: Tensor, steps: Tuple[float, float], size: Tuple[int, i
     height, width = size
     lateral = angle_jacobian_pinv(means_c) * means_c.new_tensor(steps)
     return ViewSignal(lateral, means_c.new_tensor([[width / 2.0, height / 2.0]]), None)
+
+
+def lateral_basis(means_c: Tensor) -> Tensor:
+    """[N,3,2] angular_signal's lateral moves: a radian of direction across the ray is |mean| along it."""
+    return (tangent_basis(means_c) * means_c.detach().double().norm(dim=-1)[:, None, None]).to(means_c.dtype)
+
+
+@dataclass
+class ViewProbe:
+    """A training view's densification leaves before its render: zero offsets that move the means laterally
+    (`displace`), and the sink the renderer fills with the per-pixel absolute gradients (absgrad)."""
+
+    signal: ViewSignal
+    offsets: Tensor  # [N, 2] zero leaf
+    absgrad: Optional[Tensor]  # [N, 2] zero leaf, or None (the summed gradient is the statistic)
+
+    @staticmethod
+    def zeros(signal: ViewSignal, like: Tensor, absgrad: bool) -> "ViewProbe":
+        offsets = torch.zeros(like.shape[0], 2, dtype=like.dtype, device=like.device, requires_grad=True)
+        return ViewProbe(signal, offsets, torch.zeros_like(offsets, requires_grad=True) if absgrad else None)
+
+    def displace(self, means: Tensor, viewmat: Tensor) -> Tensor:
+        """means + the offsets' move, in world axes (zero: the same means, with a gradient path to the offsets)."""
+        move = torch.einsum("nij,nj->ni", self.signal.lateral, self.offsets)
+        return means + move @ viewmat[:3, :3].to(means.dtype)
+
+    def record(self, visible: Tensor, weight: Tensor, radius: Optional[Tensor] = None) -> "ViewRecord":
+        """The view's record once rendered: `radius` when the signal has none of its own (pixel_signal's)."""
+        radius = self.signal.radius if radius is None else radius
+        radius = torch.where(visible, radius, torch.zeros_like(radius))
+        return ViewRecord(self.offsets, self.absgrad, visible, self.signal.scale, radius, weight)
 
 
 @dataclass

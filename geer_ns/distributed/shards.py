@@ -85,13 +85,17 @@ def render_sharded(
     max_pairs: int = 1 << 20,
     absgrad_sinks: Optional[Sequence[Tensor]] = None,
     lateral: Optional[Callable[[Tensor], Tensor]] = None,
+    rows_of: Optional[Callable[[int, Tensor], Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]]] = None,
 ) -> Tuple[RenderOutput, ShardViews]:
     """Render this process's camera from every process's shard (a collective: every process calls it with
     its shard and the same cameras). Shard tensors as render() takes them; means [N,3], or [C,N,3] with the
     means each camera sees (densification's per-view offsets); viewmats [C,4,4] and grids: every process's
     camera in rank order (C = the number of processes); absgrad_sinks: per camera a [N,2] leaf (render's
-    absgrad), `lateral` turning the received view-space means into render's absgrad basis. Returns the render
-    of this process's camera (over the received Gaussians) and what each camera saw of this shard."""
+    absgrad), `lateral` turning the received view-space means into render's absgrad basis. `rows_of(q, rows)`,
+    when given, makes camera q's payload (means, quats, scales, opacities, RGB of those rows, differentiable):
+    a model evaluates its activations per camera, as one process does per image, so that each camera's
+    gradient goes through them on its own (the tensors above then only decide what each camera sees). Returns
+    the render of this process's camera (over the received Gaussians) and what each camera saw of this shard."""
     world = current_world()
     cams = viewmats.shape[0]
     if cams != world.size or len(grids) != world.size:
@@ -104,8 +108,12 @@ def render_sharded(
             pre = preprocess(per_camera[q].detach(), quats.detach(), scales.detach(), opacities.detach(),
                              means.new_zeros(means.shape[-2], 3), viewmats[q], lambda_mode=lambda_mode)
             rows = torch.nonzero(seen_by(pre.pbf, grids[q])).squeeze(1)
-        m = per_camera[q][rows]
-        columns = [m, quats[rows], scales[rows], opacities[rows, None], _colours(colors[rows], m, viewmats[q], sh_degree)]
+        if rows_of is not None:
+            m, q_rows, s_rows, o_rows, rgb = rows_of(q, rows)
+        else:
+            m, q_rows, s_rows, o_rows = per_camera[q][rows], quats[rows], scales[rows], opacities[rows]
+            rgb = _colours(colors[rows], m, viewmats[q], sh_degree)
+        columns = [m, q_rows, s_rows, o_rows[:, None], rgb]
         if absgrad_sinks is not None:
             columns.append(absgrad_sinks[q][rows])
         blocks.append(torch.cat(columns, -1))

@@ -17,28 +17,18 @@ import functools
 import os
 import traceback
 from dataclasses import dataclass, field
-from typing import Dict, List, Tuple, Type
+from typing import Dict, Type
 
 import torch
 from nerfstudio.configs.base_config import MachineConfig
-from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils import profiler
-from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from geer_ns import resume
-from geer_ns.distributed.replicas import (
-    ReplicaMismatchError,
-    broadcast_replica,
-    check_consistent,
-    check_replicas_identical,
-    fingerprint,
-    optimised_parameters,
-    reduce_gradients,
-    reduce_statistics,
-)
+from geer_ns.distributed.replicas import ImageParallel, ReplicaMismatchError
 from geer_ns.distributed.schedule import EffectiveBatch, describe, scaled_config
+from geer_ns.distributed.sharded import GaussianParallel
 from geer_ns.distributed.world import current_world
 
 
@@ -88,19 +78,18 @@ class GeerTrainer(Trainer):
         super().setup(test_mode)  # pipeline, optimisers, viewer, checkpoint
         if not self.world.is_main:
             self.pipeline.model.strategy.verbose = False  # rank 0 says what densification did
-        if self.world.distributed:
-            check_consistent(self.world, fingerprint(self))
-            broadcast_replica(self.world, self.pipeline.model, self.optimizers)
-        every = getattr(self.config.machine, "check_replicas_every", 0)
-        if every and self.world.distributed:  # after the model's own callbacks: densification included
-            self.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
-                                                   lambda step: check_replicas_identical(self.world,
-                                                                                         self.pipeline.model, step),
-                                                   update_every_num_iters=every))
+        engines = {"images": ImageParallel, "gaussians": GaussianParallel}
+        self.engine = engines[self.config.pipeline.model.distributed](self)
+        self.engine.start()
+        self.callbacks.extend(self.engine.callbacks())  # after the model's own: densification included
         self._say_start()
 
     def _say_start(self) -> None:
-        if not self.world.is_main or self.batch.images == 1:
+        if not self.world.is_main:
+            return
+        for line in self.engine.describe():
+            CONSOLE.log(f"geer: {line}")
+        if self.batch.images == 1:
             return
         how = f"{self.world.size} process(es) ({self.world.backend}"
         if self.device.startswith("cpu"):
@@ -124,13 +113,6 @@ class GeerTrainer(Trainer):
         self._start_step = start
 
     # --------------------------------------------------------------------------------- the step
-    def _views(self, step: int) -> List[Tuple[object, Dict]]:
-        """This process's images of the step: its share of the next effective batch of the shared queue."""
-        dm = self.pipeline.datamanager
-        per = self.batch.images_per_process
-        indices = dm.next_train_indices(self.batch.images)
-        return [dm.train_view(i) for i in indices[self.world.rank * per : (self.world.rank + 1) * per]]
-
     @profiler.time_function
     def train_iteration(self, step: int):
         accumulate = self.gradient_accumulation_steps
@@ -139,26 +121,26 @@ class GeerTrainer(Trainer):
         model = self.pipeline.model
         image_losses: Dict[str, torch.Tensor] = {}
         metrics: Dict[str, torch.Tensor] = {}
-        views = self._views(step)
-        for camera, batch in views:
+        per = self.batch.images_per_process
+        for batch, forward in self.engine.views(step):
             with torch.autocast(device_type=device_type, enabled=self.mixed_precision):
-                outputs = model.get_outputs(camera)
+                outputs = forward()
                 for k, v in model.get_metrics_dict(outputs, batch).items():
-                    metrics[k] = metrics.get(k, 0) + (v.detach() if torch.is_tensor(v) else v) / len(views)
+                    metrics[k] = metrics.get(k, 0) + (v.detach() if torch.is_tensor(v) else v) / per
                 losses = model.get_image_loss_dict(outputs, batch)
                 loss = functools.reduce(torch.add, losses.values())
             self.grad_scaler.scale(loss).backward()
             for k, v in losses.items():
-                image_losses[k] = image_losses.get(k, 0) + v.detach() / len(views)
+                image_losses[k] = image_losses.get(k, 0) + v.detach() / per
             del outputs, loss, losses
-        reduce_gradients(self.world, optimised_parameters(self.optimizers), self.batch.images)
+        self.engine.reduce_gradients()
         with torch.autocast(device_type=device_type, enabled=self.mixed_precision):
             step_losses = model.get_step_loss_dict()
         step_loss = functools.reduce(torch.add, step_losses.values())
         if step_loss.requires_grad:
             self.grad_scaler.scale(step_loss).backward()
         if model.needs_step_statistics:
-            model.use_step_statistics(reduce_statistics(self.world, model.step_statistics()))
+            self.engine.reduce_statistics(model)
         self.optimizers.optimizer_scaler_step_some(
             self.grad_scaler, [g for g in self.optimizers.parameters if step % accumulate[g] == accumulate[g] - 1])
         if self.config.log_gradients:
@@ -194,23 +176,20 @@ class GeerTrainer(Trainer):
         print(f"geer: rank {self.world.rank} of {self.world.size} stopped at step {self.step}: {what}", flush=True)
         raise SystemExit(1)
 
-    @check_main_thread
     def eval_iteration(self, step: int) -> None:
-        super().eval_iteration(step)
+        """On rank 0 (image-parallel: its replica; Gaussian-parallel: the gathered model, every rank helping)."""
+        self.engine.evaluate(step, lambda: Trainer.eval_iteration(self, step))
 
-    @check_main_thread
     def save_checkpoint(self, step: int) -> None:
-        """nerfstudio's checkpoint, written whole or not at all (a temporary file renamed into place)."""
+        """nerfstudio's checkpoint (of the whole model: a sharded one is gathered, every rank helping), written
+        by rank 0 whole or not at all (a temporary file renamed into place)."""
+        state = self.engine.checkpoint_state(step)
+        if state is None:
+            return
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
         path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
         partial = self.base_dir / f".{path.name}.partial"  # not in the folder --load-dir lists
-        torch.save({
-            "step": step,
-            "pipeline": self.pipeline.state_dict(),
-            "optimizers": {k: v.state_dict() for k, v in self.optimizers.optimizers.items()},
-            "schedulers": {k: v.state_dict() for k, v in self.optimizers.schedulers.items()},
-            "scalers": self.grad_scaler.state_dict(),
-        }, partial)
+        torch.save(state, partial)
         os.replace(partial, path)
         if self.config.save_only_latest_checkpoint:
             for old in self.checkpoint_dir.glob("*.ckpt"):

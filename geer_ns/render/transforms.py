@@ -48,7 +48,13 @@ def view_transform(means: Tensor, viewmat: Tensor) -> Tensor:
     loses ~1e-3 of its view-space position (the cancellation), in float64 the result is correctly rounded.
     """
     vm = viewmat.to(torch.float64)
-    return (means.to(torch.float64) @ vm[:3, :3].T + vm[:3, 3]).to(means.dtype)
+    m = means.to(torch.float64)
+    # Written out, not a matmul: a BLAS kernel rounds a row by where it falls in its blocks (FMA in the body, not
+    # at the edges), so the same Gaussian would get other bits in another tensor (a shard, a subset); every
+    # element here is the same IEEE operations in the same order wherever it sits.
+    rot = vm[:3, :3]
+    out = m[:, 0:1] * rot[:, 0] + m[:, 1:2] * rot[:, 1] + m[:, 2:3] * rot[:, 2] + vm[:3, 3]
+    return out.to(means.dtype)
 
 
 def camera_offsets(means: Tensor, viewmat: Tensor) -> Tensor:
