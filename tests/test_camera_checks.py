@@ -62,7 +62,8 @@ def test_rounding_level_departures_render(dtype):
     scene = random_scene(5, 0, dtype=dtype)
     vm = random_viewmat(4, dtype=torch.float64)
     vm[:3, :3] *= 1.0001
-    assert torch.linalg.matrix_norm(vm[:3, :3] @ vm[:3, :3].T - torch.eye(3, dtype=torch.float64)) < ROTATION_TOLERANCE / 2
+    rot = vm[:3, :3]
+    assert torch.linalg.matrix_norm(rot @ rot.T - torch.eye(3, dtype=torch.float64)) < ROTATION_TOLERANCE / 2
     out = render(*scene, vm.to(dtype), GRID)
     assert torch.isfinite(out.rgb).all()
 

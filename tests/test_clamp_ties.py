@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from geer_ns.render import RayGrid, cuda_backend, render
-from geer_ns.render.transforms import MIN_SCALE, whitening
+from geer_ns.render.transforms import MIN_SCALE, quat_to_rotmat, whitening
 
 F64 = torch.float64
 BACKENDS = ("torch", "cpu")
@@ -118,8 +118,6 @@ def test_scale_exactly_at_min_scale(ops):
     quats = torch.randn(1, 4, generator=gen, dtype=F64)
     scales = torch.tensor([[0.3, MIN_SCALE, 0.2]], dtype=F64)
     g_w = torch.randn(1, 3, 3, generator=gen, dtype=F64)
-    from geer_ns.render.transforms import quat_to_rotmat
-
     rot = quat_to_rotmat(quats)
     step = 1e-8 * MIN_SCALE
 
@@ -133,8 +131,8 @@ def test_scale_exactly_at_min_scale(ops):
     leaf = scales.clone().requires_grad_(True)
     (g_w * whitening(rot, leaf)).sum().backward()
     means_c = torch.tensor([[0.1, 0.2, 3.0]], dtype=F64)
-    kernels = ops.preprocess_backward(means_c, quats, scales, torch.zeros(1, 0, 3, dtype=F64), torch.zeros(1, 3, dtype=F64),
-                                      torch.eye(3, dtype=F64), -1, g_w, torch.zeros(1, 3, dtype=F64),
-                                      torch.zeros(1, 3, dtype=F64))[2]
+    zeros = torch.zeros(1, 3, dtype=F64)
+    kernels = ops.preprocess_backward(means_c, quats, scales, torch.zeros(1, 0, 3, dtype=F64), zeros,
+                                      torch.eye(3, dtype=F64), -1, g_w, zeros, zeros)[2]
     for name, grad in (("torch", leaf.grad[0, 1]), ("cpu", kernels[0, 1])):
         _assert_clamped_side(float(grad), below, above, "below", name)

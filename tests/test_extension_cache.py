@@ -32,6 +32,19 @@ def _flags(value: int) -> list[str]:
     return ["-O0", f"-DGEER_TOY_VALUE={value}"]
 
 
+def _python_by_another_path(tmp: Path) -> str:
+    """This interpreter through a symlink to its virtual environment (as one venv is reached from two checkouts),
+    so that torch's own paths differ; the interpreter itself where there is no venv."""
+    if sys.prefix == sys.base_prefix:
+        return sys.executable
+    link = tmp / "venv_link"
+    link.symlink_to(Path(sys.prefix), target_is_directory=True)
+    python = link / Path(sys.executable).relative_to(sys.prefix)
+    probe = subprocess.run([str(python), "-c", "import torch; print(torch.__file__)"], capture_output=True, text=True)
+    assert probe.stdout.startswith(str(link)), probe.stdout + probe.stderr
+    return str(python)
+
+
 @pytest.fixture
 def toy(tmp_path, monkeypatch):
     src = tmp_path / "src"
@@ -62,18 +75,21 @@ def test_two_configurations_build_once_and_then_only_load(toy, capfd):
     assert [p.name.rsplit("_", 1)[0] for p in folders] == ["geer_toy", "geer_toy"]
     built = {p: os.stat(p).st_mtime_ns for f in folders for p in f.iterdir() if p.suffix in (".so", ".o")}
     assert len(built) == 4
-    # A new process loads both, B first: nothing is compiled again and nothing is announced.
+    # A new process loads both, B first: nothing is compiled again and nothing is announced, also where the
+    # process reaches the same environment by another path (torch's include paths differ: its ninja rebuilt).
     code = textwrap.dedent(f"""
         from pathlib import Path
         from geer_ns.render import extensions
         toy = Path({str(toy)!r})
         for value in (2, 1):
-            module = extensions.build_and_load("geer_toy", [toy], cuda=False, cflags=["-O0", f"-DGEER_TOY_VALUE={{value}}"])
+            flags = ["-O0", f"-DGEER_TOY_VALUE={{value}}"]
+            module = extensions.build_and_load("geer_toy", [toy], cuda=False, cflags=flags)
             assert module.value() == value
         print("loaded")
     """)
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env)
+    result = subprocess.run([_python_by_another_path(toy.parent.parent), "-c", code], capture_output=True,
+                            text=True, timeout=300, env=env)
     assert result.returncode == 0 and "loaded" in result.stdout, result.stderr[-3000:]
     assert "geer: build" not in result.stderr, result.stderr[-3000:]
     assert {p: os.stat(p).st_mtime_ns for p in built} == built

@@ -120,17 +120,24 @@ def test_poses_map_into_another_runs_frame(tmp_path):
     assert mapped.dataparser_scale == pytest.approx(run_test.dataparser_scale)
 
 
-def test_split_lists_naming_no_frame_or_missing_name_the_file_and_field(tmp_path):
-    from geer_ns.data.dataset_checks import DatasetError
-
+def _room_meta(name: str) -> dict:
+    """A transforms file of the embedded room with absolute paths (to be written elsewhere), no point cloud."""
     room = default_scene_dir()
-    meta = json.loads((room / "transforms_rig.json").read_text())
+    meta = json.loads((room / name).read_text())
     meta.pop("ply_file_path", None)
     for f in meta["frames"]:
         f["file_path"], f["mask_path"] = str(room / f["file_path"]), str(room / f["mask_path"])
     for key in ("train_filenames", "val_filenames", "test_filenames"):
         if key in meta:
             meta[key] = [str(room / name) for name in meta[key]]
+    return meta
+
+
+def test_split_lists_naming_no_frame_or_missing_name_the_file_and_field(tmp_path):
+    from geer_ns.data.dataset_checks import DatasetError
+
+    room = default_scene_dir()
+    meta = _room_meta("transforms_rig.json")
     assert "val_filenames" in meta
     meta["val_filenames"].append(str(room / "images" / "not_a_frame.png"))
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
@@ -161,15 +168,10 @@ def test_the_eval_mode_all_warning_is_the_users_only(tmp_path, eval_mode, lists)
     """geer's parser parses every image through nerfstudio's once; the warning about --eval-mode all appears
     exactly where nerfstudio's own parser prints it for the user's settings (all, and no split lists in the
     file), never for geer's internal parse. The parse keeps every image either way."""
-    room = default_scene_dir()
-    meta = json.loads((room / "transforms.json").read_text())
-    meta.pop("ply_file_path", None)
-    for f in meta["frames"]:
-        f["file_path"], f["mask_path"] = str(room / f["file_path"]), str(room / f["mask_path"])
+    meta = _room_meta("transforms.json")
     for key in ("train_filenames", "val_filenames", "test_filenames"):
-        if lists:
-            meta[key] = [str(room / name) for name in meta[key]]
-        else:
+        assert key in meta
+        if not lists:
             meta.pop(key)
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
     ours = _said_eval_mode_all(GeerNerfstudioDataParserConfig(data=tmp_path, eval_mode=eval_mode))

@@ -52,11 +52,14 @@ def _pose_errors(transforms: dict, truth: dict):
 
 @pytest.fixture(scope="module")
 def folder_run(tmp_path_factory):
-    """16 of the 48 views (every second of the first 32), an unordered folder: exhaustive matching."""
+    """16 of the 48 views (every second of the first 32), an unordered folder: exhaustive matching. A 17th
+    photo cut in half lies among them; --skip-bad-images leaves it out."""
     root = tmp_path_factory.mktemp("process_data")
     src = _copy_frames(range(0, 32, 2), root / "input")
+    whole = (src / "frame_00002.jpg").read_bytes()
+    (src / "frame_00001.jpg").write_bytes(whole[: len(whole) // 2])
     out = root / "dataset"
-    report = run(ProcessDataConfig(data=src, output_dir=out, num_threads=2))
+    report = run(ProcessDataConfig(data=src, output_dir=out, num_threads=2, skip_bad_images=True))
     return out, report
 
 
@@ -94,6 +97,16 @@ def test_output_is_a_complete_dataset(folder_run):
     assert (mask & true_mask).sum() / (mask | true_mask).sum() > 0.98
     for frame in transforms["frames"]:
         assert (out / frame["file_path"]).is_file()
+
+
+def test_a_photo_cut_in_half_is_left_out_with_skip_bad_images_and_listed(folder_run):
+    out, report = folder_run
+    (line,) = report["skipped_bad_images"]
+    assert line.endswith("frame_00001.jpg: cut short (truncated); copy it again from the camera or remove it")
+    assert not (out / "images" / "frame_00001.jpg").exists() and len(list((out / "images").iterdir())) == 16
+    assert json.loads((out / "process_data_report.json").read_text())["skipped_bad_images"] == [line]
+    assert sorted(p.name for p in out.iterdir()) == ["colmap", "images", "masks", "points3d.ply",
+                                                      "process_data_report.json", "sparse", "transforms.json"]
 
 
 def test_geer_trains_on_the_output(folder_run, tmp_path, single_thread):
@@ -204,24 +217,115 @@ def test_user_calibration_is_held_fixed_for_each_rig_camera(tmp_path):
         assert frame["mask_path"] == f"masks/{folder}.png" and frame["fl_x"] == pytest.approx(TRUE_FOCAL)
 
 
-def test_a_corrupt_image_is_named(tmp_path):
-    src = _copy_frames([0, 1, 2], tmp_path / "input")
-    (src / "frame_00003.jpg").write_bytes(b"\xff\xd8 truncated")
-    with pytest.raises(ProcessDataError, match=r"frame_00003\.jpg: corrupt or unreadable image"):
-        run(ProcessDataConfig(data=src, output_dir=tmp_path / "out"))
+def _noise_images(src: Path, n: int = 4, suffix: str = ".png") -> Path:
+    """Independent noise images (no shared data needed): SIFT finds keypoints, no pair verifies."""
+    src.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        noise = cv2.GaussianBlur(rng.integers(0, 256, (160, 160), dtype=np.uint8), (0, 0), 1.5)
+        cv2.imwrite(str(src / f"noise_{i}{suffix}"), cv2.normalize(noise, None, 0, 255, cv2.NORM_MINMAX))
+    return src
+
+
+def _with_bad_images(src: Path) -> dict:
+    """Noise JPEGs plus three that cannot be used: {file name: the start of its line's reason}."""
+    _noise_images(src, 4, ".jpg")
+    whole = (src / "noise_0.jpg").read_bytes()
+    (src / "cut.jpg").write_bytes(whole[: len(whole) // 2])  # a copy cut short: OpenCV still decodes it
+    assert cv2.imread(str(src / "cut.jpg")) is not None
+    (src / "not_an_image.jpg").write_bytes(b"\xff\xd8 not a jpeg")
+    cv2.imwrite(str(src / "small.jpg"), np.zeros((120, 160, 3), np.uint8))
+    return {"cut.jpg": "cut short (truncated)", "not_an_image.jpg": "not an image (unknown format)",
+            "small.jpg": "160x120 px, but 4 image(s) of the input (one shared camera) are 160x160"}
+
+
+def _old_dataset(out: Path) -> dict:
+    (out / "images").mkdir(parents=True)
+    files = {"images/old.png": "old image", "transforms.json": "old dataset", "notes.txt": "mine"}
+    for name, text in files.items():
+        (out / name).write_text(text)
+    return files
+
+
+def _files(out: Path) -> dict:
+    return {p.relative_to(out).as_posix(): p.read_text() for p in sorted(out.rglob("*")) if p.is_file()}
+
+
+def test_bad_images_stop_the_run_before_anything_is_written_and_a_fixed_input_reruns(tmp_path):
+    """One line per bad image, naming it and what to do; nothing written (a user's file stays, a new output
+    folder is not even created); with the bad images removed the same command runs (no --overwrite)."""
+    src = tmp_path / "input"
+    bad = _with_bad_images(src)
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("mine")
+    for out in (kept, tmp_path / "new"):
+        with pytest.raises(ProcessDataError) as caught:
+            run(ProcessDataConfig(data=src, output_dir=out, camera_model="OPENCV", num_threads=2))
+        lines = str(caught.value).splitlines()
+        assert lines[0] == "3 of 7 input image(s) cannot be used:"
+        for name, reason in bad.items():
+            (line,) = [line for line in lines if name in line]
+            assert line.startswith(f"{src / name}: {reason}") and ("remove it" in line), line
+        assert lines[-1].startswith("Fix or remove them, or pass --skip-bad-images True to go on without them.")
+    assert [p.name for p in kept.iterdir()] == ["notes.txt"] and not (tmp_path / "new").exists()
+    for name in bad:
+        (src / name).unlink()
+    with pytest.raises(ProcessDataError, match="no overlap"):  # past the check: on to structure from motion
+        run(ProcessDataConfig(data=src, output_dir=kept, camera_model="OPENCV", num_threads=2))
+    assert [p.name for p in kept.iterdir()] == ["notes.txt"]  # the failed run removed what it wrote
+
+
+def test_skip_bad_images_goes_on_and_a_failure_puts_the_replaced_dataset_back(tmp_path):
+    """--skip-bad-images: the run goes on to structure from motion without them and lists them at the end of
+    its message; the run then fails, so the dataset --overwrite was replacing comes back as it was."""
+    src = tmp_path / "input"
+    bad = _with_bad_images(src)
+    out = tmp_path / "dataset"
+    before = _old_dataset(out)
+    with pytest.raises(ProcessDataError, match="no overlap") as caught:
+        run(ProcessDataConfig(data=src, output_dir=out, camera_model="OPENCV", num_threads=2, skip_bad_images=True,
+                              overwrite=True))
+    tail = str(caught.value).split("--skip-bad-images: 3 input image(s) were left out:\n")[1].splitlines()
+    assert [line.split(": ")[0] for line in tail] == [str(src / name) for name in sorted(bad)]
+    assert _files(out) == before and sorted(p.name for p in out.iterdir()) == ["images", "notes.txt", "transforms.json"]
+
+
+def test_a_kept_output_over_a_replaced_dataset_and_a_killed_run_are_undone_by_the_rerun(tmp_path):
+    """The output folder's rules (process_data/output.py) without structure from motion: a failure that keeps
+    its output while --overwrite was replacing a dataset keeps both; a run killed mid-way leaves its marker.
+    Either way the re-run without --overwrite puts the folder back as it was before that run."""
+    from geer_ns.process_data.output import OutputRun
+
+    data, out = tmp_path / "input", tmp_path / "dataset"
+    data.mkdir()
+    before = _old_dataset(out)
+    with pytest.raises(ProcessDataError) as caught:
+        with OutputRun(out, data, overwrite=True):
+            (out / "sparse").mkdir()
+            (out / "sparse" / "cameras.txt").write_text("the model to look at")
+            raise ProcessDataError("the camera model does not fit the lens", keeps_output=True)
+    assert str(caught.value).endswith("a re-run with --overwrite replaces both, a re-run without puts it back.")
+    assert (out / "sparse" / "cameras.txt").is_file() and (out / "notes.txt").is_file()
+    with pytest.raises(ProcessDataError, match="already holds a dataset .*use --overwrite"):
+        with OutputRun(out, data, overwrite=False):
+            pass
+    assert _files(out) == before and sorted(p.name for p in out.iterdir()) == ["images", "notes.txt", "transforms.json"]
+    killed = OutputRun(out, data, overwrite=True).__enter__()  # a run killed after writing images: no __exit__
+    (out / "images").mkdir()
+    (out / "images" / "new.png").write_text("half-written")
+    assert killed.previous is not None and _files(out)["notes.txt"] == "mine"
+    with pytest.raises(ProcessDataError, match="already holds a dataset"):
+        with OutputRun(out, data, overwrite=False):
+            pass
+    assert _files(out) == before
 
 
 def test_images_without_overlap_are_explained(tmp_path):
-    """Independent noise images: SIFT finds keypoints but no pair verifies."""
-    src = tmp_path / "input"
-    src.mkdir()
-    rng = np.random.default_rng(0)
-    for i in range(4):
-        noise = cv2.GaussianBlur(rng.integers(0, 256, (160, 160), dtype=np.uint8), (0, 0), 1.5)
-        cv2.imwrite(str(src / f"noise_{i}.png"), cv2.normalize(noise, None, 0, 255, cv2.NORM_MINMAX))
+    src = _noise_images(tmp_path / "input")
     with pytest.raises(ProcessDataError, match="no overlap"):
         run(ProcessDataConfig(data=src, output_dir=tmp_path / "out", camera_model="OPENCV", num_threads=2))
-    assert not (tmp_path / "out" / "transforms.json").exists()
+    assert not (tmp_path / "out").exists()  # the folder the failed run had created is gone
 
 
 def test_a_pinhole_model_on_fisheye_images_is_refused_with_the_fisheye_suggestion(tmp_path):
@@ -229,16 +333,22 @@ def test_a_pinhole_model_on_fisheye_images_is_refused_with_the_fisheye_suggestio
     explain) but bends fx and fy apart (measured on 16 views: 140 vs 158 px, poses 24 degrees off)."""
     src = _copy_frames(range(0, 20, 2), tmp_path / "input")
     out = tmp_path / "dataset"
-    with pytest.raises(ProcessDataError, match=r"(?s)does not fit the lens.*--camera-model OPENCV_FISHEYE"):
+    with pytest.raises(ProcessDataError, match=r"(?s)does not fit the lens.*--camera-model OPENCV_FISHEYE") as caught:
         run(ProcessDataConfig(data=src, output_dir=out, camera_model="OPENCV", num_threads=2))
     assert not (out / "transforms.json").exists() and (out / "sparse" / "0").is_dir()
+    assert str(caught.value).endswith(f"A re-run into {out} replaces what this run left there (no --overwrite needed).")
+    # The re-run (here with other input, which fails at once) replaces the kept model without --overwrite.
+    with pytest.raises(ProcessDataError, match="no overlap"):
+        run(ProcessDataConfig(data=_noise_images(tmp_path / "noise"), output_dir=out, camera_model="OPENCV",
+                              num_threads=2))
+    assert list(out.iterdir()) == []
 
 
 def test_help_runs_as_a_module():
     result = subprocess.run([sys.executable, "-m", "geer_ns.process_data", "--help"], capture_output=True,
                             text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
-    for flag in ("--data", "--camera-model", "--calibration", "--camera-per-folder", "--mask"):
+    for flag in ("--data", "--camera-model", "--calibration", "--camera-per-folder", "--mask", "--skip-bad-images"):
         assert flag in result.stdout
 
 

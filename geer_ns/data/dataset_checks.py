@@ -93,7 +93,7 @@ def check_image_file(path: Path, where: str, size: Optional[Tuple[int, int]] = N
         ) from None
     except OSError as e:
         raise DatasetError(f"geer: {where}: {what} file {path} cannot be read ({e}); replace the file") from None
-    if _is_truncated(path, fmt):
+    if missing_end_marker(path, fmt):
         raise DatasetError(
             f"geer: {where}: {what} file {path} is truncated ({fmt} end marker missing); re-export or re-copy it"
         )
@@ -105,7 +105,8 @@ def check_image_file(path: Path, where: str, size: Optional[Tuple[int, int]] = N
     return got
 
 
-def _is_truncated(path: Path, fmt: Optional[str]) -> bool:
+def missing_end_marker(path: Path, fmt: Optional[str]) -> bool:
+    """Whether a JPEG or PNG file (PIL's format name `fmt`) lacks its end marker: a file cut short."""
     markers = {"JPEG": b"\xff\xd9", "MPO": b"\xff\xd9", "PNG": b"IEND"}
     marker = markers.get(fmt or "")
     if marker is None:

@@ -1,17 +1,18 @@
 """``geer-process-data``: a folder of images or a video -> a dataset ``ns-train geer --data`` reads.
 
-Stages: frames (copy / sample), masks and starting intrinsics, SIFT extraction, matching, incremental mapping
-with bundle adjustment, export, report. Each failure is raised as a ProcessDataError with its explanation.
+Stages: input check (every image decoded before anything is written), frames (copy / sample), masks and
+starting intrinsics, SIFT extraction, matching, incremental mapping with bundle adjustment, export, report.
+Each failure is raised as a ProcessDataError with its explanation; what a failed run leaves in the output
+folder is output.py's rule (nothing, or what its explanation points at, which a re-run replaces).
 """
 
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, Literal, Optional
+from typing import Dict, List, Literal, Optional
 
 import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -19,6 +20,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from geer_ns.process_data import camera as camera_setup
 from geer_ns.process_data import export, frames, sfm
 from geer_ns.process_data.frames import ProcessDataError
+from geer_ns.process_data.output import OutputRun
 
 
 @dataclass
@@ -70,27 +72,13 @@ class ProcessDataConfig:
     """Fail when fewer than this fraction of the images register."""
     num_threads: int = -1
     """Threads for pycolmap (-1: all cores)."""
+    skip_bad_images: bool = False
+    """Go on without input images that cannot be used (not decodable, cut short, another size than their
+    camera's) and list them at the end; without it they stop the run before anything is written."""
     overwrite: bool = False
-    """Replace an existing dataset in output_dir."""
+    """Replace an existing dataset in output_dir (kept aside until the run has succeeded)."""
     verbose: bool = False
     """Show pycolmap's own log."""
-
-def _prepare_output(cfg: ProcessDataConfig) -> Path:
-    out = cfg.output_dir
-    if cfg.data.is_dir() and out.resolve().is_relative_to(cfg.data.resolve()):
-        raise ProcessDataError(f"--output-dir {out} lies inside --data {cfg.data}; choose another folder")
-    names = ("images", "masks", "sparse", "colmap", "transforms.json", "points3d.ply", "process_data_report.json")
-    existing = [p for p in names if (out / p).exists()]
-    if existing:
-        if not cfg.overwrite:
-            raise ProcessDataError(f"{out} already holds a dataset ({', '.join(existing)}); use --overwrite")
-        for p in existing:
-            (shutil.rmtree if (out / p).is_dir() else Path.unlink)(out / p)
-    (out / "images").mkdir(parents=True)
-    work = out / "colmap"
-    work.mkdir()
-    return work
-
 
 def run(cfg: ProcessDataConfig) -> Dict[str, object]:
     """Run every stage; returns the report (also written to output_dir/process_data_report.json)."""
@@ -100,24 +88,62 @@ def run(cfg: ProcessDataConfig) -> Dict[str, object]:
         pycolmap.logging.minloglevel = 1  # warnings and errors only
     if not cfg.data.exists():
         raise ProcessDataError(f"--data {cfg.data} does not exist")
+    video = frames.is_video(cfg.data)
+    if not video and not cfg.data.is_dir():
+        raise ProcessDataError(f"--data {cfg.data}: neither a folder of images nor a video "
+                               f"({', '.join(sorted(frames.VIDEO_SUFFIXES))})")
+    t0 = time.perf_counter()
+    checked = None if video else _checked_images(cfg)
+    try:
+        with OutputRun(cfg.output_dir, cfg.data, cfg.overwrite):
+            report = _run_stages(cfg, checked, t0)
+    except ProcessDataError as e:
+        if checked is not None and checked.bad:  # said at the end, also of a failed run
+            e.args = (f"{e}\n{_left_out(checked.bad)}",)
+        raise
+    if checked is not None and checked.bad:
+        CONSOLE.print(f"[yellow]{_left_out(checked.bad)}")
+    return report
+
+
+def _checked_images(cfg: ProcessDataConfig) -> frames.CheckedImages:
+    """Every input image checked before anything is written; bad ones stop the run unless --skip-bad-images."""
+    checked = frames.check_images(cfg.data, cfg.camera_per_folder)
+    if checked.bad and not cfg.skip_bad_images:
+        total = len(checked.bad) + sum(len(g.image_names) for g in checked.groups)
+        raise ProcessDataError(
+            f"{len(checked.bad)} of {total} input image(s) cannot be used:\n" + "\n".join(checked.bad)
+            + f"\nFix or remove them, or pass --skip-bad-images True to go on without them. Nothing was written to "
+            f"{cfg.output_dir}.")
+    return checked
+
+
+def _left_out(bad: List[str]) -> str:
+    return f"--skip-bad-images: {len(bad)} input image(s) were left out:\n" + "\n".join(bad)
+
+
+def _run_stages(cfg: ProcessDataConfig, checked: Optional[frames.CheckedImages], t0: float) -> Dict[str, object]:
+    """Every stage after the input check, writing into cfg.output_dir (prepared by OutputRun)."""
     timings: Dict[str, float] = {}
     extra: Dict[str, object] = {}
-    t0 = time.perf_counter()
-    work = _prepare_output(cfg)
     images_dir = cfg.output_dir / "images"
-    video = frames.is_video(cfg.data)
-    if video:
+    images_dir.mkdir()
+    work = cfg.output_dir / "colmap"
+    work.mkdir()
+    if checked is None:
         group, stats = frames.sample_video(cfg.data, images_dir, cfg.num_frames_target, blur_ratio=cfg.blur_ratio)
         groups = [group]
         extra.update(stats)
-    elif cfg.data.is_dir():
-        groups = frames.copy_images(cfg.data, images_dir, cfg.camera_per_folder)
     else:
-        raise ProcessDataError(f"--data {cfg.data}: neither a folder of images nor a video "
-                               f"({', '.join(sorted(frames.VIDEO_SUFFIXES))})")
+        groups = checked.groups
+        frames.copy_images(cfg.data, images_dir, groups)
+        if checked.bad:
+            extra["skipped_bad_images"] = checked.bad
+    video = checked is None
     names = [n for g in groups for n in g.image_names]
     if len(names) < 3:
-        raise ProcessDataError(f"--data {cfg.data}: {len(names)} image(s); structure from motion needs at least 3")
+        raise ProcessDataError(f"--data {cfg.data}: {len(names)} usable image(s); structure from motion needs at "
+                               "least 3")
     timings["frames"] = time.perf_counter() - t0
 
     t = time.perf_counter()
@@ -172,12 +198,13 @@ def run(cfg: ProcessDataConfig) -> Dict[str, object]:
         why = sfm.explain_failure(sfm.database_stats(db), registered, names, model, circle_found)
         split = f" (the images fell into {mapped.num_models} unconnected models)" if mapped.num_models > 1 else ""
         raise ProcessDataError(f"too few images registered: {len(registered)} of {len(names)}{split}.\n{why}\n"
-                               f"The partial model is in {sparse0}; no transforms.json was written.")
+                               f"The partial model is in {sparse0}; no transforms.json was written.", keeps_output=True)
     if report["mean_reprojection_error_px"] > cfg.max_reprojection_error:
         raise ProcessDataError(
             f"mean reprojection error {report['mean_reprojection_error_px']:.2f} px > {cfg.max_reprojection_error} "
             f"px: the camera model does not fit the lens.\n{sfm.model_hint(model, circle_found)}\n"
-            f"The model is in {sparse0}; no transforms.json was written (--max-reprojection-error to accept it).")
+            f"The model is in {sparse0}; no transforms.json was written (--max-reprojection-error to accept it).",
+            keeps_output=True)
     for cid, cam in report["cameras"].items():  # type: ignore[union-attr]
         names_p = [n.strip() for n in cam["params_info"].split(",")]
         if not fixed and "fx" in names_p and "fy" in names_p:  # a user calibration may have fx != fy
@@ -188,7 +215,8 @@ def run(cfg: ProcessDataConfig) -> Dict[str, object]:
                 raise ProcessDataError(
                     f"camera {cid}: fx = {fx:.1f} and fy = {fy:.1f} px differ by {100 * abs(fx / fy - 1):.0f} %: "
                     f"the camera model does not fit the lens.\n{sfm.model_hint(model, circle_found)}\n"
-                    f"The model is in {sparse0}; no transforms.json was written (--max-focal-asymmetry to accept).")
+                    f"The model is in {sparse0}; no transforms.json was written (--max-focal-asymmetry to accept).",
+                    keeps_output=True)
     if registered != set(names):
         CONSOLE.print(f"[yellow]{len(names) - len(registered)} image(s) were not registered and are left out of "
                       "transforms.json:\n" + sfm.explain_failure(sfm.database_stats(db), registered, names, model,

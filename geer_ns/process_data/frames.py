@@ -1,4 +1,5 @@
-"""Input frames: a folder of images (checked, copied) or a video (sampled, blurry frames skipped).
+"""Input frames: a folder of images (every image checked before anything is written, then copied) or a video
+(sampled, blurry frames skipped).
 
 Everything ends up as ``<output>/images/<name>``; the SfM and the dataset refer to those copies only, so
 the dataset is self-contained. A camera group is the set of images that share one camera: the whole input
@@ -8,6 +9,7 @@ by default, one group per sub-folder for rigs (``camera_per_folder``).
 from __future__ import annotations
 
 import shutil
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
@@ -17,12 +19,19 @@ import numpy as np
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from geer_ns.data.dataset_checks import missing_end_marker
+
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
 VIDEO_SUFFIXES = {".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm", ".mts", ".wmv", ".mpg", ".mpeg", ".insv", ".360"}
 
 
 class ProcessDataError(RuntimeError):
-    """A failure of geer-process-data with its explanation (what went wrong, what to try)."""
+    """A failure of geer-process-data with its explanation (what went wrong, what to try). `keeps_output`:
+    the explanation points at what the run wrote (a model to inspect), so it is left for the re-run to replace."""
+
+    def __init__(self, message: str, keeps_output: bool = False) -> None:
+        super().__init__(message)
+        self.keeps_output = keeps_output
 
 
 def progress() -> Progress:
@@ -57,49 +66,95 @@ def list_images(folder: Path) -> List[Path]:
     return sorted(files, key=lambda p: p.relative_to(folder).as_posix())
 
 
-def copy_images(src: Path, images_dir: Path, camera_per_folder: bool) -> List[CameraGroup]:
-    """Check that every image under ``src`` decodes (naming the first that does not) and copy it."""
+@dataclass(frozen=True)
+class CheckedImages:
+    """The input images that can be used, by camera, and one line for each that cannot."""
+
+    groups: List[CameraGroup]
+    bad: List[str]  # "<file>: <what is wrong>; <what to do>"
+
+
+def image_problem(path: Path) -> Tuple[Optional[str], Optional[Tuple[int, int]]]:
+    """(what is wrong with an image file and what to do, or None; its (width, height)).
+
+    Every byte is decoded: OpenCV returns the rows it could read from a file cut short (libjpeg only prints
+    "Premature end of JPEG file", naming no file), PIL raises. JPEG and PNG must also end with their end
+    marker, the check ns-train makes at start-up (data/dataset_checks.py), so what passes here trains.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            size, fmt = (int(im.size[0]), int(im.size[1])), im.format
+            if fmt == "JPEG":  # decode at 1/8 scale: every entropy-coded byte is still read, 4-5x faster
+                im.draft(im.mode, (max(1, size[0] // 8), max(1, size[1] // 8)))
+            im.load()
+    except UnidentifiedImageError:
+        return "not an image (unknown format); remove it", None
+    except (OSError, SyntaxError, ValueError) as e:  # PIL: OSError "image file is truncated", SyntaxError headers
+        what = "cut short (truncated)" if "truncated" in str(e) else f"cannot be decoded ({e})"
+        return f"{what}; copy it again from the camera or remove it", None
+    if missing_end_marker(path, fmt):
+        return f"cut short ({fmt} end marker missing); copy it again from the camera or remove it", None
+    return None, size
+
+
+def check_images(src: Path, camera_per_folder: bool) -> CheckedImages:
+    """Decode every image under ``src`` completely and group the good ones by camera (the whole input, or one
+    camera per sub-folder); an image whose size differs from its camera's (the most common) is bad too."""
+    from PIL import Image
+
     files = list_images(src)
     if not files:
         raise ProcessDataError(
             f"{src}: no images found (looked for {', '.join(sorted(IMAGE_SUFFIXES))} in it and its sub-folders)"
         )
     sizes: Dict[str, Tuple[int, int]] = {}
+    bad: List[str] = []
+    limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None  # a 100 MP panorama is no decompression bomb
+    try:
+        with progress() as bar:
+            task = bar.add_task("Checking images", total=len(files))
+            for path in files:
+                problem, size = image_problem(path)
+                if problem is None:
+                    sizes[path.relative_to(src).as_posix()] = size
+                else:
+                    bad.append(f"{path}: {problem}")
+                bar.advance(task)
+    finally:
+        Image.MAX_IMAGE_PIXELS = limit
+    folders: Dict[str, List[str]] = {}
+    for n in sizes:
+        folders.setdefault(str(Path(n).parent.as_posix()) if camera_per_folder and "/" in n else "", []).append(n)
+    if camera_per_folder and len(folders) == 1:
+        CONSOLE.print("[yellow]--camera-per-folder: all images are in one folder, so they share one camera")
+    groups = []
+    for name, members in sorted(folders.items()):
+        counts = Counter(sizes[n] for n in members)
+        (width, height), count = counts.most_common(1)[0]
+        where = f"folder '{name}'" if name else "the input (one shared camera)"
+        for n in members:
+            if sizes[n] != (width, height):
+                bad.append(f"{src / n}: {sizes[n][0]}x{sizes[n][1]} px, but {count} image(s) of {where} are "
+                           f"{width}x{height}; one camera, one size: resize or remove it"
+                           + ("" if name else ", or put each camera's images in its own sub-folder and use "
+                              "--camera-per-folder"))
+        kept = tuple(n for n in members if sizes[n] == (width, height))
+        groups.append(CameraGroup(name, kept, width, height))
+    return CheckedImages(groups, sorted(bad))
+
+
+def copy_images(src: Path, images_dir: Path, groups: Sequence[CameraGroup]) -> None:
+    """Copy the checked images of ``groups`` from ``src`` to ``images_dir`` (same relative paths)."""
+    names = [n for g in groups for n in g.image_names]
     with progress() as bar:
-        task = bar.add_task("Checking and copying images", total=len(files))
-        for path in files:
-            rel = path.relative_to(src).as_posix()
-            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if image is None or image.size == 0:
-                raise ProcessDataError(f"{path}: corrupt or unreadable image (OpenCV cannot decode it); remove it")
-            sizes[rel] = (int(image.shape[1]), int(image.shape[0]))
+        task = bar.add_task("Copying images", total=len(names))
+        for rel in names:
             dst = images_dir / rel
             dst.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(path, dst)
+            shutil.copy2(src / rel, dst)
             bar.advance(task)
-    names = list(sizes)
-    if camera_per_folder:
-        folders: Dict[str, List[str]] = {}
-        for n in names:
-            folders.setdefault(str(Path(n).parent.as_posix()) if "/" in n else "", []).append(n)
-        if len(folders) == 1:
-            CONSOLE.print("[yellow]--camera-per-folder: all images are in one folder, so they share one camera")
-    else:
-        folders = {"": names}
-    return [_group(src, name, members, sizes) for name, members in sorted(folders.items())]
-
-
-def _group(src: Path, name: str, members: Sequence[str], sizes: Dict[str, Tuple[int, int]]) -> CameraGroup:
-    first = members[0]
-    for n in members:
-        if sizes[n] != sizes[first]:
-            where = f"folder '{name}'" if name else "the input (one shared camera)"
-            raise ProcessDataError(
-                f"{src / n}: size {sizes[n][0]}x{sizes[n][1]} differs from {src / first} "
-                f"({sizes[first][0]}x{sizes[first][1]}); images of one camera ({where}) must share a size"
-                + ("" if name else " — put each camera's images in its own sub-folder and use --camera-per-folder")
-            )
-    return CameraGroup(name, tuple(members), *sizes[first])
 
 
 def sharpness(image: np.ndarray) -> float:

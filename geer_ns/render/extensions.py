@@ -1,12 +1,15 @@
 """JIT builds of csrc/: the CUDA extension and its CPU build, each configuration cached in its own folder.
 
-torch.utils.cpp_extension.load keeps one build per folder and rebuilds when the sources or flags differ from
-the last build there, so two configurations sharing a folder evict each other (a test run and a viewer on one
-checkout rebuilt for minutes, alternately). Here the folder, and the module name, carry a key: a hash of the
-sources' and headers' contents and paths, the flags, torch's version and build, Python's version and the
-compiler. A configuration is built once and then only loaded; two never share a folder. Processes loading
-the same key at once are serialised by torch's lock in that folder (an OS file lock: a killed build leaves no
-stale lock). A build is said before it starts (it takes a minute or more) and when it ends, with its time.
+torch.utils.cpp_extension.load keeps one build per folder and runs ninja on every load, which rebuilds when the
+command line differs from the last build's: other sources or flags, but also another path to the same torch
+(a venv reached through a symlink, as /work/main/.venv and the worktree's .venv, or ns-viewer's interpreter
+against pytest's), so two processes on one checkout rebuilt for minutes, alternately. Here the folder, and the
+module name, carry a key: a hash of the sources' and headers' contents, the flags, torch's version and build,
+Python's version and the compiler. A configuration is built once; after that its module is imported from its
+folder directly (no ninja, so no path or timestamp can start a rebuild), and two configurations never share a
+folder. Torch's build holds an OS file lock in the folder (a killed build leaves no stale lock); the check for
+a finished build takes the same lock, so it never imports a module being written. A build is said before it
+starts (it takes a minute or more) and when it ends, with its time.
 
 Folders: $GEER_EXT_DIR, else <repo>/.cache/geer_ext (git-ignored), one `<name>_<key>` per configuration; old
 ones can be deleted at any time. TORCH_CUDA_ARCH_LIST defaults to "9.0". Importing this module builds nothing.
@@ -15,6 +18,7 @@ ones can be deleted at any time. TORCH_CUDA_ARCH_LIST defaults to "9.0". Importi
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import os
 import platform
@@ -66,7 +70,7 @@ def build_key(sources: Sequence[Path], include_dir: Path, cflags: Sequence[str],
     digest = hashlib.sha256()
     headers = sorted(p for p in include_dir.iterdir() if p.suffix in _HEADER_SUFFIXES)
     for path in [*sources, *headers]:
-        digest.update(str(path.resolve()).encode())  # two checkouts' command lines differ: not one folder
+        digest.update(path.name.encode())
         digest.update(path.read_bytes())
     facts = {"cflags": list(cflags), "cuda_cflags": list(cuda_cflags), "cuda": cuda, "torch": torch.__version__,
              "torch_cuda": torch.version.cuda, "python": sys.version, "cxx": os.environ.get("CXX", ""),
@@ -79,12 +83,36 @@ def _say(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
+def _import_built(module_name: str, folder: Path, what: str) -> ModuleType | None:
+    """The module of a finished build in `folder`, or None when there is none (or it cannot be loaded)."""
+    from filelock import FileLock, Timeout  # torch.utils.cpp_extension builds under this lock (a torch dependency)
+
+    library = folder / f"{module_name}.so"
+    lock = FileLock(str(folder / "lock"))
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        _say(f"geer: waiting for another process building {what} in {folder} ...")
+        lock.acquire()
+    try:
+        if not library.exists():
+            return None
+        spec = importlib.util.spec_from_file_location(module_name, library)
+        try:
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+        except ImportError:  # a link cut short (a killed build): build it again
+            library.unlink()
+            return None
+        return module
+    finally:
+        lock.release()
+
+
 def build_and_load(name: str, sources: Sequence[Path], *, cuda: bool, cflags: Sequence[str],
                    include_dir: Path | None = None, verbose: bool = False) -> ModuleType:
     """Load configuration (sources, flags) of extension `name` from its own folder, building it first if that
     folder holds no build yet (said before and after). Not memoised: see _load."""
-    from torch.utils import cpp_extension
-
     sources = [Path(s) for s in sources]
     include_dir = sources[0].parent if include_dir is None else include_dir
     cuda_cflags = ["-O3", "-lineinfo"] if cuda else []  # no --use_fast_math: round like the twin
@@ -92,9 +120,12 @@ def build_and_load(name: str, sources: Sequence[Path], *, cuda: bool, cflags: Se
     folder = build_root() / module_name
     folder.mkdir(parents=True, exist_ok=True)
     what, how_long = _WHAT.get(name, (name, "a minute or more"))
-    fresh = not (folder / f"{module_name}.so").exists()
-    if fresh:
-        _say(f"geer: building {what} (first use of this configuration, {how_long}) in {folder} ...")
+    module = _import_built(module_name, folder, what)
+    if module is not None:
+        return module
+    from torch.utils import cpp_extension
+
+    _say(f"geer: building {what} (first use of this configuration, {how_long}) in {folder} ...")
     start = time.perf_counter()
     try:
         module = cpp_extension.load(
@@ -103,11 +134,9 @@ def build_and_load(name: str, sources: Sequence[Path], *, cuda: bool, cflags: Se
             build_directory=str(folder), with_cuda=cuda, verbose=verbose,
         )
     except BaseException:
-        if fresh:
-            _say(f"geer: building {what} failed after {time.perf_counter() - start:.0f} s")
+        _say(f"geer: building {what} failed after {time.perf_counter() - start:.0f} s")
         raise
-    if fresh:
-        _say(f"geer: built {what} in {time.perf_counter() - start:.0f} s")
+    _say(f"geer: built {what} in {time.perf_counter() - start:.0f} s")
     return module
 
 
