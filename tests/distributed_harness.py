@@ -115,15 +115,23 @@ def replicas_plan(local_rank, world_size, config, global_rank):
         _write(out / "replicas.json", results)
 
 
-def fault_plan(local_rank, world_size, config, global_rank):
-    """Rank 1 is killed (SIGKILL, no goodbye) before its 6th step; rank 0 must notice and stop."""
+def fault_plan(local_rank, world_size, config, global_rank, distributed: str = "images"):
+    """Rank 1 is killed (SIGKILL, no goodbye) after its 5th step; rank 0 must notice and stop: in step 5's
+    gradient all-reduce (image-parallel) or its first all-to-all (Gaussian-parallel)."""
     def kill_at(trainer, step):
-        if global_rank == 1 and step == 4:  # after step 4: rank 0 finds it gone in step 5's reduction
+        if global_rank == 1 and step == 4:
             (out / "killed_at").write_text(repr(time.time()))
             os.kill(os.getpid(), signal.SIGKILL)
 
     data, out = Path(config.pipeline.datamanager.data), Path(config.output_dir)
-    train(local_rank, world_size, scenario_config(data, out, "killed", steps=40), global_rank, callbacks=[kill_at])
+    cfg = scenario_config(data, out, "killed", steps=40)
+    cfg.pipeline.model.distributed = distributed
+    train(local_rank, world_size, cfg, global_rank, callbacks=[kill_at])
+
+
+def sharded_fault_main(local_rank: int, world_size: int, config, global_rank: int = 0):
+    """A launch of its own (a fault ends a launch): the fault plan, Gaussian-parallel."""
+    fault_plan(local_rank, world_size, config, global_rank, distributed="gaussians")
 
 
 # ------------------------------------------------------------------------------------- sharded renders

@@ -44,13 +44,23 @@ def _output_to(log: Path):
                 os.close(fd)
 
 
-def _launch(config, log: Path) -> None:
+def _launch(config, log: Path, main=harness.main) -> None:
     """Two CPU processes through nerfstudio's launcher, their output in `log`."""
     from nerfstudio.scripts.train import launch
 
     with _output_to(log):
-        launch(harness.main, num_devices_per_machine=2, num_machines=1, machine_rank=0, dist_url="auto",
+        launch(main, num_devices_per_machine=2, num_machines=1, machine_rank=0, dist_url="auto",
                config=config, device_type="cpu")
+
+
+def _killed_launch(config, log: Path, main) -> tuple:
+    """A launch whose rank 1 is killed: (the SystemExit it ended with, or None; the time it ended)."""
+    try:
+        _launch(config, log, main)
+        stop = None
+    except SystemExit as error:
+        stop = error
+    return stop, time.time()
 
 
 def _text(log: Path) -> str:
@@ -83,14 +93,17 @@ def two_processes(room, tmp_path_factory, one_process):
     (out / "reference_checkpoints.txt").write_text(str(one_process["sharded"][0].parent))
     config = harness.scenario_config(room, out, "replicas")
     start = time.perf_counter()
-    try:
-        _launch(config, out / "log.txt")
-        stop = None
-    except SystemExit as error:
-        stop = error
-    ended = time.time()
+    stop, ended = _killed_launch(config, out / "log.txt", harness.main)
     print(f"2 processes, the replica plans and the fault: {time.perf_counter() - start:.0f} s")
     return out, json.loads((out / "replicas.json").read_text()), stop, ended, config
+
+
+@pytest.fixture(scope="module")
+def sharded_fault(room, tmp_path_factory):
+    out = tmp_path_factory.mktemp("dist_sharded_fault")
+    config = harness.scenario_config(room, out, "fault")
+    stop, ended = _killed_launch(config, out / "log.txt", harness.sharded_fault_main)
+    return out, None, stop, ended, config
 
 
 def _checkpoint(out: Path, name: str) -> dict:
@@ -137,8 +150,12 @@ def test_two_processes_equal_one_process_with_two_images_per_step(two_processes,
             assert torch.equal(torch.as_tensor(ranks["optimizers"][group]["state"][0][key]), torch.as_tensor(value))
 
 
-def test_a_killed_process_stops_the_other_with_one_line_within_the_timeout(two_processes):
-    out, _, stop, ended, config = two_processes
+@pytest.mark.parametrize("launch", ["two_processes", "sharded_fault"])
+def test_a_killed_process_stops_the_other_with_one_line_within_the_timeout(launch, request):
+    """Image-parallel (rank 0 meets the loss in its gradient all-reduce) and Gaussian-parallel (in its
+    all-to-all): one line from the survivor, one from the launcher, within --machine.timeout-s, nothing
+    half written."""
+    out, _, stop, ended, config = request.getfixturevalue(launch)
     assert stop is not None and stop.code == 1
     text = _text(out / "log.txt")  # the processes' and the launcher's lines
     assert re.search(r"geer: rank 0 of 2 stopped at step 5: lost the other processes \(gloo: connection "
