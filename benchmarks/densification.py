@@ -1,0 +1,220 @@
+"""Densification, time to quality: the former densification defaults against the current ones, on the dev fisheye
+room (180-degree fisheye views and the pinhole views of the same poses) at 128^2 and 256^2, and on the embedded
+room; test PSNR / SSIM against training wall time and against the Gaussian count, and what each refinement did,
+rule by rule.
+
+    former   --pipeline.model.densify-signal pixels --pipeline.model.use-absgrad False
+             --pipeline.model.densify-grad-thresh 0.0002 --pipeline.model.prune-unseen False
+    current  the defaults (angular statistics, absgrad with splatfacto's 0.0008, the unseen prune)
+
+Dev room schedule (both): refinement every 100 steps from step 300, splits until step 1000, full resolution from
+the start (num-downscales 0), otherwise geer's defaults. The 128^2 / 256^2 datasets are the dev room's images
+and masks resized with OpenCV's INTER_AREA, intrinsics scaled. Every run is a fresh process, trained by
+nerfstudio's own loop; evaluation (ns-eval's metrics on the 6 held-out views, native pixels) every
+--eval-every steps, outside the timed training. One run writes benchmarks/densification.md.
+
+    .venv/bin/python benchmarks/densification.py [--steps 3000] [--only NAME ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+DEV_ROOM = ROOT.parent / "shared" / "data" / "fisheye_room_dev"
+FORMER = {"densify_signal": "pixels", "use_absgrad": False, "densify_grad_thresh": 0.0002, "prune_unseen": False}
+
+
+def resized_room(work: Path, size: int) -> Path:
+    """The dev room at size^2: images, masks and intrinsics (fisheye and pinhole) scaled from 384^2."""
+    import cv2
+
+    out = work / f"dev_room_{size}"
+    if (out / "transforms_pinhole.json").is_file():
+        return out
+    scale = size / 384.0
+    for name in ("transforms_fisheye.json", "transforms_pinhole.json"):
+        meta = json.loads((DEV_ROOM / name).read_text())
+        for key in ("fl_x", "fl_y", "cx", "cy", "fisheye_crop_radius"):
+            if key in meta:
+                meta[key] = meta[key] * scale
+        meta["w"] = meta["h"] = size
+        for frame in meta["frames"]:
+            for key in ("file_path", "mask_path"):
+                if key in frame and not (out / frame[key]).exists():
+                    (out / frame[key]).parent.mkdir(parents=True, exist_ok=True)
+                    image = cv2.imread(str(DEV_ROOM / frame[key]), cv2.IMREAD_UNCHANGED)
+                    small = cv2.resize(image, (size, size), interpolation=cv2.INTER_AREA)
+                    if key == "mask_path":
+                        small = ((small >= 128) * 255).astype("uint8")  # a mask stays binary
+                    cv2.imwrite(str(out / frame[key]), small, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        (out / name).write_text(json.dumps(meta))
+    shutil.copy(DEV_ROOM / "points3d.ply", out / "points3d.ply")
+    return out
+
+
+def plan(work: Path, steps: int) -> dict:
+    """name -> (data, steps, model overrides, schedule overrides)."""
+    from geer_ns.data.synthetic_room import default_scene_dir
+
+    dev = {"warmup_length": 300, "refine_every": 100, "stop_split_at": 1000, "num_downscales": 0}
+    runs = {}
+    for size, n in ((128, steps), (256, max(steps // 3, 1000))):
+        room = resized_room(work, size)
+        for camera in ("fisheye", "pinhole"):
+            data = room / f"transforms_{camera}.json"
+            runs[f"{camera} {size}, former"] = (data, n, {**FORMER, **dev})
+            runs[f"{camera} {size}, current"] = (data, n, dict(dev))
+    demo = {"num_downscales": 1, "resolution_schedule": 400, "warmup_length": 100, "refine_every": 50,
+            "central_half_angles_deg": (60.0, 60.0)}
+    room = default_scene_dir()
+    runs["embedded room, former (demo: splits to 250)"] = (room, 800, {**FORMER, **demo, "stop_split_at": 251})
+    runs["embedded room, current (demo: splits to 250)"] = (room, 800, {**demo, "stop_split_at": 251})
+    runs["embedded room, current (splits to 800)"] = (room, 800, {**demo, "stop_split_at": 801})
+    return runs
+
+
+# ------------------------------------------------------------------------------------------ one run
+def one_run(name: str, data: Path, steps: int, overrides: dict, eval_every: int, out: Path) -> None:
+    """Train in this process with nerfstudio's loop; evaluate every `eval_every` steps (not timed)."""
+    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+    from nerfstudio.scripts.train import _set_random_seed
+    from nerfstudio.utils import writer
+
+    from geer_ns.config import geer_trainer_config
+    from geer_ns.model import GeerModelConfig
+
+    config = geer_trainer_config("geer", GeerModelConfig())
+    config.data = config.pipeline.datamanager.data = data
+    config.pipeline.datamanager.cache_images = "cpu"
+    config.output_dir, config.experiment_name, config.timestamp = out / "runs", name.replace(" ", "_"), "run"
+    config.vis = "tensorboard"
+    config.max_num_iterations = steps
+    config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = 0
+    config.steps_per_save = 10**9
+    for key, value in overrides.items():
+        setattr(config.pipeline.model, key, value)
+    writer.EVENT_WRITERS.clear()
+    _set_random_seed(config.machine.seed)
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    pipeline, model = trainer.pipeline, trainer.pipeline.model
+    record = {"name": name, "steps": steps, "overrides": {k: list(v) if isinstance(v, tuple) else v
+                                                          for k, v in overrides.items()}, "points": []}
+    clock = {"train": 0.0, "start": 0.0}
+
+    def before(step):
+        clock["start"] = time.perf_counter()
+
+    def after(step):
+        clock["train"] += time.perf_counter() - clock["start"]
+        if (step + 1) % eval_every == 0 or step + 1 == steps:
+            metrics = pipeline.get_average_eval_image_metrics(step=step)
+            pipeline.train()
+            record["points"].append({"step": step + 1, "seconds": clock["train"], "gaussians": model.num_points,
+                                     "psnr": metrics["psnr"], "ssim": metrics["ssim"]})
+            print(f"[{name}] step {step + 1}: {model.num_points} Gaussians, {clock['train']:.0f} s, "
+                  f"PSNR {metrics['psnr']:.2f}", flush=True)
+
+    trainer.callbacks.insert(0, TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], before))
+    trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after))
+    trainer.train()
+    record["refinements"] = getattr(model.strategy, "log", [])
+    report = pipeline.datamanager.supervision_report("train")
+    record["supervised_pixels"] = sum(e.supervised_pixels for e in report.cameras.values())  # native pixels
+    (out / f"{config.experiment_name}.json").write_text(json.dumps(record))
+
+
+# ----------------------------------------------------------------------------------------- the report
+def table(records: list) -> str:
+    lines = ["| run | step | Gaussians | Gaussians / 1k supervised px | training s | PSNR | SSIM |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for r in records:
+        for p in r["points"]:
+            per = f"{1000 * p['gaussians'] / r['supervised_pixels']:.1f}" if r.get("supervised_pixels") else "n/a"
+            lines.append(f"| {r['name']} | {p['step']} | {p['gaussians']:,} | {per} | {p['seconds']:.0f} | "
+                         f"{p['psnr']:.2f} | {p['ssim']:.3f} |")
+    return "\n".join(lines)
+
+
+def rules(records: list) -> str:
+    lines = ["| run | step | before | duplicated (gradient) | split (gradient) | split (screen size only) | pruned "
+             "(opacity, 3D size, screen size, unseen) | after |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | --- | ---: |"]
+    for r in records:
+        for e in r.get("refinements", []):
+            pruned = ", ".join(str(e.get(f"pruned ({k})", 0)) for k in ("opacity", "3D size", "screen size", "unseen"))
+            lines.append(f"| {r['name']} | {e['step']} | {e['before']:,} | {e['duplicated (gradient)']:,} | "
+                         f"{e['split (gradient)']:,} | {e['split (screen size only)']:,} | {pruned} | {e['after']:,} |")
+    return "\n".join(lines)
+
+
+def write(out_md: Path, records: list, args) -> None:
+    import torch
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+    text = f"""# Densification: time to quality, the former defaults against the current ones
+
+- device: CPU, {platform.machine()}, {os.cpu_count()} cores (load average {os.getloadavg()[0]:.2f} when written), torch
+  {torch.__version__}; renderer: the CPU build
+- commit: {commit}
+- command: `.venv/bin/python benchmarks/densification.py --steps {args.steps}`
+- former: `densify-signal pixels`, summed gradients, `densify-grad-thresh 0.0002`, no unseen prune; current: the
+  defaults (angular statistics, AbsGS gradients, 0.0008, unseen prune). Dev room: refinement every 100 steps
+  from step 300, splits until step 1000, full resolution; eval: the 6 held-out views in native pixels
+  (fisheye runs: fisheye views; pinhole runs: pinhole views). Training seconds exclude evaluation.
+
+## Time and quality
+
+{table(records)}
+
+## What each refinement did, rule by rule
+
+{rules(records)}
+"""
+    out_md.write_text(text)
+    print(text)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--steps", type=int, default=3000)
+    ap.add_argument("--eval-every", type=int, default=500)
+    ap.add_argument("--only", nargs="*", help="names (or prefixes) of the runs to make; default all")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/geer_densification"))
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "densification.md")
+    ap.add_argument("--run", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    runs = plan(args.work, args.steps)
+    if args.run:
+        data, steps, overrides = runs[args.run]
+        eval_every = args.eval_every if steps >= args.eval_every else max(steps // 4, 1)
+        one_run(args.run, data, steps, overrides, eval_every, args.work)
+        return
+    from geer_ns.render.cuda_backend import load_cpu_ops
+
+    load_cpu_ops()
+    chosen = [n for n in runs if not args.only or any(n.startswith(o) for o in args.only)]
+    for name in chosen:
+        target = args.work / f"{name.replace(' ', '_')}.json"
+        if not target.is_file():
+            subprocess.run([sys.executable, __file__, "--run", name, "--steps", str(args.steps), "--eval-every",
+                            str(args.eval_every), "--work", str(args.work)], check=True,
+                           env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    records = [json.loads((args.work / f"{n.replace(' ', '_')}.json").read_text()) for n in runs
+               if (args.work / f"{n.replace(' ', '_')}.json").is_file()]
+    write(args.out, records, args)
+
+
+if __name__ == "__main__":
+    main()
