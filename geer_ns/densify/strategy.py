@@ -126,7 +126,7 @@ class GeerDefaultStrategy(DefaultStrategy):
 
     @torch.no_grad()
     def _prune_gs(self, params, optimizers, state: Dict[str, Any], step: int) -> int:
-        entry = getattr(self, "_entry", {"step": step, "before": len(params["means"])})
+        entry = getattr(self, "_entry", None) or {"step": step, "before": len(params["means"])}
         entry["after growth"] = len(params["means"])
         rules = {"pruned (opacity)": torch.sigmoid(params["opacities"].flatten()) < self.prune_opa}
         if step > self.reset_every:
