@@ -60,6 +60,29 @@ def random_scene(
     return means, quats, scales, opacities, colors
 
 
+def stress_gaussians(dtype=torch.float64):
+    """(means, quats, scales, opacities) of degenerate Gaussians, seen from the origin looking along +z: disk,
+    needle, camera inside, straddling z = 0, behind, a scale below MIN_SCALE, non-unit quaternions, opacity
+    exactly 1 and 0, one grazing the camera from the side."""
+    rows = [  # mean, scales, opacity
+        ((0.1, 0.0, 2.0), (1e-8, 0.3, 0.2), 0.8),
+        ((0.1, 0.0, 2.0), (0.4, 1e-8, 1e-8), 0.8),
+        ((0.05, -0.02, 0.1), (0.6, 0.5, 0.7), 0.8),
+        ((0.3, 0.1, 0.0), (0.3, 0.2, 0.4), 0.8),
+        ((0.0, 0.2, -2.0), (0.3, 0.3, 0.3), 0.8),
+        ((0.4, -0.3, 3.0), (1e-13, 0.2, 0.3), 0.9),
+        ((-0.5, 0.5, 1.5), (0.2, 0.1, 0.05), 1.0),
+        ((0.0, 0.0, 2.0), (0.3, 0.3, 0.3), 0.0),
+        ((2.0, 0.1, 0.3), (0.5, 0.05, 0.05), 0.7),
+    ]
+    means = torch.tensor([r[0] for r in rows], dtype=dtype)
+    scales = torch.tensor([r[1] for r in rows], dtype=dtype)
+    opac = torch.tensor([r[2] for r in rows], dtype=dtype)
+    gen = torch.Generator().manual_seed(3)
+    quats = torch.randn(len(rows), 4, generator=gen, dtype=dtype) * 3.0  # deliberately not unit
+    return means, quats, scales, opac
+
+
 def random_viewmat(seed: int, dtype=torch.float64, translation_scale: float = 0.5) -> torch.Tensor:
     """A random rigid world-to-camera transform."""
     gen = torch.Generator().manual_seed(seed)
