@@ -1,6 +1,6 @@
 // Stage 3's per-pair and per-ray math: the Gaussian's ray frame, the exact ray response (eval_pair), front-
 // to-back blending (ray_forward_step) and the back-to-front gradient (ray_backward_step), shared by the CUDA
-// kernels (render.cu) and the CPU build (cpu_ops.cpp).
+// kernels (render.cu) and the CPU build (cpu_render*.cpp).
 //
 // Every function takes its ray quantities as a lane type L (geer_math.h Lane): L = T is one ray, what a GPU
 // thread runs; the CPU build also runs them on packs of rays (geer_packs.h), which must be included first so
@@ -228,8 +228,8 @@ template <typename L> GEER_HD void pair_grad_zero(PairGrad<L>& p) {
 // that blended it (q <= q_max: what the forward blended too), whose p it sets; the state of the others is
 // untouched. No per-ray cull here: the GPU, whose 1024-thread float32 build has no registers to spare for
 // it, skips whole warps (render.cu); the CPU build visits only the lanes its forward recorded as blending
-// the pair (cpu_ops.cpp); tests/test_cpu_backend.py checks that the two give the same bits. Subgradients at
-// the clamps:
+// the pair (cpu_render_backward.cpp); tests/test_cpu_backend.py checks that the two give the same bits.
+// Subgradients at the clamps:
 //   alpha = min(raw, 0.99)  the derivative of raw where raw < 0.99, none where raw >= 0.99 (subgradients.py);
 //   skip (q <= q_max) and stop (T_after >= 1e-4)  piecewise constant: a blended pair gets its ordinary
 //                           derivative (also exactly on a threshold, where it is blended), others none;

@@ -73,9 +73,9 @@ def test_wrong_shape_names_the_argument(ops):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_the_cpu_backwards_sparse_sum_is_the_butterflys_bit_for_bit(ops, dtype):
-    """The CPU backward sums only the contributing lanes (cpu_ops.cpp warp_grad_sum_sparse); it must give the
-    lock-step butterfly's bits (the GPU's summation order), for any set of lanes and magnitudes where rounding
-    order shows: mixed scales, cancellation, signed zeros, subnormals."""
+    """The CPU backward sums only the contributing lanes (cpu_render_backward.cpp warp_sum_sparse); it must give
+    the lock-step butterfly's bits (the GPU's summation order), for any set of lanes and magnitudes where
+    rounding order shows: mixed scales, cancellation, signed zeros, subnormals."""
     rng = np.random.default_rng(11)
     tiny = float(torch.finfo(dtype).tiny)
     differs_from_sequential = 0
