@@ -36,6 +36,8 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     const auto f = frames<T>(whiten, o_u, rgb, opacities, pbf_pieces);
     const int32_t* id = ids.data_ptr<int32_t>();
     const int32_t* rg = ranges.data_ptr<int32_t>();
+    const int64_t m = ids.numel();
+    std::vector<T> entry_weight(size_t(m), T(0));  // per list entry: its rays' largest blend weight
     parallel_dynamic(geer::tile_count(int(height), int(width), int(tile_size)), [&](int64_t tile) {
         const Block<T, L> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs), ptr<T>(ray_bounds),
                               ptr<T>(warp_bounds));
@@ -51,17 +53,21 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
             for (int k = 0; k < bt.size; ++k) {
                 const int j = geer::batch_entry(bt, k);
                 const GaussFrame<T>& frame = f[id[j]];
+                T top = T(0);  // the entry's largest weight (a max: exact in any order)
                 for (int w0 = 0; w0 < blk.threads; w0 += geer::kWarp) {
                     if (!geer::ray_meets_pbf(frame, blk.warp_bounds_of(w0))) continue;
                     uint32_t lanes = 0;
                     for (int pk = w0 / kWidth; pk < (w0 + geer::kWarp) / kWidth; ++pk) {
                         const auto before = st[pk].n_contrib;
-                        geer::ray_forward_step(st[pk], frame, blk.dir[pk], blk.bounds[pk].data(), j - start);
+                        const L w = geer::ray_forward_step(st[pk], frame, blk.dir[pk], blk.bounds[pk].data(),
+                                                           j - start);
                         // blended: n_contrib moved to j
                         lanes |= geer::lane_bits(st[pk].n_contrib != before) << (pk * kWidth - w0);
+                        for (int i = 0; i < kWidth; ++i) top = geer::g_max(top, geer::lane_get(w, i));
                     }
                     if (blended) blended[size_t(j) * warps + w0 / geer::kWarp] = lanes;
                 }
+                entry_weight[j] = top;
             }
         }
         for (int tid = 0; tid < blk.threads; ++tid) {
@@ -74,7 +80,10 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
             n_contrib.data_ptr<int32_t>()[ray] = geer::lane_get(st[pk].n_contrib, i);
         }
     });
-    return {out_rgb, depth, acc, t_final, n_contrib, blended_lanes};
+    auto max_weight = at::zeros({whiten.size(0)}, opts);
+    fold_entries(entries_of_gaussians(id, m, whiten.size(0)), 1, entry_weight.data(), mptr<T>(max_weight),
+                 [](T a, T b) { return geer::g_max(a, b); });
+    return {out_rgb, depth, acc, t_final, n_contrib, blended_lanes, max_weight};
 }
 
 // render_forward for either dtype: kPacks, the CPU's path; otherwise one ray per thread, the kernels' path.

@@ -2,7 +2,8 @@
 // (csrc/cpu_render*.cpp) so that the code deciding which ray and which Gaussian a thread touches is the code
 // the CPU tests run: the ray a thread owns, the batches a tile's list is walked in (front to back in the
 // forward, back to front from the block's last blended Gaussian in the backward), the list position of
-// each batch item, and the backward's warp reduction (its stages, summation order and output slots).
+// each batch item, and the warp reductions (the backward's reduce-scatter: its stages, summation order and
+// output slots; the one tree of the forward's max_weight maxima).
 #pragma once
 
 #include "geer_ray.h"
@@ -132,7 +133,8 @@ GEER_HD bool scatter_writer(int lane) { return (lane & 1) == 0; }
 
 // The tree each value of the reduce-scatter is summed along: xor masks 16, 8, 4, 2, 1, lane l < m taking lane
 // l + m's partial at mask m. The CPU build's sparse sums combine only the contributing lanes' partials along it
-// (cpu_render_backward.cpp warp_sum_sparse), iterating these masks.
+// (cpu_render_backward.cpp warp_sum_sparse), iterating these masks; the forward's max_weight maxima take the
+// same butterfly on the GPU (render.cu warp_max; a max is exact, so its order only has to be one).
 template <typename F> GEER_HD void for_each_tree_mask(F&& f) {
     for (int mask = kWarp / 2; mask >= 1; mask >>= 1) f(mask);
 }

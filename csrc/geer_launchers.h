@@ -115,6 +115,8 @@ template <typename T> struct RenderOutputs {
     T* acc;           // [R] sum of w
     T* t_final;       // [R] transmittance after the last blended Gaussian
     int32_t* n_contrib;  // [R] 1 + list position (within the tile) of the last blended Gaussian
+    T* max_weight;       // [N] largest blend weight T_before alpha over the rays, zeroed by the caller: the
+                         // weights are >= 0, so a max of their bits (one atomicMax per warp and entry) is theirs
 };
 template <typename T> void launch_render_forward(const RenderArgs<T>& a, const RenderOutputs<T>& out, cudaStream_t stream);
 

@@ -3,7 +3,8 @@
 // Forward: one block per tile, one thread per ray (block size rounded up to whole warps). The rays of
 // a tile share its front-to-back Gaussian list; the block loads it in batches into shared memory
 // (each Gaussian's ray frame is built once per tile there), every thread blends the batch into its
-// ray, and the block stops as soon as all of its rays are done (3DGS early termination).
+// ray, a warp stops once all of its rays are done and the block once all of its warps are (3DGS early
+// termination). Each entry a warp blends gets the warp's largest weight, one atomicMax (max_weight).
 // Backward: same layout, the list traversed back to front from the block's last blended Gaussian;
 // per-pair gradients of (W, o_u, colour, opacity), 16 values, are summed over the warp by a transposing
 // reduction (16 shuffles; geer_blocks.h) that leaves value k's total in lanes 2k and 2k + 1, so 16 lanes
@@ -22,6 +23,19 @@ template <typename T> __device__ __forceinline__ void load_frame(const RenderArg
 }
 
 // kMaxThreads: the largest block this build is launched with (kSmallTileThreads or kLargeTileThreads).
+// The warp's largest x (geer_blocks.h's tree; a max is exact, so any order gives its bits).
+template <typename T> __device__ __forceinline__ T warp_max(T x) {
+    for_each_tree_mask([&](int mask) { x = g_max(x, __shfl_xor_sync(0xffffffffu, x, mask)); });
+    return x;
+}
+// *a = max(*a, x) for x >= 0: non-negative floats order like their bits (NaN above every number).
+__device__ __forceinline__ void atomic_max_nonneg(float* a, float x) {
+    atomicMax(reinterpret_cast<unsigned int*>(a), __float_as_uint(x));
+}
+__device__ __forceinline__ void atomic_max_nonneg(double* a, double x) {
+    atomicMax(reinterpret_cast<unsigned long long*>(a), static_cast<unsigned long long>(__double_as_longlong(x)));
+}
+
 template <typename T, int kMaxThreads>
 __global__ void __launch_bounds__(kMaxThreads) render_forward_kernel(const RenderArgs<T> a, const RenderOutputs<T> out) {
     constexpr int kBatch = Batch<T>::value;
@@ -47,8 +61,16 @@ __global__ void __launch_bounds__(kMaxThreads) render_forward_kernel(const Rende
         const ListBatch bt = forward_batch(start, end, b, kBatch);
         for (int k = tid; k < bt.size; k += blockDim.x) load_frame(a, a.ids[batch_entry(bt, k)], frames[k]);
         __syncthreads();
-        for (int k = 0; k < bt.size && !st.done; ++k)
-            if (ray_meets_pbf(frames[k], wb)) ray_forward_step(st, frames[k], d, rb, batch_entry(bt, k) - start);
+        // Warp-uniform: the warp's maximum below needs all 32 lanes (a done lane's step blends nothing).
+        for (int k = 0; k < bt.size; ++k) {
+            if (__all_sync(0xffffffffu, st.done)) break;
+            if (!ray_meets_pbf(frames[k], wb)) continue;  // the same for every lane of the warp
+            const T w = ray_forward_step(st, frames[k], d, rb, batch_entry(bt, k) - start);
+            if (!__any_sync(0xffffffffu, w > T(0))) continue;
+            const T top = warp_max(w);
+            // The id from global memory, by lane 0 only: a shared copy of the batch's ids costs registers.
+            if (lane == 0) atomic_max_nonneg(out.max_weight + a.ids[batch_entry(bt, k)], top);
+        }
     }
     if (!slot.in_image) return;
     const int r = slot.ray;

@@ -29,6 +29,18 @@ def single_thread():
     torch.set_num_threads(n)
 
 
+@pytest.fixture(scope="module")
+def cpu_ops():
+    """The CPU build (csrc/cpu_ops.cpp, JIT-built once per configuration); skips without a C++ compiler."""
+    import shutil
+
+    if shutil.which("c++") is None and shutil.which("g++") is None:
+        pytest.skip("no C++ compiler: cannot build csrc/cpu_ops.cpp")
+    from geer_ns.render.cuda_backend import load_cpu_ops
+
+    return load_cpu_ops()
+
+
 def random_quats(n: int, gen: torch.Generator, dtype=torch.float64) -> torch.Tensor:
     return torch.randn(n, 4, generator=gen, dtype=dtype)
 
@@ -105,6 +117,27 @@ def equidistant_fisheye_rays(size: int, fov_deg: float = 180.0, dtype=torch.floa
     psi = torch.atan2(v, u)
     dirs = torch.stack([torch.sin(ang) * torch.cos(psi), torch.sin(ang) * torch.sin(psi), torch.cos(ang)], -1)
     return dirs, ang <= math.radians(fov_deg / 2)
+
+
+def small_grid(name: str, dtype=torch.float64):
+    """12 x 12 rays in 6-pixel tiles (36 rays: a full warp and a padded one per tile): "beap" (100 x 80
+    degrees) or "fisheye" (190 degrees equidistant: rays beyond 90 degrees off axis, corners invalid)."""
+    from geer_ns.render import RayGrid
+
+    if name == "beap":
+        return RayGrid.beap(12, 12, math.radians(100), math.radians(80), tile_size=6, dtype=dtype)
+    dirs, valid = equidistant_fisheye_rays(12, 190.0, dtype=dtype)
+    return RayGrid.from_rays(dirs, valid, tile_size=6)
+
+
+def small_scene(grid_name: str, seed: int = 0, n: int = 40):
+    """([means, quats, scales, opacities, colours] in world space, a rigid float64 viewmat) of n Gaussians
+    in small_grid(grid_name)'s view (all around the camera for the fisheye), RGB colours."""
+    means_c, quats, scales, opac, colors = random_scene(n, seed, around=grid_name == "fisheye", spread=0.7,
+                                                        scale_range=(0.05, 0.5))
+    viewmat = random_viewmat(seed + 10)
+    rot, t = viewmat[:3, :3], viewmat[:3, 3]
+    return [(means_c - t) @ rot, quats, scales, opac, colors], viewmat  # camera-frame means: means_c
 
 
 def equirect_rays(width: int, height: int, dtype=torch.float64):

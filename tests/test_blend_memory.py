@@ -87,8 +87,8 @@ def _dense_scene(n):
 
 
 def test_pieces_equal_one_piece():
-    """Blending lists in pieces of a few pairs (with the transmittance carried) is the same image and the
-    same gradient as one piece."""
+    """Blending lists in pieces of a few pairs (with the transmittance carried) is the same image, max_weight
+    and gradient as one piece."""
     grid = RayGrid.beap(16, 16, 0.8, 0.8, tile_size=8, dtype=torch.float64)
     results = []
     for max_pairs in (1 << 22, 64 * 7):  # 7 Gaussians x 64 rays per piece
@@ -99,6 +99,7 @@ def test_pieces_equal_one_piece():
         results.append((out, [t.grad for t in leaves]))
     (a, ga), (b, gb) = results
     assert float(a.accumulation.detach().max()) > 0.999  # some rays stopped early
+    assert torch.equal(a.max_weight, b.max_weight)
     for name in ("rgb", "depth", "accumulation"):
         assert float((getattr(a, name) - getattr(b, name)).detach().abs().max()) <= 1e-12, name
     for x, y in zip(ga, gb):

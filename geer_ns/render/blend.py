@@ -16,6 +16,9 @@ with c the bytes one pair costs inside a piece (the backward's autograd graph of
 300 bytes in float32, 520 in float64; benchmarks/camera_inside.md), independent of how many Gaussians each
 ray sees (tests/test_blend_memory.py). The default max_pairs = 2^20 thus bounds the per-pair part at about
 0.3 GB (float32).
+
+A per-Gaussian by-product, max_weight: each Gaussian's largest blend weight over the rays, from the forward's
+pieces (no gradient).
 """
 
 from __future__ import annotations
@@ -47,20 +50,24 @@ def _plan(counts: Tensor, rays_per_group: int, max_pairs: int) -> list[tuple[Ten
 
 def _blend_piece(o_u, whiten, opacities, colors, dirs, r_ok, g_ok, t_start):
     """One piece: o_u [G,K,3], whiten [G,K,3,3], opacities [G,K], colors [G,K,3] of the listed Gaussians,
-    dirs [G,P,3]; r_ok [G,P] / g_ok [G,K] mask padding and invalid rays. Returns composite's four outputs."""
+    dirs [G,P,3]; r_ok [G,P] / g_ok [G,K] mask padding and invalid rays. Returns (rgb, depth sum, accumulation,
+    t_end) per ray and the pairs' blend weights [G,P,K]."""
     dist_sq, t_star = canonical_ray_response(o_u, whiten, dirs)
     q, depth, _ = half_line_sq(dist_sq, t_star, o_u)
     alpha = pair_alpha(q, opacities[:, None, :], r_ok[:, :, None] & g_ok[:, None, :])
-    return composite(alpha, colors, depth, t_start)
+    *sums, weights = composite(alpha, colors, depth, t_start)
+    return sums, weights
 
 
 class _BlendLists(torch.autograd.Function):
-    """(o_u, W, opacity, colour per Gaussian) -> (rgb [R,3], depth sum [R], accumulation [R]) per ray."""
+    """(o_u, W, opacity, colour per Gaussian) -> (rgb [R,3], depth sum [R], accumulation [R]) per ray and
+    max_weight [N] (no gradient)."""
 
     @staticmethod
     def forward(ctx, o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs):
         n_rays, p = dirs.shape[0], ray_index.shape[1]
         out = (o_u.new_zeros(n_rays, 3), o_u.new_zeros(n_rays), o_u.new_zeros(n_rays))
+        max_weight = o_u.new_zeros(o_u.shape[0])
         plan = _plan(counts, p, max_pairs)
         starts = []
         for sel, pieces in plan:
@@ -73,19 +80,23 @@ class _BlendLists(torch.autograd.Function):
                 starts.append(t)
                 g_idx = lists[sel, k0:k1]
                 g = g_idx.clamp_min(0)
-                *piece, t = _blend_piece(o_u[g], whiten[g], opacities[g], colors[g], d, r_ok, g_idx >= 0, t)
+                (*piece, t), weights = _blend_piece(o_u[g], whiten[g], opacities[g], colors[g], d, r_ok, g_idx >= 0,
+                                                    t)
                 sums = [s + x for s, x in zip(sums, piece)]
+                listed = g_idx >= 0
+                max_weight.scatter_reduce_(0, g[listed], weights.amax(dim=-2)[listed], reduce="amax")
             keep = r_idx >= 0
             for o, s in zip(out, sums):
                 o[r_idx[keep]] = s[keep]
         t_starts = torch.cat([s.reshape(-1) for s in starts]) if starts else o_u.new_zeros(0)
         ctx.save_for_backward(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, t_starts)
         ctx.max_pairs = max_pairs
-        return out
+        ctx.mark_non_differentiable(max_weight)
+        return (*out, max_weight)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, g_rgb, g_depth, g_acc):
+    def backward(ctx, g_rgb, g_depth, g_acc, _g_max_weight):
         o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, t_starts = ctx.saved_tensors
         params = (o_u, whiten, opacities, colors)
         grads = [x.new_zeros(x.shape) for x in params]  # contiguous, whatever the inputs' strides
@@ -110,7 +121,7 @@ class _BlendLists(torch.autograd.Function):
                 with torch.enable_grad():
                     leaves = [x[g].detach().requires_grad_(True) for x in params]
                     t0 = t0.detach().requires_grad_(True)
-                    *outs, t_end = _blend_piece(*leaves, d, r_ok, g_idx >= 0, t0)
+                    (*outs, t_end), _ = _blend_piece(*leaves, d, r_ok, g_idx >= 0, t0)
                     loss = sum((go * o).sum() for go, o in zip(g_out, outs)) + (g_t * t_end).sum()
                     piece_grads = torch.autograd.grad(loss, leaves + [t0], allow_unused=True)
                 g_ok = (g_idx >= 0).reshape(-1)
@@ -126,7 +137,8 @@ def blend_lists(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, list
     """Blend each group of rays ray_index [G, P] (-1 padded) against its Gaussian list lists [G, K] (-1
     padded, counts [G] entries), at most max_pairs pairs at a time (see the module's memory model).
 
-    Returns per-ray rgb [R, 3] (no background), depth sum [R] and accumulation [R]; rays in no group
-    (empty or inactive tiles) are 0. Differentiable w.r.t. o_u, whiten, opacities and colors.
+    Returns per-ray rgb [R, 3] (no background), depth sum [R] and accumulation [R], rays in no group (empty or
+    inactive tiles) 0, and max_weight [N], each Gaussian's largest blend weight (0: never blended; no gradient).
+    Differentiable w.r.t. o_u, whiten, opacities and colors.
     """
     return _BlendLists.apply(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs)

@@ -84,7 +84,8 @@ class _Preprocess(torch.autograd.Function):
 
 
 class _Rasterize(torch.autograd.Function):
-    """Per tile / ray: (W, o_u, colour, opacity) -> (rgb sum, depth sum, accumulation) per ray."""
+    """Per tile / ray: (W, o_u, colour, opacity) -> (rgb sum, depth sum, accumulation) per ray and max_weight [N]
+    (no gradient)."""
 
     @staticmethod
     def forward(ctx, whiten, o_u, rgb, opacities, pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height,
@@ -95,17 +96,18 @@ class _Rasterize(torch.autograd.Function):
         # blended_lanes: the CPU build's record of the lanes that blended each list entry, which its backward
         # visits; made only when a backward will run (empty from the kernels, whose backward re-derives them).
         record = any(ctx.needs_input_grad[:4])
-        out_rgb, depth, acc, t_final, n_contrib, blended_lanes = ops.render_forward(
+        out_rgb, depth, acc, t_final, n_contrib, blended_lanes, max_weight = ops.render_forward(
             whiten, o_u, rgb, opacities, *geometry, height, width, tile_size, record
         )
         ctx.save_for_backward(whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib, blended_lanes)
         ctx.layout = (height, width, tile_size)
         ctx.ops = ops
-        return out_rgb, depth, acc
+        ctx.mark_non_differentiable(max_weight)
+        return out_rgb, depth, acc, max_weight
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, g_rgb, g_depth, g_acc):
+    def backward(ctx, g_rgb, g_depth, g_acc, _g_max_weight):
         whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib, blended_lanes = ctx.saved_tensors
         r = geometry[1].shape[0]
         g_rgb = _zeros_if_none(g_rgb, (r, 3), whiten).contiguous()
@@ -206,7 +208,7 @@ def render_cuda(
     ids, ranges, counts, _tests = associate_pairs(ops, bounds, alive, means_c.detach().norm(dim=-1), grid)
 
     # Stage 3. Per tile / ray.
-    rgb_sum, depth_sum, acc = _Rasterize.apply(
+    rgb_sum, depth_sum, acc, max_weight = _Rasterize.apply(
         whiten, o_u, rgb, opacities.contiguous(), pbf_cull_pieces(bounds), dirs, grid.ray_cull_bounds(dtype),
         grid.warp_cull_bounds(dtype), grid.valid.contiguous(), ids, ranges, grid.height, grid.width, grid.tile_size, ops,
     )
@@ -215,4 +217,4 @@ def render_cuda(
     visible = counts > 0
     tile_counts = (ranges[:, 1] - ranges[:, 0]).long()
     pbf = PBF(bounds[:, 0], bounds[:, 1], bounds[:, 2], bounds[:, 3], alive, inside)
-    return RenderOutput(out_rgb, out_depth, out_acc, visible, tile_counts, means_c, pbf, None)
+    return RenderOutput(out_rgb, out_depth, out_acc, visible, tile_counts, means_c, pbf, None, max_weight)
