@@ -168,7 +168,7 @@ void register_render_backward_ops(pybind11::module_& m);  // cpu_render_backward
 void register_render_ops(pybind11::module_& m) {
     m.def("render_forward", &render_forward_op<kCpuPacks>);
     m.def("render_forward_gpu_path", &render_forward_op<false>);
-    register_render_backward_ops(m);  // render_backward (+ _gpu_path, _one_ray), warp_grad_sum
+    register_render_backward_ops(m);  // render_backward (+ _gpu_path, _one_ray), warp_grad_sum, warp_tree_sum
     m.def("render_lanes", [](bool float64) -> int64_t {
         if (!kCpuPacks) return 1;
         return float64 ? geer::Lane<geer::DoublePack>::width : geer::Lane<geer::FloatPack>::width;

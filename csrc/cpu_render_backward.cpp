@@ -1,7 +1,7 @@
 // Stage 3 of the CPU build, backward (the forward: cpu_render.cpp): the back-to-front gradient over geer_ray.h's
 // per-ray functions and geer_blocks.h's per-block orchestration, in packs of rays where the build has AVX2
 // (render_backward), one ray per thread as the kernels (render_backward_gpu_path) and the CPU's path one ray at
-// a time (render_backward_one_ray); the warp reduction's lock-step and sparse forms, and its test op.
+// a time (render_backward_one_ray); the warp reductions' lock-step and sparse forms, and their test ops.
 #include <torch/csrc/utils/pybind.h>
 
 #include <algorithm>
@@ -14,6 +14,7 @@ namespace {
 using namespace geer_cpu;
 
 constexpr int kGradValues = geer::kGradValues;
+constexpr int kAbsgradValues = geer::kAbsgradValues;
 constexpr int kWarp = geer::kWarp;
 
 // One warp's reduction as render.cu runs it (geer_blocks.h): the 32 lanes in lock-step through the stages,
@@ -33,13 +34,26 @@ template <typename T> void warp_grad_sum(T (*v)[kGradValues] /* [kWarp] */, T* r
         if (geer::scatter_writer(lane)) row[geer::scatter_value(lane)] += v[lane][0];
 }
 
+// render.cu's warp_tree_sum (the absgrad values' butterfly) in lock-step: at every mask each lane adds what lane
+// ^ mask holds; lane 0's totals go to row (its atomicAdds). The reference for warp_sum_sparse's 2 values.
+template <int kValues, typename T> void warp_tree_sum(T (*v)[kValues] /* [kWarp] */, T* row /* kValues */) {
+    geer::for_each_tree_mask([&](int mask) {
+        T received[kWarp][kValues];
+        for (int lane = 0; lane < kWarp; ++lane)
+            for (int i = 0; i < kValues; ++i) received[lane][i] = v[lane ^ mask][i];
+        for (int lane = 0; lane < kWarp; ++lane)
+            for (int i = 0; i < kValues; ++i) v[lane][i] += received[lane][i];
+    });
+    for (int i = 0; i < kValues; ++i) row[i] += v[0][i];
+}
+
 // The warp's sums of kValues values per lane, bit for bit those of warp_grad_sum (each of the reduce-scatter's
-// values), without visiting the lanes that add zeros. For every value the butterfly adds the partial sums of
-// lanes differing in bit 4 first (mask 16), bit 0 last (mask 1): geer_blocks.h's tree. Float addition is
-// commutative and x + 0 == x exactly, so combining only the partials that hold a contributing lane (moving a
+// values) and warp_tree_sum, without visiting the lanes that add zeros. Both add, for every value, the partial
+// sums of lanes differing in bit 4 first (mask 16), bit 0 last (mask 1): geer_blocks.h's tree. Float addition
+// is commutative and x + 0 == x exactly, so combining only the partials that hold a contributing lane (moving a
 // lone one up unchanged) gives the same bits; on the CPU most lanes of most warps contribute nothing.
 // values(l, v) fills lane l's kValues values; row gets the totals added. tests/test_blocks_warp_reduction.py
-// compares it with the lock-step form on random warps.
+// compares it with both lock-step forms on random warps.
 template <int kValues, typename T, typename F> void warp_sum_sparse(uint32_t contrib, F&& values, T* row) {
     if (!contrib) return;
     T vals[kWarp][kValues];
@@ -74,28 +88,36 @@ template <typename T, typename L> void pair_grad_lane(const geer::PairGrad<L>& p
     out.opacity = geer::lane_get(pg.opacity, i);
 }
 
-// -> [N,16] gradient rows (geer_launchers.h RenderGradArgs::grads). kRecorded: the CPU's path (render_backward),
-// which visits only the lanes the forward recorded as blending each entry (blended_lanes), in packs where
-// kPacks; otherwise the GPU's path (render_backward_gpu_path: one ray per thread, the warp cull, then every lane
-// of the blended prefix evaluates the pair, as render.cu), which the tests check gives the same bits.
+// -> ([N,16] gradient rows (geer_launchers.h RenderGradArgs::grads), absgrad [N,2] or empty). kRecorded: the
+// CPU's path (render_backward), which visits only the lanes the forward recorded as blending each entry
+// (blended_lanes), in packs where kPacks; otherwise the GPU's path (render_backward_gpu_path: one ray per thread,
+// the warp cull, then every lane of the blended prefix evaluates the pair, as render.cu), which the tests check
+// gives the same bits. absgrad_rows [N,6] (empty: off): also each pair's absgrad values (geer_blocks.h
+// lane_absgrad_values), summed as the gradients are.
 template <bool kPacks, bool kRecorded>
-at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
-                           at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds, at::Tensor warp_bounds,
-                           at::Tensor valid, at::Tensor ids, at::Tensor ranges, int64_t height, int64_t width,
-                           int64_t tile_size, at::Tensor t_final, at::Tensor n_contrib, at::Tensor blended_lanes,
-                           at::Tensor g_rgb, at::Tensor g_depth, at::Tensor g_acc) {
+std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
+                                        at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
+                                        at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids, at::Tensor ranges,
+                                        int64_t height, int64_t width, int64_t tile_size, at::Tensor t_final,
+                                        at::Tensor n_contrib, at::Tensor blended_lanes, at::Tensor g_rgb,
+                                        at::Tensor g_depth, at::Tensor g_acc, at::Tensor absgrad_rows) {
     whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities); pbf_pieces = cpu(pbf_pieces);
     dirs = cpu(dirs); ray_bounds = cpu(ray_bounds); warp_bounds = cpu(warp_bounds);
     valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges);
-    t_final = cpu(t_final); blended_lanes = cpu(blended_lanes);
+    t_final = cpu(t_final); blended_lanes = cpu(blended_lanes); absgrad_rows = cpu(absgrad_rows);
     check_cull_bounds(ray_bounds, warp_bounds, height, width, tile_size);
     const int warps = geer::warps_per_tile(int(tile_size));
     TORCH_CHECK(!kRecorded || (blended_lanes.scalar_type() == at::kInt && blended_lanes.numel() == ids.numel() * warps),
                 "geer: blended_lanes must be render_forward's [M, warps per tile] int32 record");
     n_contrib = cpu(n_contrib); g_rgb = cpu(g_rgb); g_depth = cpu(g_depth); g_acc = cpu(g_acc);
     const int64_t n = whiten.size(0), m = ids.numel();
+    const bool with_absgrad = absgrad_rows.numel() > 0;
+    TORCH_CHECK(!with_absgrad || (absgrad_rows.scalar_type() == whiten.scalar_type() &&
+                                  absgrad_rows.numel() == geer::kAbsgradRow * n),
+                "geer: absgrad_rows must be [N,6] of the Gaussians' dtype");
     auto opts = whiten.options();
     auto grads = at::zeros({n, kGradValues}, opts);
+    auto absgrad = with_absgrad ? at::zeros({n, kAbsgradValues}, opts) : at::empty({0}, opts);
     dispatch<int>(whiten, [&](auto tag) {
         using T = decltype(tag);
         using L = LaneOf<T, kPacks>;
@@ -106,7 +128,9 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
         const int32_t* rg = ranges.data_ptr<int32_t>();
         const int32_t* nc = n_contrib.data_ptr<int32_t>();
         const uint32_t* blended = reinterpret_cast<const uint32_t*>(blended_lanes.data_ptr<int32_t>());
+        const T* rows = with_absgrad ? ptr<T>(absgrad_rows) : nullptr;
         std::vector<T> pair_grad(size_t(m) * kGradValues, T(0));  // one slot per (tile, Gaussian) pair
+        std::vector<T> pair_absgrad(with_absgrad ? size_t(m) * kAbsgradValues : 0, T(0));
         parallel_dynamic(geer::tile_count(int(height), int(width), int(tile_size)), [&](int64_t tile) {
             const Block<T, L> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs), ptr<T>(ray_bounds),
                                   ptr<T>(warp_bounds));
@@ -161,16 +185,22 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
                         warp_sum_sparse<kGradValues>(
                             contrib, [&](int l, T* v) { geer::lane_grad_values(p[l], true, v); },
                             pair_grad.data() + size_t(j) * kGradValues);
+                        if (!rows) continue;
+                        const T* row = rows + geer::kAbsgradRow * id[j];
+                        warp_sum_sparse<kAbsgradValues>(
+                            contrib, [&](int l, T* v) { geer::lane_absgrad_values(row, p[l], true, v); },
+                            pair_absgrad.data() + size_t(j) * kAbsgradValues);
                     }
                 }
             }
         });
-        // Each Gaussian sums its pairs in list order.
-        fold_entries(entries_of_gaussians(id, m, n), kGradValues, pair_grad.data(), mptr<T>(grads),
-                     [](T a, T b) { return a + b; });
+        const auto plus = [](T a, T b) { return a + b; };
+        const EntriesOfGaussians entries = entries_of_gaussians(id, m, n);
+        fold_entries(entries, kGradValues, pair_grad.data(), mptr<T>(grads), plus);
+        if (rows) fold_entries(entries, kAbsgradValues, pair_absgrad.data(), mptr<T>(absgrad), plus);
         return 0;
     });
-    return grads;
+    return {grads, absgrad};
 }
 
 // A test op's warp: values [32, width] (a row per lane), contrib [32] bools -> the contributing lanes' bits.
@@ -215,6 +245,29 @@ std::vector<at::Tensor> warp_grad_sum_op(at::Tensor values, at::Tensor contrib) 
     return {row, totals, row_sparse};
 }
 
+// The absgrad values' reduction: values [32,2] (zeros where contrib is false, as lane_absgrad_values gives
+// them), contrib [32] -> (the kernel's butterfly in lock-step, warp_sum_sparse), each a row [2] added to zeros.
+std::vector<at::Tensor> warp_tree_sum_op(at::Tensor values, at::Tensor contrib) {
+    values = cpu(values); contrib = cpu(contrib);
+    const uint32_t mask = warp_inputs(values, contrib, kAbsgradValues, "warp_tree_sum");
+    auto row = at::zeros({kAbsgradValues}, values.options());
+    auto row_sparse = at::zeros({kAbsgradValues}, values.options());
+    dispatch<int>(values, [&](auto tag) {
+        using T = decltype(tag);
+        const T* in = ptr<T>(values);
+        const auto lane_values = [&](int lane, T* out) {  // zeros off contrib, as lane_absgrad_values
+            const bool on = (mask >> lane) & 1u;
+            for (int i = 0; i < kAbsgradValues; ++i) out[i] = on ? in[kAbsgradValues * lane + i] : T(0);
+        };
+        T v[kWarp][kAbsgradValues];
+        for (int lane = 0; lane < kWarp; ++lane) lane_values(lane, v[lane]);
+        warp_sum_sparse<kAbsgradValues>(mask, lane_values, mptr<T>(row_sparse));
+        warp_tree_sum<kAbsgradValues>(v, mptr<T>(row));
+        return 0;
+    });
+    return {row, row_sparse};
+}
+
 }  // namespace
 
 namespace geer_cpu {
@@ -225,6 +278,7 @@ void register_render_backward_ops(pybind11::module_& m) {
     // The CPU's path one ray at a time: what render_backward is on a build without AVX2.
     m.def("render_backward_one_ray", &render_backward<false, true>);
     m.def("warp_grad_sum", &warp_grad_sum_op);
+    m.def("warp_tree_sum", &warp_tree_sum_op);
 }
 
 }  // namespace geer_cpu

@@ -3,7 +3,7 @@
 // the CPU tests run: the ray a thread owns, the batches a tile's list is walked in (front to back in the
 // forward, back to front from the block's last blended Gaussian in the backward), the list position of
 // each batch item, and the warp reductions (the backward's reduce-scatter: its stages, summation order and
-// output slots; the one tree of the forward's max_weight maxima).
+// output slots; the one tree of absgrad's sums and max_weight's maxima; absgrad's per-lane values).
 #pragma once
 
 #include "geer_ray.h"
@@ -131,12 +131,29 @@ template <int kMask, typename T> GEER_HD void scatter_keep(ScatterStage<kMask> s
 GEER_HD int scatter_value(int lane) { return lane >> 1; }
 GEER_HD bool scatter_writer(int lane) { return (lane & 1) == 0; }
 
-// The tree each value of the reduce-scatter is summed along: xor masks 16, 8, 4, 2, 1, lane l < m taking lane
-// l + m's partial at mask m. The CPU build's sparse sums combine only the contributing lanes' partials along it
-// (cpu_render_backward.cpp warp_sum_sparse), iterating these masks; the forward's max_weight maxima take the
-// same butterfly on the GPU (render.cu warp_max; a max is exact, so its order only has to be one).
+// The tree each value of the reduce-scatter is summed along, and absgrad's 2 sums and max_weight's maxima too:
+// xor masks 16, 8, 4, 2, 1, lane l < m taking lane l + m's partial at mask m. The GPU runs the latter two as a
+// butterfly (render.cu warp_tree_sum, warp_max: every lane combines its value with lane ^ m's, the same two
+// numbers in lanes l and l ^ m, lane 0 ends with the total); the CPU build's sparse sums combine only the
+// contributing lanes' partials along it (cpu_render_backward.cpp warp_sum_sparse): both iterate these masks, so
+// both give its bits (a max is exact: its order only has to be one).
 template <typename F> GEER_HD void for_each_tree_mask(F&& f) {
     for (int mask = kWarp / 2; mask >= 1; mask >>= 1) f(mask);
+}
+
+// absgrad (rasterize.render's absgrad): per pair |A_n[j] . dL_p/do_u|, j = 0, 1, with A_n = -lateral_n^T W_n^T
+// the Gaussian's offset rows ([6], row-major 2x3: absgrad.offset_rows), so that A_n dL_p/do_u is the pair's
+// gradient w.r.t. the Gaussian's two lateral offsets. Zeros where the lane's ray does not blend the pair (p is
+// then not read).
+constexpr int kAbsgradValues = 2;
+constexpr int kAbsgradRow = 6;  // A_n's values per Gaussian
+template <typename T>
+GEER_HD void lane_absgrad_values(const T* rows /* kAbsgradRow */, const PairGrad<T>& p, bool contrib,
+                                 T* v /* kAbsgradValues */) {
+    for (int j = 0; j < kAbsgradValues; ++j) {
+        const T* a = rows + 3 * j;
+        v[j] = contrib ? g_fabs(a[0] * p.o[0] + a[1] * p.o[1] + a[2] * p.o[2]) : T(0);
+    }
 }
 
 }  // namespace geer

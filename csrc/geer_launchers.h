@@ -129,6 +129,10 @@ template <typename T> struct RenderGradArgs {
     // output, zeroed by the caller, accumulated with atomics: one row per Gaussian, dL/d of W row-major (9),
     // o_u (3), colour (3), opacity (geer_blocks.h kGradValues), so a warp's 16 totals go to adjacent words
     T* grads;                   // [N,16]
+    // absgrad (null when off: the kernel built without it runs): A_n per Gaussian (geer_blocks.h
+    // lane_absgrad_values) and the output sum_p |A_n dL_p/do_u| [N,2], zeroed by the caller, atomics
+    const T* absgrad_rows;      // [N,6]
+    T* absgrad;                 // [N,2]
 };
 template <typename T>
 void launch_render_backward(const RenderArgs<T>& a, const RenderGradArgs<T>& g, cudaStream_t stream);

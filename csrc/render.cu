@@ -8,7 +8,8 @@
 // Backward: same layout, the list traversed back to front from the block's last blended Gaussian;
 // per-pair gradients of (W, o_u, colour, opacity), 16 values, are summed over the warp by a transposing
 // reduction (16 shuffles; geer_blocks.h) that leaves value k's total in lanes 2k and 2k + 1, so 16 lanes
-// add them to the Gaussian's gradient row with one atomic each, in parallel.
+// add them to the Gaussian's gradient row with one atomic each, in parallel. With absgrad, a separate
+// build (kAbsgrad: the default build's registers stay as they are) also sums the pairs' 2 absgrad values.
 // Per-pair and per-ray math: geer_ray.h (eval_pair, ray_forward_step, ray_backward_step); which ray and
 // which list entry a thread touches: geer_blocks.h (shared with the CPU build, so the CPU tests run it).
 #include "geer_blocks.h"
@@ -91,7 +92,16 @@ template <typename T> __device__ __forceinline__ void warp_reduce_scatter(T* v, 
     });
 }
 
-template <typename T, int kMaxThreads>
+// The warp's totals of kCount values along geer_blocks.h's tree (a butterfly: lane 0 ends with them).
+template <int kCount, typename T> __device__ __forceinline__ void warp_tree_sum(T* v) {
+    for_each_tree_mask([&](int mask) {
+        for (int i = 0; i < kCount; ++i) v[i] += __shfl_xor_sync(0xffffffffu, v[i], mask);
+    });
+}
+
+// kAbsgrad: also sum each pair's absgrad values (g.absgrad_rows, g.absgrad); a build of its own, so that the
+// default one keeps its registers.
+template <typename T, int kMaxThreads, bool kAbsgrad>
 __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const RenderArgs<T> a, const RenderGradArgs<T> g) {
     constexpr int kBatch = Batch<T>::value;
     __shared__ GaussFrame<T> frames[kBatch];
@@ -138,6 +148,14 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
             PairGrad<T> p;
             const bool contrib = ray_backward_step(st, frames[k], d, pos < my_n, p);
             if (!__any_sync(0xffffffffu, contrib)) continue;
+            if constexpr (kAbsgrad) {  // before the 16 values are reduced, while they are still p
+                T av[kAbsgradValues];
+                lane_absgrad_values(g.absgrad_rows + kAbsgradRow * frame_ids[k], p, contrib, av);
+                warp_tree_sum<kAbsgradValues>(av);
+                T* out = g.absgrad + kAbsgradValues * frame_ids[k];
+                if (lane == 0)
+                    for (int j = 0; j < kAbsgradValues; ++j) atomicAdd(out + j, av[j]);
+            }
             T v[kGradValues];
             lane_grad_values(p, contrib, v);
             warp_reduce_scatter(v, lane);
@@ -162,8 +180,12 @@ void launch_render_backward(const RenderArgs<T>& a, const RenderGradArgs<T>& g, 
     const int n_tiles = tile_count(a.height, a.width, a.tile_size);
     if (n_tiles <= 0) return;
     const int threads = threads_per_tile(a.tile_size);
-    const auto kernel = threads <= kSmallTileThreads ? render_backward_kernel<T, kSmallTileThreads>
-                                                     : render_backward_kernel<T, kLargeTileThreads>;
+    const bool small = threads <= kSmallTileThreads;
+    const auto kernel = g.absgrad != nullptr
+                            ? (small ? render_backward_kernel<T, kSmallTileThreads, true>
+                                     : render_backward_kernel<T, kLargeTileThreads, true>)
+                            : (small ? render_backward_kernel<T, kSmallTileThreads, false>
+                                     : render_backward_kernel<T, kLargeTileThreads, false>);
     kernel<<<n_tiles, threads, 0, stream>>>(a, g);
     GEER_KERNEL_LAUNCH_CHECK("render_backward_kernel");
 }
