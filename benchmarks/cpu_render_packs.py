@@ -31,14 +31,17 @@ START_COMMIT = "c693625"  # main before the packs and the forward's record
 
 
 def render_pair(forward, backward, c, cull, grads, recorded: bool):
-    """(forward outputs, a backward call) of one stage-3 implementation on the case's inputs; recorded: this
-    build's signature (the forward's record argument and output, the backward's blended_lanes)."""
+    """(forward outputs, a backward call giving the gradient rows) of one stage-3 implementation on the case's
+    inputs; recorded: this build's signature (the forward's record argument and output, the backward's
+    blended_lanes and absgrad rows)."""
     fwd = forward(c["whiten"], c["o_u"], c["rgb"], c["opac"], cull[0], c["dirs"], cull[1], cull[2], c["valid"],
                   c["ids"], c["ranges"], *c["layout"], *((True,) if recorded else ()))
     record = (fwd[5],) if recorded else ()
+    no_absgrad = (c["whiten"].new_zeros(0),) if recorded else ()  # this build's backward: absgrad's rows, empty
     args = (c["whiten"], c["o_u"], c["rgb"], c["opac"], cull[0], c["dirs"], cull[1], cull[2], c["valid"], c["ids"],
-            c["ranges"], *c["layout"], fwd[3], fwd[4], *record, *grads)
-    return fwd[:5], lambda: backward(*args)
+            c["ranges"], *c["layout"], fwd[3], fwd[4], *record, *grads, *no_absgrad)
+    # This build's backward returns (gradient rows, absgrad); the start's the rows alone.
+    return fwd[:5], (lambda: backward(*args)[0]) if recorded else (lambda: backward(*args))
 
 
 def main() -> None:

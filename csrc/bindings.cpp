@@ -218,30 +218,34 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     auto out_rgb = at::empty({r, 3}, opts), depth = at::empty({r}, opts), acc = at::empty({r}, opts);
     auto t_final = at::empty({r}, opts);
     auto n_contrib = at::empty({r}, opts.dtype(at::kInt));
+    auto max_weight = at::zeros({whiten.size(0)}, opts);
     dispatch(whiten, [&](auto tag) {
         using T = decltype(tag);
         auto a = render_args<T>(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
                                 ranges, height, width, tile_size);
         geer::RenderOutputs<T> out{mptr<T>(out_rgb), mptr<T>(depth), mptr<T>(acc), mptr<T>(t_final),
-                                   mptr<int32_t>(n_contrib)};
+                                   mptr<int32_t>(n_contrib), mptr<T>(max_weight)};
         geer::launch_render_forward<T>(a, out, stream());
     });
     // The CPU build also records which lanes blended each entry for its backward; the kernels do not (a
     // 32-bit word per entry and warp), and their backward re-derives them: an empty record.
-    return {out_rgb, depth, acc, t_final, n_contrib, at::empty({0}, opts.dtype(at::kInt))};
+    return {out_rgb, depth, acc, t_final, n_contrib, at::empty({0}, opts.dtype(at::kInt)), max_weight};
 }
 
-// -> [N,16] gradient rows (geer_launchers.h RenderGradArgs::grads).
-at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
-                           at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds, at::Tensor warp_bounds,
-                           at::Tensor valid, at::Tensor ids, at::Tensor ranges, int64_t height, int64_t width,
-                           int64_t tile_size, at::Tensor t_final, at::Tensor n_contrib,
-                           at::Tensor /* blended_lanes: empty, see render_forward */, at::Tensor g_rgb,
-                           at::Tensor g_depth, at::Tensor g_acc) {
+// -> ([N,16] gradient rows (geer_launchers.h RenderGradArgs::grads), absgrad [N,2], empty when absgrad_rows is).
+std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
+                                        at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
+                                        at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids, at::Tensor ranges,
+                                        int64_t height, int64_t width, int64_t tile_size, at::Tensor t_final,
+                                        at::Tensor n_contrib,
+                                        at::Tensor /* blended_lanes: empty, see render_forward */, at::Tensor g_rgb,
+                                        at::Tensor g_depth, at::Tensor g_acc, at::Tensor absgrad_rows) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(whiten));
     const int64_t n = whiten.size(0);
     auto opts = whiten.options();
     auto grads = at::zeros({n, geer::kGradValues}, opts);
+    const bool with_absgrad = absgrad_rows.numel() > 0;
+    auto absgrad = with_absgrad ? at::zeros({n, geer::kAbsgradValues}, opts) : at::empty({0}, opts);
     dispatch(whiten, [&](auto tag) {
         using T = decltype(tag);
         auto a = render_args<T>(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
@@ -251,11 +255,16 @@ at::Tensor render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at
         check_float(g_rgb, whiten, "g_rgb");
         check_float(g_depth, whiten, "g_depth");
         check_float(g_acc, whiten, "g_acc");
+        if (with_absgrad) {
+            check_float(absgrad_rows, whiten, "absgrad_rows");
+            TORCH_CHECK(absgrad_rows.numel() == geer::kAbsgradRow * n, "geer: absgrad_rows must be [N,6]");
+        }
         geer::RenderGradArgs<T> g{cptr<T>(t_final), cptr<int32_t>(n_contrib), cptr<T>(g_rgb), cptr<T>(g_depth),
-                                  cptr<T>(g_acc), mptr<T>(grads)};
+                                  cptr<T>(g_acc), mptr<T>(grads),
+                                  with_absgrad ? cptr<T>(absgrad_rows) : nullptr, mptr<T>(absgrad)};
         geer::launch_render_backward<T>(a, g, stream());
     });
-    return grads;
+    return {grads, absgrad};
 }
 
 // ------------------------------------------------------------------------------------ stage 4

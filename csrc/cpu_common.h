@@ -1,5 +1,5 @@
-// Helpers of the CPU build's translation units (cpu_ops.cpp, cpu_render.cpp): tensor access, the dtype
-// dispatch and ATen's threads.
+// Helpers of the CPU build's translation units (cpu_ops.cpp, cpu_render.cpp, cpu_render_backward.cpp): tensor
+// access, the dtype dispatch and ATen's threads.
 #pragma once
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>

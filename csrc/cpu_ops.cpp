@@ -13,8 +13,9 @@
 // Multi-threaded with at::parallel_for over tiles (render) and Gaussians (preprocess, association), with
 // every float sum in a fixed order: results do not depend on the thread count or scheduling. The render
 // backward sums each (tile, Gaussian) pair's gradient over the tile's rays in the kernel's order (the warp
-// reduction's order over the contributing lanes, warp_grad_sum_sparse, then warps in order) into that pair's
-// own slot, then each Gaussian sums its pairs in list order. Stage 3 lives in cpu_render.cpp.
+// reduction's order over the contributing lanes, warp_sum_sparse, then warps in order) into that pair's
+// own slot, then each Gaussian sums its pairs in list order (absgrad's sums and max_weight's maxima too).
+// Stage 3 lives in cpu_render.cpp (forward) and cpu_render_backward.cpp.
 // ATen + pybind only (not torch/extension.h): half the compile time.
 #include <torch/csrc/utils/pybind.h>
 

@@ -1,8 +1,9 @@
 // Per-block orchestration of the render kernels (csrc/render.cu), shared with the CPU build
-// (csrc/cpu_ops.cpp) so that the code deciding which ray and which Gaussian a thread touches is the code
+// (csrc/cpu_render*.cpp) so that the code deciding which ray and which Gaussian a thread touches is the code
 // the CPU tests run: the ray a thread owns, the batches a tile's list is walked in (front to back in the
 // forward, back to front from the block's last blended Gaussian in the backward), the list position of
-// each batch item, and the backward's warp reduction (its stages, summation order and output slots).
+// each batch item, and the warp reductions (the backward's reduce-scatter: its stages, summation order and
+// output slots; the one tree of absgrad's sums and max_weight's maxima; absgrad's per-lane values).
 #pragma once
 
 #include "geer_ray.h"
@@ -77,7 +78,7 @@ GEER_HD int batch_entry(const ListBatch& bt, int k) { return bt.first + bt.step 
 // their one value. 8 + 4 + 2 + 1 + 1 = 16 shuffles; lanes 2k and 2k + 1 end with the warp's total of value
 // k (both add the same two numbers), and the even lanes issue one atomic each, in parallel, to 16
 // adjacent words. The GPU exchanges with __shfl_xor_sync (render.cu); the CPU build runs all 32 lanes in
-// lock-step and reads the partner's sent values (cpu_ops.cpp): both sum in this order.
+// lock-step and reads the partner's sent values (cpu_render_backward.cpp): both sum in this order.
 constexpr int kGradValues = 16;  // one gradient row: W row-major (9), o_u (3), colour (3), opacity
 
 // A lane's values: its pair gradient, or zeros where its ray does not blend the pair (p is then not read).
@@ -129,5 +130,30 @@ template <int kMask, typename T> GEER_HD void scatter_keep(ScatterStage<kMask> s
 // holders (scatter_writer) adds it to the gradient row.
 GEER_HD int scatter_value(int lane) { return lane >> 1; }
 GEER_HD bool scatter_writer(int lane) { return (lane & 1) == 0; }
+
+// The tree each value of the reduce-scatter is summed along, and absgrad's 2 sums and max_weight's maxima too:
+// xor masks 16, 8, 4, 2, 1, lane l < m taking lane l + m's partial at mask m. The GPU runs the latter two as a
+// butterfly (render.cu warp_tree_sum, warp_max: every lane combines its value with lane ^ m's, the same two
+// numbers in lanes l and l ^ m, lane 0 ends with the total); the CPU build's sparse sums combine only the
+// contributing lanes' partials along it (cpu_render_backward.cpp warp_sum_sparse): both iterate these masks, so
+// both give its bits (a max is exact: its order only has to be one).
+template <typename F> GEER_HD void for_each_tree_mask(F&& f) {
+    for (int mask = kWarp / 2; mask >= 1; mask >>= 1) f(mask);
+}
+
+// absgrad (rasterize.render's absgrad): per pair |A_n[j] . dL_p/do_u|, j = 0, 1, with A_n = -lateral_n^T W_n^T
+// the Gaussian's offset rows ([6], row-major 2x3: absgrad.offset_rows), so that A_n dL_p/do_u is the pair's
+// gradient w.r.t. the Gaussian's two lateral offsets. Zeros where the lane's ray does not blend the pair (p is
+// then not read).
+constexpr int kAbsgradValues = 2;
+constexpr int kAbsgradRow = 6;  // A_n's values per Gaussian
+template <typename T>
+GEER_HD void lane_absgrad_values(const T* rows /* kAbsgradRow */, const PairGrad<T>& p, bool contrib,
+                                 T* v /* kAbsgradValues */) {
+    for (int j = 0; j < kAbsgradValues; ++j) {
+        const T* a = rows + 3 * j;
+        v[j] = contrib ? g_fabs(a[0] * p.o[0] + a[1] * p.o[1] + a[2] * p.o[2]) : T(0);
+    }
+}
 
 }  // namespace geer

@@ -115,6 +115,8 @@ template <typename T> struct RenderOutputs {
     T* acc;           // [R] sum of w
     T* t_final;       // [R] transmittance after the last blended Gaussian
     int32_t* n_contrib;  // [R] 1 + list position (within the tile) of the last blended Gaussian
+    T* max_weight;       // [N] largest blend weight T_before alpha over the rays, zeroed by the caller: the
+                         // weights are >= 0, so a max of their bits (one atomicMax per warp and entry) is theirs
 };
 template <typename T> void launch_render_forward(const RenderArgs<T>& a, const RenderOutputs<T>& out, cudaStream_t stream);
 
@@ -127,6 +129,10 @@ template <typename T> struct RenderGradArgs {
     // output, zeroed by the caller, accumulated with atomics: one row per Gaussian, dL/d of W row-major (9),
     // o_u (3), colour (3), opacity (geer_blocks.h kGradValues), so a warp's 16 totals go to adjacent words
     T* grads;                   // [N,16]
+    // absgrad (null when off: the kernel built without it runs): A_n per Gaussian (geer_blocks.h
+    // lane_absgrad_values) and the output sum_p |A_n dL_p/do_u| [N,2], zeroed by the caller, atomics
+    const T* absgrad_rows;      // [N,6]
+    T* absgrad;                 // [N,2]
 };
 template <typename T>
 void launch_render_backward(const RenderArgs<T>& a, const RenderGradArgs<T>& g, cudaStream_t stream);

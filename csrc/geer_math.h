@@ -63,6 +63,9 @@ GEER_HD float g_exp(float x) { return expf(x); }
 GEER_HD double g_exp(double x) { return exp(x); }
 GEER_HD float g_log(float x) { return logf(x); }
 GEER_HD double g_log(double x) { return log(x); }
+// |x| with the sign bit cleared (also of -0: the render's absolute sums start from +0 in every path).
+GEER_HD float g_fabs(float x) { return fabsf(x); }
+GEER_HD double g_fabs(double x) { return fabs(x); }
 // Per-pair intrinsics. float32 on the GPU: rsqrtf (2 ulp) and __expf (2 + 1.2 |x| ulp, |x| <= 5.6 where a
 // pair is kept: < 1e-6 relative), within the 1e-5 float32 forward tolerance; float64 stays IEEE, and the
 // CPU build (what the tests run) uses the IEEE functions in both precisions.

@@ -1,6 +1,6 @@
 // Stage 3's per-pair and per-ray math: the Gaussian's ray frame, the exact ray response (eval_pair), front-
 // to-back blending (ray_forward_step) and the back-to-front gradient (ray_backward_step), shared by the CUDA
-// kernels (render.cu) and the CPU build (cpu_ops.cpp).
+// kernels (render.cu) and the CPU build (cpu_render*.cpp).
 //
 // Every function takes its ray quantities as a lane type L (geer_math.h Lane): L = T is one ray, what a GPU
 // thread runs; the CPU build also runs them on packs of rays (geer_packs.h), which must be included first so
@@ -128,21 +128,23 @@ template <typename L> GEER_HD void ray_forward_init(RayForward<L>& s, typename L
     s.done = lane_not(valid);
 }
 
-// Blend the Gaussian at list position `pos` (composite.composite: stop before T < T_MIN).
+// Blend the Gaussian at list position `pos` (composite.composite: stop before T < T_MIN). Returns each lane's
+// blend weight T_before alpha, 0 where the lane does not blend the Gaussian (RenderOutput.max_weight).
 template <typename T, typename L>
-GEER_HD void ray_forward_step(RayForward<L>& s, const GaussFrame<T>& g, const Vec3<L>& d, const L* ray_bounds,
-                              int pos) {
+GEER_HD L ray_forward_step(RayForward<L>& s, const GaussFrame<T>& g, const Vec3<L>& d, const L* ray_bounds,
+                           int pos) {
     using Mask = typename Lane<L>::Mask;
+    const L zero = splat<L>(T(0));
     const Mask open = lane_not(s.done) & ray_meets_pbf(g, ray_bounds);
-    if (!lane_any(open)) return;
+    if (!lane_any(open)) return zero;
     const PairEval<L> e = eval_pair(g, d);
     const Mask kept = open & e.keep;
-    if (!lane_any(kept)) return;
+    if (!lane_any(kept)) return zero;
     const L t_after = s.trans * (splat<L>(T(1)) - e.alpha);
     const Mask stop = kept & (t_after < splat<L>(T(kTMin)));
     s.done = s.done | stop;
     const Mask blend = kept & lane_not(stop);
-    if (!lane_any(blend)) return;
+    if (!lane_any(blend)) return zero;
     const L w = e.alpha * s.trans;
     for (int c = 0; c < 3; ++c) s.rgb[c] = lane_select(blend, s.rgb[c] + w * g.rgb[c], s.rgb[c]);
     // depth at the same clamped t as the response
@@ -150,6 +152,7 @@ GEER_HD void ray_forward_step(RayForward<L>& s, const GaussFrame<T>& g, const Ve
     s.acc = lane_select(blend, s.acc + w, s.acc);
     s.trans = lane_select(blend, t_after, s.trans);
     s.n_contrib = lane_select(blend, Lane<L>::splat_int(pos + 1), s.n_contrib);
+    return lane_select(blend, w, zero);
 }
 
 // ================================================================================ backward: pair
@@ -228,8 +231,8 @@ template <typename L> GEER_HD void pair_grad_zero(PairGrad<L>& p) {
 // that blended it (q <= q_max: what the forward blended too), whose p it sets; the state of the others is
 // untouched. No per-ray cull here: the GPU, whose 1024-thread float32 build has no registers to spare for
 // it, skips whole warps (render.cu); the CPU build visits only the lanes its forward recorded as blending
-// the pair (cpu_ops.cpp); tests/test_cpu_backend.py checks that the two give the same bits. Subgradients at
-// the clamps:
+// the pair (cpu_render_backward.cpp); tests/test_cpu_backend.py checks that the two give the same bits.
+// Subgradients at the clamps:
 //   alpha = min(raw, 0.99)  the derivative of raw where raw < 0.99, none where raw >= 0.99 (subgradients.py);
 //   skip (q <= q_max) and stop (T_after >= 1e-4)  piecewise constant: a blended pair gets its ordinary
 //                           derivative (also exactly on a threshold, where it is blended), others none;

@@ -3,11 +3,13 @@
 // Forward: one block per tile, one thread per ray (block size rounded up to whole warps). The rays of
 // a tile share its front-to-back Gaussian list; the block loads it in batches into shared memory
 // (each Gaussian's ray frame is built once per tile there), every thread blends the batch into its
-// ray, and the block stops as soon as all of its rays are done (3DGS early termination).
+// ray, a warp stops once all of its rays are done and the block once all of its warps are (3DGS early
+// termination). Each entry a warp blends gets the warp's largest weight, one atomicMax (max_weight).
 // Backward: same layout, the list traversed back to front from the block's last blended Gaussian;
 // per-pair gradients of (W, o_u, colour, opacity), 16 values, are summed over the warp by a transposing
 // reduction (16 shuffles; geer_blocks.h) that leaves value k's total in lanes 2k and 2k + 1, so 16 lanes
-// add them to the Gaussian's gradient row with one atomic each, in parallel.
+// add them to the Gaussian's gradient row with one atomic each, in parallel. With absgrad, a separate
+// build (kAbsgrad: the default build's registers stay as they are) also sums the pairs' 2 absgrad values.
 // Per-pair and per-ray math: geer_ray.h (eval_pair, ray_forward_step, ray_backward_step); which ray and
 // which list entry a thread touches: geer_blocks.h (shared with the CPU build, so the CPU tests run it).
 #include "geer_blocks.h"
@@ -22,6 +24,19 @@ template <typename T> __device__ __forceinline__ void load_frame(const RenderArg
 }
 
 // kMaxThreads: the largest block this build is launched with (kSmallTileThreads or kLargeTileThreads).
+// The warp's largest x (geer_blocks.h's tree; a max is exact, so any order gives its bits).
+template <typename T> __device__ __forceinline__ T warp_max(T x) {
+    for_each_tree_mask([&](int mask) { x = g_max(x, __shfl_xor_sync(0xffffffffu, x, mask)); });
+    return x;
+}
+// *a = max(*a, x) for x >= 0: non-negative floats order like their bits (NaN above every number).
+__device__ __forceinline__ void atomic_max_nonneg(float* a, float x) {
+    atomicMax(reinterpret_cast<unsigned int*>(a), __float_as_uint(x));
+}
+__device__ __forceinline__ void atomic_max_nonneg(double* a, double x) {
+    atomicMax(reinterpret_cast<unsigned long long*>(a), static_cast<unsigned long long>(__double_as_longlong(x)));
+}
+
 template <typename T, int kMaxThreads>
 __global__ void __launch_bounds__(kMaxThreads) render_forward_kernel(const RenderArgs<T> a, const RenderOutputs<T> out) {
     constexpr int kBatch = Batch<T>::value;
@@ -47,8 +62,16 @@ __global__ void __launch_bounds__(kMaxThreads) render_forward_kernel(const Rende
         const ListBatch bt = forward_batch(start, end, b, kBatch);
         for (int k = tid; k < bt.size; k += blockDim.x) load_frame(a, a.ids[batch_entry(bt, k)], frames[k]);
         __syncthreads();
-        for (int k = 0; k < bt.size && !st.done; ++k)
-            if (ray_meets_pbf(frames[k], wb)) ray_forward_step(st, frames[k], d, rb, batch_entry(bt, k) - start);
+        // Warp-uniform: the warp's maximum below needs all 32 lanes (a done lane's step blends nothing).
+        for (int k = 0; k < bt.size; ++k) {
+            if (__all_sync(0xffffffffu, st.done)) break;
+            if (!ray_meets_pbf(frames[k], wb)) continue;  // the same for every lane of the warp
+            const T w = ray_forward_step(st, frames[k], d, rb, batch_entry(bt, k) - start);
+            if (!__any_sync(0xffffffffu, w > T(0))) continue;
+            const T top = warp_max(w);
+            // The id from global memory, by lane 0 only: a shared copy of the batch's ids costs registers.
+            if (lane == 0) atomic_max_nonneg(out.max_weight + a.ids[batch_entry(bt, k)], top);
+        }
     }
     if (!slot.in_image) return;
     const int r = slot.ray;
@@ -69,7 +92,16 @@ template <typename T> __device__ __forceinline__ void warp_reduce_scatter(T* v, 
     });
 }
 
-template <typename T, int kMaxThreads>
+// The warp's totals of kCount values along geer_blocks.h's tree (a butterfly: lane 0 ends with them).
+template <int kCount, typename T> __device__ __forceinline__ void warp_tree_sum(T* v) {
+    for_each_tree_mask([&](int mask) {
+        for (int i = 0; i < kCount; ++i) v[i] += __shfl_xor_sync(0xffffffffu, v[i], mask);
+    });
+}
+
+// kAbsgrad: also sum each pair's absgrad values (g.absgrad_rows, g.absgrad); a build of its own, so that the
+// default one keeps its registers.
+template <typename T, int kMaxThreads, bool kAbsgrad>
 __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const RenderArgs<T> a, const RenderGradArgs<T> g) {
     constexpr int kBatch = Batch<T>::value;
     __shared__ GaussFrame<T> frames[kBatch];
@@ -116,6 +148,14 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
             PairGrad<T> p;
             const bool contrib = ray_backward_step(st, frames[k], d, pos < my_n, p);
             if (!__any_sync(0xffffffffu, contrib)) continue;
+            if constexpr (kAbsgrad) {  // before the 16 values are reduced, while they are still p
+                T av[kAbsgradValues];
+                lane_absgrad_values(g.absgrad_rows + kAbsgradRow * frame_ids[k], p, contrib, av);
+                warp_tree_sum<kAbsgradValues>(av);
+                T* out = g.absgrad + kAbsgradValues * frame_ids[k];
+                if (lane == 0)
+                    for (int j = 0; j < kAbsgradValues; ++j) atomicAdd(out + j, av[j]);
+            }
             T v[kGradValues];
             lane_grad_values(p, contrib, v);
             warp_reduce_scatter(v, lane);
@@ -140,8 +180,12 @@ void launch_render_backward(const RenderArgs<T>& a, const RenderGradArgs<T>& g, 
     const int n_tiles = tile_count(a.height, a.width, a.tile_size);
     if (n_tiles <= 0) return;
     const int threads = threads_per_tile(a.tile_size);
-    const auto kernel = threads <= kSmallTileThreads ? render_backward_kernel<T, kSmallTileThreads>
-                                                     : render_backward_kernel<T, kLargeTileThreads>;
+    const bool small = threads <= kSmallTileThreads;
+    const auto kernel = g.absgrad != nullptr
+                            ? (small ? render_backward_kernel<T, kSmallTileThreads, true>
+                                     : render_backward_kernel<T, kLargeTileThreads, true>)
+                            : (small ? render_backward_kernel<T, kSmallTileThreads, false>
+                                     : render_backward_kernel<T, kLargeTileThreads, false>);
     kernel<<<n_tiles, threads, 0, stream>>>(a, g);
     GEER_KERNEL_LAUNCH_CHECK("render_backward_kernel");
 }

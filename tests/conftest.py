@@ -29,6 +29,18 @@ def single_thread():
     torch.set_num_threads(n)
 
 
+@pytest.fixture(scope="module")
+def cpu_ops():
+    """The CPU build (csrc/cpu_ops.cpp, JIT-built once per configuration); skips without a C++ compiler."""
+    import shutil
+
+    if shutil.which("c++") is None and shutil.which("g++") is None:
+        pytest.skip("no C++ compiler: cannot build csrc/cpu_ops.cpp")
+    from geer_ns.render.cuda_backend import load_cpu_ops
+
+    return load_cpu_ops()
+
+
 def random_quats(n: int, gen: torch.Generator, dtype=torch.float64) -> torch.Tensor:
     return torch.randn(n, 4, generator=gen, dtype=dtype)
 
@@ -60,6 +72,29 @@ def random_scene(
     return means, quats, scales, opacities, colors
 
 
+def stress_gaussians(dtype=torch.float64):
+    """(means, quats, scales, opacities) of degenerate Gaussians, seen from the origin looking along +z: disk,
+    needle, camera inside, straddling z = 0, behind, a scale below MIN_SCALE, non-unit quaternions, opacity
+    exactly 1 and 0, one grazing the camera from the side."""
+    rows = [  # mean, scales, opacity
+        ((0.1, 0.0, 2.0), (1e-8, 0.3, 0.2), 0.8),
+        ((0.1, 0.0, 2.0), (0.4, 1e-8, 1e-8), 0.8),
+        ((0.05, -0.02, 0.1), (0.6, 0.5, 0.7), 0.8),
+        ((0.3, 0.1, 0.0), (0.3, 0.2, 0.4), 0.8),
+        ((0.0, 0.2, -2.0), (0.3, 0.3, 0.3), 0.8),
+        ((0.4, -0.3, 3.0), (1e-13, 0.2, 0.3), 0.9),
+        ((-0.5, 0.5, 1.5), (0.2, 0.1, 0.05), 1.0),
+        ((0.0, 0.0, 2.0), (0.3, 0.3, 0.3), 0.0),
+        ((2.0, 0.1, 0.3), (0.5, 0.05, 0.05), 0.7),
+    ]
+    means = torch.tensor([r[0] for r in rows], dtype=dtype)
+    scales = torch.tensor([r[1] for r in rows], dtype=dtype)
+    opac = torch.tensor([r[2] for r in rows], dtype=dtype)
+    gen = torch.Generator().manual_seed(3)
+    quats = torch.randn(len(rows), 4, generator=gen, dtype=dtype) * 3.0  # deliberately not unit
+    return means, quats, scales, opac
+
+
 def random_viewmat(seed: int, dtype=torch.float64, translation_scale: float = 0.5) -> torch.Tensor:
     """A random rigid world-to-camera transform."""
     gen = torch.Generator().manual_seed(seed)
@@ -82,6 +117,27 @@ def equidistant_fisheye_rays(size: int, fov_deg: float = 180.0, dtype=torch.floa
     psi = torch.atan2(v, u)
     dirs = torch.stack([torch.sin(ang) * torch.cos(psi), torch.sin(ang) * torch.sin(psi), torch.cos(ang)], -1)
     return dirs, ang <= math.radians(fov_deg / 2)
+
+
+def small_grid(name: str, dtype=torch.float64):
+    """12 x 12 rays in 6-pixel tiles (36 rays: a full warp and a padded one per tile): "beap" (100 x 80
+    degrees) or "fisheye" (190 degrees equidistant: rays beyond 90 degrees off axis, corners invalid)."""
+    from geer_ns.render import RayGrid
+
+    if name == "beap":
+        return RayGrid.beap(12, 12, math.radians(100), math.radians(80), tile_size=6, dtype=dtype)
+    dirs, valid = equidistant_fisheye_rays(12, 190.0, dtype=dtype)
+    return RayGrid.from_rays(dirs, valid, tile_size=6)
+
+
+def small_scene(grid_name: str, seed: int = 0, n: int = 40):
+    """([means, quats, scales, opacities, colours] in world space, a rigid float64 viewmat) of n Gaussians
+    in small_grid(grid_name)'s view (all around the camera for the fisheye), RGB colours."""
+    means_c, quats, scales, opac, colors = random_scene(n, seed, around=grid_name == "fisheye", spread=0.7,
+                                                        scale_range=(0.05, 0.5))
+    viewmat = random_viewmat(seed + 10)
+    rot, t = viewmat[:3, :3], viewmat[:3, 3]
+    return [(means_c - t) @ rot, quats, scales, opac, colors], viewmat  # camera-frame means: means_c
 
 
 def equirect_rays(width: int, height: int, dtype=torch.float64):

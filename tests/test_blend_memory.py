@@ -21,7 +21,7 @@ from geer_ns.render import RayGrid, render
 _SCRIPT = """
 import json, resource, sys, torch
 from geer_ns.render import RayGrid, render
-n, max_pairs = int(sys.argv[1]), int(sys.argv[2])
+n, max_pairs, absgrad = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "absgrad"
 
 from benchmarks.peak_rss import peak_kib, peak_reset
 torch.set_num_threads(1)
@@ -31,17 +31,20 @@ quats = torch.randn(n, 4, generator=gen)
 scales, opac, colors = torch.full((n, 3), 0.6), torch.full((n,), 0.02), torch.rand(n, 3, generator=gen)
 grid = RayGrid.beap(32, 32, 0.5, 0.5, tile_size=16)
 leaves = [t.requires_grad_(True) for t in (means, quats, scales, opac, colors)]
+sink = torch.zeros(n, 2, requires_grad=True)
+extra = {"absgrad": (torch.randn(n, 3, 2, generator=gen), sink)} if absgrad else {}
 base = peak_reset()
-out = render(*leaves, torch.eye(4), grid, max_pairs=max_pairs, backend="torch")
+out = render(*leaves, torch.eye(4), grid, max_pairs=max_pairs, backend="torch", **extra)
 (out.rgb.sum() + out.depth.sum() + out.accumulation.sum()).backward()
 print(json.dumps({"pairs": int(out.tile_counts.sum()) * 256, "mib": (peak_kib() - base) / 1024}))
 """
 
 
-def _peak(n: int, max_pairs: int) -> dict:
+def _peak(n: int, max_pairs: int, absgrad: bool = False) -> dict:
     root = Path(__file__).resolve().parents[1]
     env = dict(os.environ, PYTHONPATH=str(root))
-    res = subprocess.run([sys.executable, "-c", _SCRIPT, str(n), str(max_pairs)], env=env, cwd=root,
+    args = [str(n), str(max_pairs), "absgrad" if absgrad else "-"]
+    res = subprocess.run([sys.executable, "-c", _SCRIPT, *args], env=env, cwd=root,
                          capture_output=True, text=True, timeout=300, check=True)
     return json.loads(res.stdout.strip().splitlines()[-1])
 
@@ -55,6 +58,13 @@ def test_peak_memory_does_not_grow_with_pairs_at_fixed_max_pairs():
     # The measurement sees per-pair memory: a 32x larger budget holds 1M pairs at once and costs far more.
     big = _peak(1000, 1 << 20)
     assert big["mib"] - small["mib"] >= 100, (small, big)
+
+
+def test_absgrad_keeps_the_memory_bound():
+    """absgrad's per-pair tensors (dL/dq, dL/d(depth), each pair's dL/do_u) live inside one piece: at a fixed
+    max_pairs the peak does not grow with the pairs either."""
+    small, dense = _peak(1000, 1 << 15, absgrad=True), _peak(4000, 1 << 15, absgrad=True)
+    assert dense["mib"] - small["mib"] <= 16, (small, dense)
 
 
 def test_autograd_saves_nothing_per_pair():
@@ -87,18 +97,22 @@ def _dense_scene(n):
 
 
 def test_pieces_equal_one_piece():
-    """Blending lists in pieces of a few pairs (with the transmittance carried) is the same image and the
-    same gradient as one piece."""
+    """Blending lists in pieces of a few pairs (with the transmittance carried) is the same image, max_weight,
+    gradient and absgrad as one piece."""
     grid = RayGrid.beap(16, 16, 0.8, 0.8, tile_size=8, dtype=torch.float64)
     results = []
+    lateral = torch.randn(150, 3, 2, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
     for max_pairs in (1 << 22, 64 * 7):  # 7 Gaussians x 64 rays per piece
         leaves = [t.clone().requires_grad_(True) for t in _dense_scene(150)]
         leaves[3] = (leaves[3].detach() * 10).requires_grad_(True)  # opaque enough for early termination
-        out = render(*leaves, torch.eye(4, dtype=torch.float64), grid, max_pairs=max_pairs, backend="torch")
+        sink = torch.zeros(150, 2, dtype=torch.float64, requires_grad=True)
+        out = render(*leaves, torch.eye(4, dtype=torch.float64), grid, max_pairs=max_pairs, backend="torch",
+                     absgrad=(lateral, sink))
         (out.rgb.square().sum() + out.depth.sum() + out.accumulation.sum()).backward()
-        results.append((out, [t.grad for t in leaves]))
+        results.append((out, [t.grad for t in leaves] + [sink.grad]))
     (a, ga), (b, gb) = results
     assert float(a.accumulation.detach().max()) > 0.999  # some rays stopped early
+    assert torch.equal(a.max_weight, b.max_weight)
     for name in ("rgb", "depth", "accumulation"):
         assert float((getattr(a, name) - getattr(b, name)).detach().abs().max()) <= 1e-12, name
     for x, y in zip(ga, gb):

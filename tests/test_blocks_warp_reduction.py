@@ -73,9 +73,9 @@ def test_wrong_shape_names_the_argument(ops):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_the_cpu_backwards_sparse_sum_is_the_butterflys_bit_for_bit(ops, dtype):
-    """The CPU backward sums only the contributing lanes (cpu_ops.cpp warp_grad_sum_sparse); it must give the
-    lock-step butterfly's bits (the GPU's summation order), for any set of lanes and magnitudes where rounding
-    order shows: mixed scales, cancellation, signed zeros, subnormals."""
+    """The CPU backward sums only the contributing lanes (cpu_render_backward.cpp warp_sum_sparse); it must give
+    the lock-step butterfly's bits (the GPU's summation order), for any set of lanes and magnitudes where
+    rounding order shows: mixed scales, cancellation, signed zeros, subnormals."""
     rng = np.random.default_rng(11)
     tiny = float(torch.finfo(dtype).tiny)
     differs_from_sequential = 0
@@ -95,3 +95,30 @@ def test_the_cpu_backwards_sparse_sum_is_the_butterflys_bit_for_bit(ops, dtype):
         differs_from_sequential += int(not torch.equal(row, sequential))
     # The order matters: a plain left-to-right sum gives other bits for many of these warps.
     assert differs_from_sequential > 50
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_absgrad_sum_follows_the_same_tree(ops, dtype):
+    """absgrad's 2 values per lane: the kernel's butterfly (render.cu warp_tree_sum, here in lock-step) and the
+    CPU backward's sparse sum give the same bits (the masks of geer_blocks.h for_each_tree_mask), within the
+    rounding bound of a float64 sum, and in an order of their own (not left to right). Values >= 0: |.|'s."""
+    rng = np.random.default_rng(12)
+    differs_from_sequential = 0
+    for trial in range(400):
+        k = int(rng.integers(0, LANES + 1))
+        contrib = np.zeros(LANES, dtype=bool)
+        contrib[rng.choice(LANES, size=k, replace=False)] = True
+        values = np.abs(rng.normal(size=(LANES, 2))) * 10.0 ** rng.integers(-8, 9, size=(LANES, 2))
+        values[rng.random((LANES, 2)) < 0.1] = 0.0
+        v = torch.tensor(values, dtype=dtype)
+        butterfly, sparse = ops.warp_tree_sum(v, torch.tensor(contrib))
+        bits = torch.int64 if dtype == torch.float64 else torch.int32
+        assert torch.equal(butterfly.view(bits), sparse.view(bits)), (trial, k)
+        exact = v.double().numpy()[contrib].sum(axis=0)
+        bound = LANES * float(torch.finfo(dtype).eps) * exact
+        assert (np.abs(butterfly.double().numpy() - exact) <= bound).all()
+        sequential = v[torch.tensor(contrib)].sum(0) if k else torch.zeros(2, dtype=dtype)
+        differs_from_sequential += int(not torch.equal(butterfly, sequential))
+    assert differs_from_sequential > 50
+    with pytest.raises(RuntimeError, match=r"warp_tree_sum: values must be \[32, 2\]"):
+        ops.warp_tree_sum(torch.zeros(32, 16), torch.ones(LANES, dtype=torch.bool))

@@ -21,12 +21,17 @@ def ops():
     return cuda_backend.load_cpu_ops()
 
 
-def _render_and_grads(grid, dtype=torch.float32, backend="auto", scene=None):
+def _render_and_grads(grid, dtype=torch.float32, backend="auto", scene=None, absgrad=False):
+    """Images, visibility, tile counts, max_weight, every parameter's gradient and, with absgrad, the sink's."""
     scene = [t.to(dtype).clone().requires_grad_(True) for t in (scene or random_scene(300, 7, around=True))]
+    n = scene[0].shape[0]
+    sink = torch.zeros(n, 2, dtype=dtype, requires_grad=True)
+    lateral = torch.randn(n, 3, 2, generator=torch.Generator().manual_seed(4), dtype=torch.float64).to(dtype)
     out = render(*scene, torch.eye(4, dtype=dtype), grid, background=torch.full((3,), 0.3, dtype=dtype),
-                 backend=backend)
+                 backend=backend, absgrad=(lateral, sink) if absgrad else None)
     (out.rgb.square().sum() + out.depth.sum() + out.accumulation.sum()).backward()
-    return [out.rgb, out.depth, out.accumulation, out.visible, out.tile_counts] + [t.grad for t in scene]
+    return ([out.rgb, out.depth, out.accumulation, out.visible, out.tile_counts, out.max_weight]
+            + [t.grad for t in scene] + ([sink.grad] if absgrad else []))
 
 
 def test_auto_uses_the_cpu_build_on_cpu_tensors(ops):
@@ -38,17 +43,19 @@ def test_auto_uses_the_cpu_build_on_cpu_tensors(ops):
 
 @pytest.mark.parametrize("grid_name", ["beap", "fisheye180", "equirect360"])
 def test_cpu_build_is_deterministic_across_threads(ops, grid_name):
-    """Bitwise equal over two runs with 2 threads and a run with 1: no order-dependent sums between threads."""
+    """Bitwise equal over two runs with 2 threads and a run with 1: no order-dependent sums between threads
+    (max_weight's and absgrad's included)."""
     grid = reference_grids(torch.float32)[grid_name]
     n = torch.get_num_threads()
     try:
         torch.set_num_threads(2)
-        first, second = _render_and_grads(grid), _render_and_grads(grid)
+        first, second = _render_and_grads(grid, absgrad=True), _render_and_grads(grid, absgrad=True)
         torch.set_num_threads(1)
-        single = _render_and_grads(grid)
+        single = _render_and_grads(grid, absgrad=True)
     finally:
         torch.set_num_threads(n)
-    assert float(first[2].detach().max()) > 0.5 and float(first[5].abs().max()) > 0  # something was rendered
+    assert float(first[2].detach().max()) > 0.5 and float(first[6].abs().max()) > 0  # something was rendered
+    assert float(first[-1].max()) > 0  # absgrad too
     for a, b, c in zip(first, second, single):
         assert torch.equal(a, b) and torch.equal(a, c)
 
@@ -120,19 +127,21 @@ def test_the_kernels_one_ray_per_thread_path_gives_the_cpu_paths_bits(ops, monke
     """The CPU build renders packs of rays (csrc/geer_packs.h, where it has AVX2), and its backward visits only
     the lanes its forward recorded as blending each entry (blended_lanes). The kernels run one ray per thread,
     and their backward skips whole warps by the cull and lets every lane of the blended prefix evaluate the
-    pair (render_forward_gpu_path / render_backward_gpu_path run that path on the CPU). Same images and
-    gradients, bit for bit: packs, masks and the record change which lanes compute, never a lane's result."""
+    pair (render_forward_gpu_path / render_backward_gpu_path run that path on the CPU). Same images, max_weight,
+    gradients and absgrad sums, bit for bit: packs, masks and the record change which lanes compute, never a
+    lane's result."""
     grid, scene = _bit_case(grid_name, dtype)
-    cpu_path = _render_and_grads(grid, dtype, backend="cpu", scene=scene)
+    cpu_path = _render_and_grads(grid, dtype, backend="cpu", scene=scene, absgrad=True)
     monkeypatch.setattr(ops, "render_forward", ops.render_forward_gpu_path)
     monkeypatch.setattr(ops, "render_backward", ops.render_backward_gpu_path)
-    gpu_path = _render_and_grads(grid, dtype, backend="cpu", scene=scene)
+    gpu_path = _render_and_grads(grid, dtype, backend="cpu", scene=scene, absgrad=True)
     # The CPU's path one ray at a time (a build without AVX2): the record, no packs.
     monkeypatch.setattr(ops, "render_backward", ops.render_backward_one_ray)
-    one_ray = _render_and_grads(grid, dtype, backend="cpu", scene=scene)
-    assert float(cpu_path[5].abs().max()) > 0
+    one_ray = _render_and_grads(grid, dtype, backend="cpu", scene=scene, absgrad=True)
+    assert float(cpu_path[6].abs().max()) > 0 and float(cpu_path[5].max()) > 0 and float(cpu_path[-1].max()) > 0
     if grid_name == "stops":  # the walk crosses a batch; rays come within 10x of T_MIN
         assert int(cpu_path[4].max()) > 256 and float(cpu_path[2].max()) > 0.999
+    assert len(cpu_path) == 12
     for a, b, c in zip(cpu_path, gpu_path, one_ray):
         assert torch.equal(a, b) and torch.equal(a, c)
 
@@ -175,5 +184,5 @@ def test_the_forward_records_blended_lanes_only_when_a_backward_will_run(ops, mo
     no_grad, with_grad = seen
     pairs = int(out.tile_counts.sum())  # one row per list entry, one word per warp of a 16x16 tile
     assert no_grad[5].numel() == 0 and with_grad[5].shape == (pairs, 8) and bool((with_grad[5] != 0).any())
-    for a, b in zip(no_grad[:5], with_grad[:5]):
+    for a, b in zip(no_grad[:5] + no_grad[6:], with_grad[:5] + with_grad[6:]):  # max_weight too
         assert torch.equal(a, b)

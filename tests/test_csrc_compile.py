@@ -57,16 +57,19 @@ class Kernel:
     name: str  # mangled
     base: str  # e.g. render_backward_kernel
     dtype: str | None  # "float32" / "float64" (first template argument), None when not a float template
+    flags: tuple[bool, ...] = ()  # the bool template arguments (render_backward_kernel's kAbsgrad)
     registers: int = -1
     spill_bytes: int = 0  # stores + loads
     max_threads: int = MAX_BLOCK  # .maxntid of the PTX entry (__launch_bounds__)
 
     def label(self) -> str:
-        return f"{self.base}<{self.dtype or '-'}, block {self.max_threads}>"
+        flags = "".join(f", {str(f).lower()}" for f in self.flags)
+        return f"{self.base}<{self.dtype or '-'}, block {self.max_threads}{flags}>"
 
 
-def _demangle(mangled: str) -> tuple[str, str | None]:
-    """(unqualified name, dtype of the first template argument) of an Itanium-mangled kernel name."""
+def _demangle(mangled: str) -> tuple[str, str | None, tuple[bool, ...]]:
+    """(unqualified name, dtype of the first template argument, bool template arguments) of an Itanium-mangled
+    kernel name."""
     pos = mangled.index("Z") + 1
     pos += mangled[pos] == "N"
     base = mangled
@@ -75,10 +78,12 @@ def _demangle(mangled: str) -> tuple[str, str | None]:
         pos += len(digits)
         base = mangled[pos : pos + int(digits)]
         pos += int(digits)
-    dtype = None
+    dtype, flags = None, ()
     if mangled[pos : pos + 1] == "I":
         dtype = {"f": "float32", "d": "float64"}.get(mangled[pos + 1])
-    return base, dtype
+        args = re.match(r"I((?:[fd]|Li\d+E|Lb[01]E)+)E", mangled[pos:])  # the template arguments this repo uses
+        flags = tuple(b == "1" for b in re.findall(r"Lb([01])E", args.group(1))) if args else ()
+    return base, dtype, flags
 
 
 def parse_resources(ptxas_log: str, ptx: str) -> dict[str, Kernel]:
@@ -206,6 +211,9 @@ def test_every_kernel_launches_at_its_largest_block(build):
         for dtype in ("float32", "float64"):  # every tile size 1..32 has a build: up to 256 and up to 1024 threads
             blocks = {k.max_threads for k in found.values() if k.base == base and k.dtype == dtype}
             assert blocks == {256, 1024}, (base, dtype, blocks)
+    # The backward with and without absgrad (kAbsgrad), at both blocks and in both precisions.
+    variants = {(k.dtype, k.max_threads, k.flags) for k in found.values() if k.base == "render_backward_kernel"}
+    assert variants == {(d, b, (f,)) for d in ("float32", "float64") for b in (256, 1024) for f in (False, True)}
     for base in ("preprocess_forward_kernel", "preprocess_backward_kernel", "count_tiles_kernel", "emit_pairs_kernel"):
         assert {k.dtype for k in found.values() if k.base == base} == {"float32", "float64"}, base
 
@@ -253,14 +261,14 @@ def test_missing_nvcc_fails_in_ci(monkeypatch):
 def test_parse_resources_on_a_known_report():
     """The parser on a fixed ptxas/PTX pair (independent of the compiler at hand)."""
     ptx = (".visible .entry _ZN4geer1kIdLi1024EEEvv(\n)\n.maxntid 1024, 1, 1\n{\n}\n"
-           ".visible .entry _ZN4geer1kIfLi256EEEvv(\n)\n.maxntid 256, 1, 1\n{\n}\n"
+           ".visible .entry _ZN4geer1kIfLi256ELb1EEEvv(\n)\n.maxntid 256, 1, 1\n{\n}\n"
            ".visible .entry _ZN4geer6rangesEPKmlPi(\n)\n{\n}\n")
     log = ("ptxas info    : Compiling entry function '_ZN4geer1kIdLi1024EEEvv' for 'sm_90'\n"
            "ptxas info    : Function properties for _ZN4geer1kIdLi1024EEEvv\n"
            "    0 bytes stack frame, 0 bytes spill stores, 0 bytes spill loads\n"
            "ptxas info    : Used 96 registers, used 1 barriers, 30212 bytes smem\n"
-           "ptxas info    : Compiling entry function '_ZN4geer1kIfLi256EEEvv' for 'sm_90'\n"
-           "ptxas info    : Function properties for _ZN4geer1kIfLi256EEEvv\n"
+           "ptxas info    : Compiling entry function '_ZN4geer1kIfLi256ELb1EEEvv' for 'sm_90'\n"
+           "ptxas info    : Function properties for _ZN4geer1kIfLi256ELb1EEEvv\n"
            "    8 bytes stack frame, 8 bytes spill stores, 4 bytes spill loads\n"
            "ptxas info    : Used 255 registers, used 1 barriers, 30212 bytes smem\n"
            "ptxas info    : Compiling entry function '_ZN4geer6rangesEPKmlPi' for 'sm_90'\n"
@@ -269,6 +277,7 @@ def test_parse_resources_on_a_known_report():
     k64, k32, kr = kernels.values()
     assert (k64.base, k64.dtype, k64.registers, k64.max_threads) == ("k", "float64", 96, 1024)
     assert (k32.dtype, k32.registers, k32.spill_bytes, k32.max_threads) == ("float32", 255, 12, 256)
+    assert k64.flags == () and k32.flags == (True,) and k32.label() == "k<float32, block 256, true>"
     assert (kr.base, kr.dtype, kr.max_threads) == ("ranges", None, MAX_BLOCK)
     v = violations(kernels)
     assert len(v) == 3 and "96 registers x 1024" in v[0] and "spills 12 bytes" in v[1] and "70 registers x 1024" in v[2]

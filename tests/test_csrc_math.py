@@ -27,6 +27,7 @@ from conftest import (
     random_scene,
     random_viewmat,
     reference_grids,
+    stress_gaussians,
     WIDE_GRIDS,
 )
 
@@ -56,28 +57,6 @@ def ops():
 
 
 # ------------------------------------------------------------------------------------------ scenes
-def _stress(dtype=F64):
-    """Degenerate Gaussians (as in test_render): disk, needle, camera inside, straddling z = 0, behind, huge
-    coordinates, a scale below MIN_SCALE, non-unit quaternions, opacity exactly 1 and 0."""
-    rows = [  # mean, scales, opacity
-        ((0.1, 0.0, 2.0), (1e-8, 0.3, 0.2), 0.8),
-        ((0.1, 0.0, 2.0), (0.4, 1e-8, 1e-8), 0.8),
-        ((0.05, -0.02, 0.1), (0.6, 0.5, 0.7), 0.8),
-        ((0.3, 0.1, 0.0), (0.3, 0.2, 0.4), 0.8),
-        ((0.0, 0.2, -2.0), (0.3, 0.3, 0.3), 0.8),
-        ((0.4, -0.3, 3.0), (1e-13, 0.2, 0.3), 0.9),
-        ((-0.5, 0.5, 1.5), (0.2, 0.1, 0.05), 1.0),
-        ((0.0, 0.0, 2.0), (0.3, 0.3, 0.3), 0.0),
-        ((2.0, 0.1, 0.3), (0.5, 0.05, 0.05), 0.7),  # elongated, grazing the camera from the side
-    ]
-    means = torch.tensor([r[0] for r in rows], dtype=dtype)
-    scales = torch.tensor([r[1] for r in rows], dtype=dtype)
-    opac = torch.tensor([r[2] for r in rows], dtype=dtype)
-    gen = torch.Generator().manual_seed(3)
-    quats = torch.randn(len(rows), 4, generator=gen, dtype=dtype) * 3.0  # deliberately not unit
-    return means, quats, scales, opac
-
-
 def _scene(kind: str, dtype, seed: int = 0):
     """(means, quats, scales, opacities, viewmat) for the preprocess/pair tests."""
     if kind == "front":
@@ -87,10 +66,10 @@ def _scene(kind: str, dtype, seed: int = 0):
         m, q, s, o, _ = random_scene(200, seed, around=True, scale_range=(1e-3, 0.6))
         vm = random_viewmat(seed + 1, translation_scale=0.3)
     elif kind == "stress":
-        m, q, s, o = _stress()
+        m, q, s, o = stress_gaussians()
         vm = torch.eye(4, dtype=F64)
     elif kind == "huge":
-        m, q, s, o = _stress()
+        m, q, s, o = stress_gaussians()
         m = m + torch.tensor([1e4, -1e4, 1e4], dtype=F64)
         vm = torch.eye(4, dtype=F64)
         vm[:3, 3] = torch.tensor([-1e4, 1e4, -1e4], dtype=F64)
@@ -252,7 +231,7 @@ def test_pair_backward_matches_autograd(ops, kind):
 @pytest.mark.parametrize("degree", [-1, 0, 1, 2, 3])
 def test_preprocess_backward_matches_autograd(ops, degree):
     means, quats, scales, _opac, vm = _scene("around", F64, 2)
-    sm, sq, ss, _ = _stress()
+    sm, sq, ss, _ = stress_gaussians()
     means, quats, scales = torch.cat([means, sm]), torch.cat([quats, sq]), torch.cat([scales, ss])
     n = means.shape[0]
     gen = torch.Generator().manual_seed(degree + 9)
@@ -446,7 +425,7 @@ def test_early_termination_and_alpha_clamp(ops):
         w, o_u, _rgb, bounds, alive, _inside = ops.preprocess_forward(
             pre.means_c, scene[1], scene[2], scene[3], scene[4][:, None], scene[0], vm[:3, :3].contiguous(), -1, False)
         ids, ranges, _, _ = cuda_backend.associate_pairs(ops, bounds, alive, pre.depth, grid)
-        _, _, _acc, t_final, n_contrib, _blended = ops.render_forward(
+        _, _, _acc, t_final, n_contrib, _blended, _max_weight = ops.render_forward(
             w, o_u, scene[4], scene[3], pbf_cull_pieces(bounds), grid.dirs, grid.ray_cull_bounds(F64),
             grid.warp_cull_bounds(F64),
             grid.valid, ids, ranges, grid.height, grid.width, grid.tile_size, False)
@@ -461,7 +440,7 @@ def test_early_termination_and_alpha_clamp(ops):
 @pytest.mark.parametrize("dtype", [F32, F64])
 def test_stress_scene_matches_twin(ops, dtype):
     """Disks, needles, camera inside, behind the camera, 200-degree fisheye and 360-degree rays."""
-    means, quats, scales, opac = _stress(dtype)
+    means, quats, scales, opac = stress_gaussians(dtype)
     m2, q2, s2, o2, _ = random_scene(50, 2, around=True, dtype=dtype)
     scene = [torch.cat([means, m2]), torch.cat([quats, q2]), torch.cat([scales, s2]), torch.cat([opac, o2])]
     scene.append(torch.rand(scene[0].shape[0], 4, 3, generator=torch.Generator().manual_seed(0), dtype=F64).to(dtype))

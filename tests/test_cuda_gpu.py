@@ -3,8 +3,8 @@
 tests/test_csrc_math.py already checks the kernels' math on the CPU; this adds what only a GPU exercises:
 the JIT build, shared-memory batches (lists longer than one batch), warp padding (tile sizes that are not
 a multiple of 32 rays), both render builds (blocks up to 256 and up to 1024 threads, in both precisions),
-warp-reduced atomics, the radix sort and tile ranges, launch errors raised at their own call, and float64
-backward repeatability. When all of it passes on a GPU, set cuda_backend.CUDA_VERIFIED = True so that
+warp-reduced atomics (max_weight's and absgrad's too), the radix sort and tile ranges, launch errors raised at
+their own call, and float64 backward repeatability. When all of it passes on a GPU, set cuda_backend.CUDA_VERIFIED = True so that
 backend="auto" may choose the kernels.
 """
 
@@ -144,6 +144,35 @@ def test_tile_sizes_and_long_lists(cuda_ops, tile_size):
             g_ours = _grads(lambda *a, g=grid, v=vm: cuda_backend.render_cuda(*a, v, g, ops=cuda_ops), scene, 2)
             for name, a, b in zip(FIELDS, g_ours, g_ref):
                 assert _rel(a, b) <= 1e-8, f"{name}: {_rel(a, b):.3e}"
+
+
+@pytest.mark.parametrize("tile_size", [7, 16, 32])
+def test_absgrad_and_max_weight_match_the_cpu_build(cuda_ops, tile_size):
+    """max_weight (a warp max, one atomicMax on the weight's bits per warp and entry) and absgrad (the kAbsgrad
+    backward build: the 2-value butterfly, lane 0's atomics), in both render builds (tile 32: 1024 threads),
+    against the CPU build, which runs the same headers: float64 to rounding (atomics add in any order), float32
+    close (the GPU's __expf, rsqrtf and FMAs; a pair exactly on the 1/255 threshold may round either way)."""
+    cpu_ops = cuda_backend.load_cpu_ops()
+    for dtype in (F32, F64):
+        grid = RayGrid.beap(40, 36, math.radians(60), math.radians(50), tile_size=tile_size, dtype=dtype)
+        scene = random_scene(400, 6, spread=0.5, scale_range=(0.05, 0.3))
+        lateral = torch.randn(400, 3, 2, generator=torch.Generator().manual_seed(1), dtype=F64)
+        results = []
+        for device, ops in ((DEV, cuda_ops), ("cpu", cpu_ops)):
+            leaves = [t.to(device, dtype).requires_grad_(True) for t in scene]
+            sink = torch.zeros(400, 2, dtype=dtype, device=device, requires_grad=True)
+            out = cuda_backend.render_cuda(*leaves, torch.eye(4, dtype=dtype, device=device), grid.to(device),
+                                           ops=ops, absgrad=(lateral.to(device, dtype), sink))
+            (out.rgb.square().sum() + out.depth.sum()).backward()
+            results.append((out.max_weight.cpu(), sink.grad.cpu()))
+        (weight, absgrad), (weight_cpu, absgrad_cpu) = results
+        assert float(weight_cpu.max()) > 0.5 and float(absgrad_cpu.abs().max()) > 0
+        if dtype == F64:
+            assert float((weight - weight_cpu).abs().max()) <= 1e-12
+            assert _rel(absgrad, absgrad_cpu) <= 1e-12
+        else:
+            assert int(((weight - weight_cpu).abs() > 1e-5).sum()) <= 2
+            assert _rel(absgrad, absgrad_cpu) <= 1e-3
 
 
 def test_deterministic_forward(cuda_ops):

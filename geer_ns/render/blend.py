@@ -16,6 +16,11 @@ with c the bytes one pair costs inside a piece (the backward's autograd graph of
 300 bytes in float32, 520 in float64; benchmarks/camera_inside.md), independent of how many Gaussians each
 ray sees (tests/test_blend_memory.py). The default max_pairs = 2^20 thus bounds the per-pair part at about
 0.3 GB (float32).
+
+Two per-Gaussian by-products. max_weight: each Gaussian's largest blend weight over the rays, from the
+forward's pieces (no gradient). absgrad (absgrad.py): when the sink is given, the backward also asks autograd
+for each piece's per-pair dL/dq and dL/d(depth), forms each pair's dL/do_u from them (absgrad.pair_o_u_grad)
+and sums |A_n dL/do_u| over the piece's rays: more per-pair tensors inside a piece, still O(max_pairs).
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .absgrad import pair_absgrad, pair_o_u_grad
 from .composite import composite
 from .transmittance import canonical_ray_response, half_line_sq, pair_alpha
 
@@ -47,20 +53,25 @@ def _plan(counts: Tensor, rays_per_group: int, max_pairs: int) -> list[tuple[Ten
 
 def _blend_piece(o_u, whiten, opacities, colors, dirs, r_ok, g_ok, t_start):
     """One piece: o_u [G,K,3], whiten [G,K,3,3], opacities [G,K], colors [G,K,3] of the listed Gaussians,
-    dirs [G,P,3]; r_ok [G,P] / g_ok [G,K] mask padding and invalid rays. Returns composite's four outputs."""
+    dirs [G,P,3]; r_ok [G,P] / g_ok [G,K] mask padding and invalid rays. Returns (rgb, depth sum, accumulation,
+    t_end) per ray and the pairs' q, depth and blend weight [G,P,K]."""
     dist_sq, t_star = canonical_ray_response(o_u, whiten, dirs)
     q, depth, _ = half_line_sq(dist_sq, t_star, o_u)
     alpha = pair_alpha(q, opacities[:, None, :], r_ok[:, :, None] & g_ok[:, None, :])
-    return composite(alpha, colors, depth, t_start)
+    *sums, weights = composite(alpha, colors, depth, t_start)
+    return sums, q, depth, weights
 
 
 class _BlendLists(torch.autograd.Function):
-    """(o_u, W, opacity, colour per Gaussian) -> (rgb [R,3], depth sum [R], accumulation [R]) per ray."""
+    """(o_u, W, opacity, colour per Gaussian) -> (rgb [R,3], depth sum [R], accumulation [R]) per ray and
+    max_weight [N] (no gradient); with absgrad's (rows, sink), the sink's gradient is the absgrad sums."""
 
     @staticmethod
-    def forward(ctx, o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs):
+    def forward(ctx, o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs, rows,
+                sink):
         n_rays, p = dirs.shape[0], ray_index.shape[1]
         out = (o_u.new_zeros(n_rays, 3), o_u.new_zeros(n_rays), o_u.new_zeros(n_rays))
+        max_weight = o_u.new_zeros(o_u.shape[0])
         plan = _plan(counts, p, max_pairs)
         starts = []
         for sel, pieces in plan:
@@ -73,22 +84,29 @@ class _BlendLists(torch.autograd.Function):
                 starts.append(t)
                 g_idx = lists[sel, k0:k1]
                 g = g_idx.clamp_min(0)
-                *piece, t = _blend_piece(o_u[g], whiten[g], opacities[g], colors[g], d, r_ok, g_idx >= 0, t)
+                (*piece, t), _, _, weights = _blend_piece(o_u[g], whiten[g], opacities[g], colors[g], d, r_ok,
+                                                          g_idx >= 0, t)
                 sums = [s + x for s, x in zip(sums, piece)]
+                listed = g_idx >= 0
+                max_weight.scatter_reduce_(0, g[listed], weights.amax(dim=-2)[listed], reduce="amax")
             keep = r_idx >= 0
             for o, s in zip(out, sums):
                 o[r_idx[keep]] = s[keep]
         t_starts = torch.cat([s.reshape(-1) for s in starts]) if starts else o_u.new_zeros(0)
-        ctx.save_for_backward(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, t_starts)
+        ctx.save_for_backward(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, t_starts,
+                              rows)
         ctx.max_pairs = max_pairs
-        return out
+        ctx.mark_non_differentiable(max_weight)
+        return (*out, max_weight)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, g_rgb, g_depth, g_acc):
-        o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, t_starts = ctx.saved_tensors
+    def backward(ctx, g_rgb, g_depth, g_acc, _g_max_weight):
+        o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, t_starts, rows = ctx.saved_tensors
         params = (o_u, whiten, opacities, colors)
         grads = [x.new_zeros(x.shape) for x in params]  # contiguous, whatever the inputs' strides
+        with_absgrad = rows is not None and ctx.needs_input_grad[11]
+        absgrad = o_u.new_zeros(o_u.shape[0], 2) if with_absgrad else None
         offset = 0
         for sel, pieces in _plan(counts, ray_index.shape[1], ctx.max_pairs):
             r_idx = ray_index[sel]
@@ -110,23 +128,32 @@ class _BlendLists(torch.autograd.Function):
                 with torch.enable_grad():
                     leaves = [x[g].detach().requires_grad_(True) for x in params]
                     t0 = t0.detach().requires_grad_(True)
-                    *outs, t_end = _blend_piece(*leaves, d, r_ok, g_idx >= 0, t0)
+                    (*outs, t_end), q, depth, weights = _blend_piece(*leaves, d, r_ok, g_idx >= 0, t0)
                     loss = sum((go * o).sum() for go, o in zip(g_out, outs)) + (g_t * t_end).sum()
-                    piece_grads = torch.autograd.grad(loss, leaves + [t0], allow_unused=True)
+                    wanted = leaves + [t0] + ([q, depth] if with_absgrad else [])
+                    piece_grads = torch.autograd.grad(loss, wanted, allow_unused=True)
                 g_ok = (g_idx >= 0).reshape(-1)
-                for acc, pg in zip(grads, piece_grads[:-1]):
+                for acc, pg in zip(grads, piece_grads[:4]):
                     if pg is not None:
                         flat = pg.reshape(g.numel(), -1)[g_ok]
                         acc.view(acc.shape[0], -1).index_add_(0, g.reshape(-1)[g_ok], flat)
-                g_t = piece_grads[-1] if piece_grads[-1] is not None else torch.zeros_like(g_t)
-        return (*grads, None, None, None, None, None, None)
+                g_t = piece_grads[4] if piece_grads[4] is not None else torch.zeros_like(g_t)
+                if with_absgrad:
+                    g_o = pair_o_u_grad(*piece_grads[5:7], leaves[0].detach(), leaves[1].detach(), d, depth.detach())
+                    over_rays = pair_absgrad(rows[g], g_o, weights.detach() > 0).sum(-3)  # [G, K, 2]
+                    absgrad.index_add_(0, g.reshape(-1)[g_ok], over_rays.reshape(-1, 2)[g_ok])
+        return (*grads, None, None, None, None, None, None, None, absgrad)
 
 
-def blend_lists(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs):
+def blend_lists(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs, absgrad=None):
     """Blend each group of rays ray_index [G, P] (-1 padded) against its Gaussian list lists [G, K] (-1
     padded, counts [G] entries), at most max_pairs pairs at a time (see the module's memory model).
 
-    Returns per-ray rgb [R, 3] (no background), depth sum [R] and accumulation [R]; rays in no group
-    (empty or inactive tiles) are 0. Differentiable w.r.t. o_u, whiten, opacities and colors.
+    Returns per-ray rgb [R, 3] (no background), depth sum [R] and accumulation [R], rays in no group (empty or
+    inactive tiles) 0, and max_weight [N], each Gaussian's largest blend weight (0: never blended; no gradient).
+    Differentiable w.r.t. o_u, whiten, opacities and colors; absgrad: (offset rows [N, 2, 3], sink [N, 2])
+    (absgrad.py), whose sink gets the absgrad sums as its gradient.
     """
-    return _BlendLists.apply(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs)
+    rows, sink = absgrad if absgrad is not None else (None, None)
+    return _BlendLists.apply(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs,
+                             rows, sink)

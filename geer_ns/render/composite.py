@@ -13,13 +13,14 @@ T_MIN = 1e-4
 
 def composite(
     alpha: Tensor, colors: Tensor, depths: Tensor, t_start: Tensor | None = None
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """alpha [..., P, K] (front to back, 0 = no contribution), colors [..., K, 3], depths [..., P, K], and the
     transmittance each ray enters with, t_start [..., P] (1 when None): a list may be blended in pieces.
 
     Returns (rgb [..., P, 3] without background, accumulated depth [..., P], accumulation [..., P],
-    transmittance after the piece [..., P]). The running product starts from t_start, so blending a list
-    in pieces rounds exactly as blending it at once (and as the kernels' sequential product).
+    transmittance after the piece [..., P], and the pairs' blend weights T_before alpha [..., P, K], 0 where a
+    pair is not blended). The running product starts from t_start, so blending a list in pieces rounds exactly
+    as blending it at once (and as the kernels' sequential product).
     """
     one_minus = 1.0 - alpha  # >= 0.01, so cumprod's backward never divides by zero
     if t_start is None:
@@ -29,4 +30,4 @@ def composite(
     weights = torch.where(t_after >= T_MIN, alpha * t_before, torch.zeros_like(alpha))
     rgb = torch.einsum("...pk,...kc->...pc", weights, colors)
     # The last transmittance as its own tensor: a view would keep the piece's whole product alive.
-    return rgb, (weights * depths).sum(-1), weights.sum(-1), t_after[..., -1].clone()
+    return rgb, (weights * depths).sum(-1), weights.sum(-1), t_after[..., -1].clone(), weights

@@ -33,6 +33,7 @@ from types import ModuleType
 import torch
 from torch import Tensor
 
+from .absgrad import offset_rows
 from .associate import pbf_cull_pieces
 from .extensions import (  # noqa: F401 - the loaders, re-exported where callers have always found them
     _errors,
@@ -84,38 +85,43 @@ class _Preprocess(torch.autograd.Function):
 
 
 class _Rasterize(torch.autograd.Function):
-    """Per tile / ray: (W, o_u, colour, opacity) -> (rgb sum, depth sum, accumulation) per ray."""
+    """Per tile / ray: (W, o_u, colour, opacity) -> (rgb sum, depth sum, accumulation) per ray and max_weight [N]
+    (no gradient); with absgrad's offset rows [N,6] and sink [N,2], the sink's gradient is the absgrad sums."""
 
     @staticmethod
     def forward(ctx, whiten, o_u, rgb, opacities, pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height,
-                width, tile_size, ops):
+                width, tile_size, ops, absgrad_rows, sink):
         # pieces [N,8] (associate.pbf_cull_pieces), ray_bounds [R,4] and warp_bounds (RayGrid.ray/warp_cull_bounds):
         # the cull.
         geometry = (pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges)
         # blended_lanes: the CPU build's record of the lanes that blended each list entry, which its backward
         # visits; made only when a backward will run (empty from the kernels, whose backward re-derives them).
-        record = any(ctx.needs_input_grad[:4])
-        out_rgb, depth, acc, t_final, n_contrib, blended_lanes = ops.render_forward(
+        record = any(ctx.needs_input_grad[:4]) or ctx.needs_input_grad[16]
+        out_rgb, depth, acc, t_final, n_contrib, blended_lanes, max_weight = ops.render_forward(
             whiten, o_u, rgb, opacities, *geometry, height, width, tile_size, record
         )
-        ctx.save_for_backward(whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib, blended_lanes)
+        # Off, the backward gets an empty tensor for the rows (csrc: the build without absgrad runs).
+        rows = absgrad_rows if absgrad_rows is not None and ctx.needs_input_grad[16] else whiten.new_zeros(0)
+        ctx.save_for_backward(whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib, blended_lanes, rows)
         ctx.layout = (height, width, tile_size)
         ctx.ops = ops
-        return out_rgb, depth, acc
+        ctx.mark_non_differentiable(max_weight)
+        return out_rgb, depth, acc, max_weight
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, g_rgb, g_depth, g_acc):
-        whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib, blended_lanes = ctx.saved_tensors
+    def backward(ctx, g_rgb, g_depth, g_acc, _g_max_weight):
+        whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib, blended_lanes, rows = ctx.saved_tensors
         r = geometry[1].shape[0]
         g_rgb = _zeros_if_none(g_rgb, (r, 3), whiten).contiguous()
         g_depth = _zeros_if_none(g_depth, (r,), whiten).contiguous()
         g_acc = _zeros_if_none(g_acc, (r,), whiten).contiguous()
-        grads = ctx.ops.render_backward(
+        grads, absgrad = ctx.ops.render_backward(
             whiten, o_u, rgb, opacities, *geometry, *ctx.layout, t_final, n_contrib, blended_lanes, g_rgb, g_depth, g_acc,
-        )  # [N, 16] rows (csrc/geer_blocks.h kGradValues): W row-major, o_u, colour, opacity
+            rows,
+        )  # [N, 16] rows (csrc/geer_blocks.h kGradValues): W row-major, o_u, colour, opacity; absgrad [N, 2] or empty
         gw, go, gc, gs = grads.split([9, 3, 3, 1], dim=1)
-        return (gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1)) + (None,) * 11
+        return (gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1)) + (None,) * 12 + (absgrad if rows.numel() else None,)
 
 
 def _zeros_if_none(g: Tensor | None, shape, like: Tensor) -> Tensor:
@@ -170,6 +176,7 @@ def render_cuda(
     background: Tensor | None = None,
     lambda_mode: LambdaMode = "opacity",
     ops: ModuleType | None = None,
+    absgrad: tuple[Tensor, Tensor] | None = None,
 ):
     """rasterize.render on the kernels (inputs already validated by render). `ops` defaults to the CUDA
     extension; pass load_cpu_ops() to run the same pipeline on the CPU."""
@@ -205,14 +212,18 @@ def render_cuda(
     # Stage 2. Lists in the twin's front-to-back order (depth as the twin computes it).
     ids, ranges, counts, _tests = associate_pairs(ops, bounds, alive, means_c.detach().norm(dim=-1), grid)
 
-    # Stage 3. Per tile / ray.
-    rgb_sum, depth_sum, acc = _Rasterize.apply(
+    # Stage 3. Per tile / ray. absgrad's offset rows per Gaussian here (absgrad.offset_rows, an [N] einsum), so
+    # that the kernels only take dot products with them (no W x lateral product in their registers).
+    rows, sink = (None, None) if absgrad is None else (offset_rows(absgrad[0], whiten).reshape(n, 6).contiguous(),
+                                                        absgrad[1])
+    rgb_sum, depth_sum, acc, max_weight = _Rasterize.apply(
         whiten, o_u, rgb, opacities.contiguous(), pbf_cull_pieces(bounds), dirs, grid.ray_cull_bounds(dtype),
         grid.warp_cull_bounds(dtype), grid.valid.contiguous(), ids, ranges, grid.height, grid.width, grid.tile_size, ops,
+        rows, sink,
     )
     out_rgb, out_depth, out_acc = images(grid.height, grid.width, rgb_sum, depth_sum, acc, background)
 
     visible = counts > 0
     tile_counts = (ranges[:, 1] - ranges[:, 0]).long()
     pbf = PBF(bounds[:, 0], bounds[:, 1], bounds[:, 2], bounds[:, 3], alive, inside)
-    return RenderOutput(out_rgb, out_depth, out_acc, visible, tile_counts, means_c, pbf, None)
+    return RenderOutput(out_rgb, out_depth, out_acc, visible, tile_counts, means_c, pbf, None, max_weight)

@@ -34,7 +34,7 @@ import torch
 CSRC = Path(__file__).resolve().parents[2] / "csrc"
 _CUDA_SOURCES = ("bindings.cpp", "preprocess.cu", "associate.cu", "render.cu", "preprocess_backward.cu",
                  "launch_probe.cu")
-_CPU_SOURCES = ("cpu_ops.cpp", "cpu_render.cpp")
+_CPU_SOURCES = ("cpu_ops.cpp", "cpu_render.cpp", "cpu_render_backward.cpp")
 _HEADER_SUFFIXES = (".h", ".cuh", ".hpp")
 # What a build is called when it announces itself, and how long it takes on a cold cache.
 _WHAT = {"geer_cpu_ops": ("the CPU renderer", "about a minute"), "geer_cuda": ("the CUDA kernels", "a few minutes")}
@@ -54,7 +54,7 @@ def cpu_cflags() -> list[str]:
     """C++ flags of both builds. -ffp-contract=off: pair decisions without FMA drift (geer_math.h);
     -fno-math-errno: sqrt inline. -mavx2 where the CPU has it (torch's own dispatch level): the CPU build's
     render then evaluates packs of 8 float32 / 4 float64 rays (csrc/geer_packs.h). No -march=native: see
-    cpu_render.cpp warp_grad_sum on GCC 12's -O3 AVX-512 code."""
+    cpu_render_backward.cpp warp_grad_sum on GCC 12's -O3 AVX-512 code."""
     flags = ["-O3", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"]
     if platform.machine() in ("x86_64", "AMD64"):
         avx2 = torch.backends.cpu.get_cpu_capability() in ("AVX2", "AVX512")

@@ -24,6 +24,9 @@ class RenderOutput:
     means_c: Tensor  # [N, 3] view-space means; .grad is the densification signal
     pbf: PBF
     tiles: TileLists | None  # None for the brute-force reference and the kernels
+    # [N] no gradient: each Gaussian's largest blend weight T_before alpha over the view's rays; 0 where it
+    # never blended (not associated, below 1/255 everywhere, only after the rays' early stop)
+    max_weight: Tensor
 
 
 def images(height: int, width: int, rgb: Tensor, depth_sum: Tensor, acc: Tensor,

@@ -17,6 +17,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from .absgrad import check_absgrad, offset_rows
 from .associate import associate
 from .backend import Backend, resolve_backend
 from .blend import blend_lists
@@ -89,6 +90,7 @@ def render(
     lambda_mode: LambdaMode = "opacity",
     backend: Backend = "auto",
     max_pairs: int = 1 << 20,
+    absgrad: tuple[Tensor, Tensor] | None = None,
 ) -> RenderOutput:
     """Render one view with 3DGEER.
 
@@ -98,24 +100,30 @@ def render(
     (everything follows means); every tensor, the grid's too, on the means' device.
     `max_pairs` caps the (ray, Gaussian) pairs the PyTorch renderer holds at once, forward and backward
     (memory model: blend.py); the kernels need no such cap.
+    `absgrad` = (lateral [N,3,2], sink [N,2] requiring grad): after backward, sink.grad holds AbsGS's per-pixel
+    absolute sums of the gradient w.r.t. lateral offsets of the view-space means (absgrad.py); outputs and
+    every other gradient are unchanged by it.
     """
     _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background)
+    if absgrad is not None:
+        check_absgrad(absgrad, means)
     chosen = resolve_backend(backend, means.device, pose_grad=viewmat.requires_grad and torch.is_grad_enabled())
     if chosen != "torch":  # the kernels (CUDA), or their math compiled for the CPU
         return render_cuda(means, quats, scales, opacities, colors, viewmat, grid, sh_degree=sh_degree,
                            background=background, lambda_mode=lambda_mode,
-                           ops=load_cpu_ops() if chosen == "cpu" else None)
+                           ops=load_cpu_ops() if chosen == "cpu" else None, absgrad=absgrad)
     dirs = grid.dirs.to(means.dtype)
     # viewmat keeps its dtype: the view transform runs in float64 (transforms.view_transform)
     pre = preprocess(means, quats, scales, opacities, colors, viewmat, sh_degree, lambda_mode)
     tiles = associate(pre.pbf, grid, pre.depth)
-    rgb, depth, acc = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs, grid.valid, grid.tile_rays,
-                                  tiles.gaussians, tiles.counts, max_pairs)
+    rows = (offset_rows(absgrad[0], pre.whiten), absgrad[1]) if absgrad is not None else None
+    rgb, depth, acc, max_weight = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs, grid.valid,
+                                              grid.tile_rays, tiles.gaussians, tiles.counts, max_pairs, rows)
     out_rgb, out_depth, out_acc = images(grid.height, grid.width, rgb, depth, acc, background)
     visible = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
     listed = tiles.gaussians[grid.tile_active]
     visible[listed[listed >= 0]] = True
-    return RenderOutput(out_rgb, out_depth, out_acc, visible, tiles.counts, pre.means_c, pre.pbf, tiles)
+    return RenderOutput(out_rgb, out_depth, out_acc, visible, tiles.counts, pre.means_c, pre.pbf, tiles, max_weight)
 
 
 def render_batch(
@@ -176,8 +184,9 @@ def render_brute_force(
     ray_index = ray_index.reshape(-1, rays_per_group)
     lists = order[None].expand(ray_index.shape[0], -1)
     counts = torch.full((ray_index.shape[0],), order.numel(), dtype=torch.long, device=means.device)
-    rgb, depth, acc = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs, grid.valid, ray_index,
-                                  lists, counts, max_pairs)
+    rgb, depth, acc, max_weight = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs, grid.valid,
+                                              ray_index, lists, counts, max_pairs)
     out_rgb, out_depth, out_acc = images(grid.height, grid.width, rgb, depth, acc, background)
     visible = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
-    return RenderOutput(out_rgb, out_depth, out_acc, visible, means.new_zeros(0).long(), pre.means_c, pre.pbf, None)
+    return RenderOutput(out_rgb, out_depth, out_acc, visible, means.new_zeros(0).long(), pre.means_c, pre.pbf, None,
+                        max_weight)
