@@ -125,11 +125,12 @@ class GeerModelConfig(SplatfactoModelConfig, GeerOwnOptions):
     loss_coefficients: tyro.conf.Suppress[Dict[str, float]] = _model_config_default("loss_coefficients")
     eval_num_rays_per_chunk: tyro.conf.Suppress[int] = _model_config_default("eval_num_rays_per_chunk")
     prompt: tyro.conf.Suppress[Optional[str]] = _model_config_default("prompt")
-    densify_grad_thresh: float = 0.0002
-    """Gradient threshold of DefaultStrategy's growth, in gsplat's units (what they mean: densify-signal)."""
-    use_absgrad: bool = False
+    densify_grad_thresh: float = 0.0008
+    """Gradient threshold of DefaultStrategy's growth, in gsplat's units (what they mean: densify-signal);
+    splatfacto's value for AbsGS gradients (gsplat's 0.0002 is for summed gradients, use-absgrad False)."""
+    use_absgrad: bool = True
     """Densify on AbsGS's per-pixel absolute gradients (the renderer's backward sums |dL_p/d position| over each
-    Gaussian's pixels) instead of the summed gradient."""
+    Gaussian's pixels: no cancelling) instead of the summed gradient, as splatfacto does."""
     # splatfacto options geer does not use: accepted (splatfacto command lines still parse), marked, and said
     # once at start-up when set (IGNORED_OPTIONS).
     rasterize_mode: Literal["classic", "antialiased"] = "classic"
@@ -407,7 +408,7 @@ class GeerModel(SplatfactoModel):
             radius = None
             if probe.signal.radius is None:  # pixel_signal: the PBF's extent in pixels of the image's larger side
                 radius = pbf_radii(out.pbf, out.visible, view.steps) / float(max(height, width))
-            self.views.append(probe.record(out.visible.detach(), self._max_weight(out), radius))
+            self.views.append(probe.record(out.visible.detach(), out.max_weight, radius))
         return self.view_outputs(out, view, background, camera)
 
     @staticmethod
@@ -435,11 +436,6 @@ class GeerModel(SplatfactoModel):
             signal = angular_signal(view.project, int(view.rays.valid.sum()), view.center_solid_angle, means_c,
                                     scales, lam2)
         return ViewProbe.zeros(signal, means, self.config.use_absgrad)
-
-    @staticmethod
-    def _max_weight(out) -> Tensor:
-        weight = getattr(out, "max_weight", None)  # TODO(renderer): every backend reports it
-        return torch.ones_like(out.visible, dtype=torch.float32) if weight is None else weight.detach()
 
     def _get_background_color(self) -> Tensor:
         """splatfacto's, with one random colour per training step (drawn at its first view): every view of

@@ -180,8 +180,10 @@ def test_at_the_reference_camera_the_statistics_are_gsplats(statistics):
     means = model.gauss_params["means"].detach()
     k = int(torch.argmin(means[:, :2].norm(dim=-1)))  # nearest the optical axis
     off_axis = math.degrees(math.atan(float(means[k, :2].norm()) / float(-means[k, 2])))
-    # gsplat's value: the pixel-position gradient (pixels = f x the angle near the centre) times size / 2
-    gsplat = float(record.offsets.grad[k].norm()) / f * (size / 2)
+    # gsplat's value: the pixel-position gradient (pixels = f x the angle near the centre) times size / 2, of the
+    # gradient the statistic uses (AbsGS's per-pixel absolute sums by default, the signed sum without)
+    leaf = record.absgrad if record.absgrad is not None else record.offsets
+    gsplat = float(leaf.grad[k].norm()) / f * (size / 2)
     ours = float(model.step_statistics().grad[k])
     print(f"Gaussian {off_axis:.1f} deg off-axis: angular statistic {ours:.4g}, gsplat's {gsplat:.4g}")
     assert ours == pytest.approx(gsplat, rel=0.05)  # cos^3 of a few degrees: the pixel's solid angle there

@@ -136,7 +136,7 @@ def render_sharded(
         extra["absgrad"] = (basis, received[:, PAYLOAD:])
     out = render(r_means, r_quats, r_scales, r_opac.squeeze(1), r_rgb, viewmats[me], grids[me], background=background,
                  lambda_mode=lambda_mode, backend=backend, max_pairs=max_pairs, **extra)
-    weights = _weights_home(out, received.shape[0], send_counts, recv_counts, world.distributed, payload)
+    weights = _weights_home(out, send_counts, recv_counts, world.distributed, payload)
     max_weight = []
     for q, chunk in enumerate(weights.split(send_counts.tolist())):
         w = torch.zeros(means.shape[-2], dtype=chunk.dtype, device=chunk.device)
@@ -145,11 +145,10 @@ def render_sharded(
     return out, ShardViews(seen, max_weight, int(send_counts.sum()))
 
 
-def _weights_home(out: RenderOutput, received: int, send_counts: Tensor, recv_counts: Tensor, distributed: bool,
+def _weights_home(out: RenderOutput, send_counts: Tensor, recv_counts: Tensor, distributed: bool,
                   like: Tensor) -> Tensor:
     """Each sent row's largest blend weight in its camera, back at its owner (the reverse exchange)."""
-    weight = getattr(out, "max_weight", None)
-    weight = like.new_ones(received) if weight is None else weight.detach().to(like.dtype)
+    weight = out.max_weight.to(like.dtype)
     if not distributed:
         return weight
     home = like.new_empty(int(send_counts.sum()))
