@@ -35,23 +35,27 @@ TRAIN_ARGS = [
 ]
 
 
-def _run(args, timeout=900):
+def _train_all(runs: dict) -> dict:
+    """name -> (run folder, one-line log) of ns-train runs {name: (tmp, data, extra args)}, started together (each
+    interpreter's imports take ~11 s of CPU; together they share the cores)."""
     # This checkout's geer_ns, also for console scripts (whose sys.path starts at the venv's bin/).
     path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)
     env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=path)
-    result = subprocess.run(args, capture_output=True, text=True, timeout=timeout, env=env)
-    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    return result.stdout + result.stderr
-
-
-def _train(tmp: Path, name: str, data: Path, *extra: str) -> tuple[Path, str]:
-    log = _run([str(BIN / "ns-train"), "geer", "--data", str(data), "--output-dir", str(tmp), "--experiment-name",
-                name, "--timestamp", "t", *TRAIN_ARGS, *extra])
-    run = tmp / name / "geer" / "t"
-    assert any((run / "nerfstudio_models").glob("step-*.ckpt"))
-    # nerfstudio's console wraps at 120 columns and puts the source location and time on each line
-    log = re.sub(r"\S+\.py:\d+|\[\d\d:\d\d:\d\d\]", " ", log)
-    return run, " ".join(log.split())
+    running = {}
+    for name, (tmp, data, extra) in runs.items():
+        args = [str(BIN / "ns-train"), "geer", "--data", str(data), "--output-dir", str(tmp), "--experiment-name",
+                name, "--timestamp", "t", *TRAIN_ARGS, *extra]
+        running[name] = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    found = {}
+    for name, proc in running.items():
+        stdout, stderr = proc.communicate(timeout=900)
+        assert proc.returncode == 0, stdout[-3000:] + stderr[-3000:]
+        run = runs[name][0] / name / "geer" / "t"
+        assert any((run / "nerfstudio_models").glob("step-*.ckpt"))
+        # nerfstudio's console wraps at 120 columns and puts the source location and time on each line
+        log = re.sub(r"\S+\.py:\d+|\[\d\d:\d\d:\d\d\]", " ", stdout + stderr)
+        found[name] = run, " ".join(log.split())
+    return found
 
 
 def _ns_eval(run: Path) -> dict:
@@ -89,8 +93,18 @@ def _colmap_rig(root: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def rig_run(tmp_path_factory):
-    return _train(tmp_path_factory.mktemp("rig"), "rig", default_scene_dir() / "transforms_rig.json")
+def runs(tmp_path_factory):
+    """Both rigs trained at once: the transforms.json rig and the COLMAP one."""
+    scene = _colmap_rig(tmp_path_factory.mktemp("colmap_scene"))
+    return _train_all({
+        "rig": (tmp_path_factory.mktemp("rig"), default_scene_dir() / "transforms_rig.json", ()),
+        "colmap_rig": (tmp_path_factory.mktemp("colmap_out"), scene, ("geer-colmap", "--eval-mode", "interval")),
+    })
+
+
+@pytest.fixture(scope="module")
+def rig_run(runs):
+    return runs["rig"]
 
 
 def _assert_each_camera_in_its_own_geometry(log: str, fisheye: str, pinhole: str) -> None:
@@ -113,9 +127,8 @@ def test_transforms_json_rig_trains_and_scores_per_camera_kind(rig_run):
     _assert_split_by_kind(_ns_eval(run), ("OPENCV_FISHEYE", "OPENCV"))
 
 
-def test_colmap_rig_trains_and_scores_per_camera_kind(tmp_path):
-    data = _colmap_rig(tmp_path / "scene")
-    run, log = _train(tmp_path / "out", "colmap_rig", data, "geer-colmap", "--eval-mode", "interval")
+def test_colmap_rig_trains_and_scores_per_camera_kind(runs):
+    run, log = runs["colmap_rig"]
     assert "image circle detected" in log  # no masks: the fisheye's black border is found and left out
     _assert_each_camera_in_its_own_geometry(log, "OPENCV_FISHEYE", "PINHOLE")
     metrics = _ns_eval(run)

@@ -39,32 +39,40 @@ def _env_without_ffmpeg(tmp_path: Path) -> dict:
                 PYTHONUNBUFFERED="1")
 
 
-def _run(args, env):
-    result = subprocess.run(args, capture_output=True, text=True, timeout=600, env=env)
-    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-
-
 def _assert_video(path: Path) -> None:
     data = path.read_bytes()
     assert len(data) > 1000 and b"ftyp" in data[:64], len(data)  # an MP4 container
 
 
-def test_ns_render_interpolate_without_system_ffmpeg(trained, tmp_path):
-    video = tmp_path / "interpolate.mp4"
-    _run([str(BIN / "ns-render"), "interpolate", "--load-config", str(trained), "--output-path", str(video),
-          "--interpolation-steps", "2", "--frame-rate", "4", "--pose-source", "eval"], _env_without_ffmpeg(tmp_path))
-    _assert_video(video)
-
-
-def test_ns_render_camera_path_without_system_ffmpeg(trained, tmp_path):
+@pytest.fixture(scope="module")
+def videos(trained, tmp_path_factory):
+    """Both ns-render commands, started together (each interpreter's imports take ~11 s of CPU)."""
+    tmp = tmp_path_factory.mktemp("videos")
     pose = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]
     path = {
         "render_height": 24, "render_width": 32, "seconds": 1.0, "crop": None,
         "camera_path": [{"camera_to_world": pose, "fov": fov, "aspect": 32 / 24} for fov in (50.0, 60.0, 70.0)],
     }
-    camera_path = tmp_path / "camera_path.json"
+    camera_path = tmp / "camera_path.json"
     camera_path.write_text(json.dumps(path))
-    video = tmp_path / "path.mp4"
-    _run([str(BIN / "ns-render"), "camera-path", "--load-config", str(trained), "--camera-path-filename",
-          str(camera_path), "--output-path", str(video)], _env_without_ffmpeg(tmp_path))
-    _assert_video(video)
+    commands = {
+        "interpolate": [str(BIN / "ns-render"), "interpolate", "--load-config", str(trained), "--output-path",
+                        str(tmp / "interpolate.mp4"), "--interpolation-steps", "2", "--frame-rate", "4",
+                        "--pose-source", "eval"],
+        "camera-path": [str(BIN / "ns-render"), "camera-path", "--load-config", str(trained),
+                        "--camera-path-filename", str(camera_path), "--output-path", str(tmp / "path.mp4")],
+    }
+    running = {k: subprocess.Popen(v, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                   env=_env_without_ffmpeg(tmp / k)) for k, v in commands.items()}
+    for name, proc in running.items():
+        stdout, stderr = proc.communicate(timeout=600)
+        assert proc.returncode == 0, (name, stdout[-3000:] + stderr[-3000:])
+    return tmp
+
+
+def test_ns_render_interpolate_without_system_ffmpeg(videos):
+    _assert_video(videos / "interpolate.mp4")
+
+
+def test_ns_render_camera_path_without_system_ffmpeg(videos):
+    _assert_video(videos / "path.mp4")
