@@ -228,6 +228,39 @@ def sharded_training_plan(local_rank, world_size, config, global_rank):
     resumed = back.setup(local_rank=local_rank, world_size=world_size)
     resumed.setup()
     image_back = sharded_render_of(resumed)
+    rebalanced = rebalance_plan(resumed, global_rank)
     if global_rank == 0:
         torch.save({"per_step": per_step, "image": image, "image_back": image_back,
-                    "shard_back": resumed.pipeline.model.num_points}, out / "sharded.pt")
+                    "shard_back": resumed.pipeline.model.num_points, **rebalanced}, out / "sharded.pt")
+
+
+def rebalance_plan(trainer, rank: int) -> dict:
+    """Rank 1 drops 40 % of its shard (a 1.7x imbalance); the engine's after-step callback must rebalance: the
+    shards' sizes end within one, and every surviving Gaussian's parameters and optimiser state (by id) are
+    unchanged by the move."""
+    from gsplat.strategy.ops import remove
+
+    from geer_ns.distributed.sharded import gather_rows
+    from geer_ns.distributed.world import all_gather_objects, current_world
+
+    world, model, engine = current_world(), trainer.pipeline.model, trainer.engine
+    optimizers = trainer.optimizers.optimizers
+    for p in model.gauss_params.values():  # an optimiser state to carry
+        p.grad = torch.full_like(p, 0.5)
+    for name in model.gauss_params:
+        optimizers[name].step()
+    if rank == 1:
+        drop = torch.zeros(model.num_points, dtype=torch.bool)
+        drop[: int(0.4 * model.num_points)] = True
+        remove(params=model.gauss_params, optimizers=optimizers, state=model.strategy_state, mask=drop)
+
+    def snapshot():
+        ids = gather_rows(world, model.strategy_state["id"])
+        rows = {name: gather_rows(world, p.detach()) for name, p in model.gauss_params.items()}
+        adam = {name: gather_rows(world, optimizers[name].state[p]["exp_avg"]) for name, p in model.gauss_params.items()}
+        return ids, rows, adam, all_gather_objects(model.num_points)
+
+    before = snapshot()
+    engine._after_step(0)
+    after = snapshot()
+    return {"rebalance_before": before, "rebalance_after": after}

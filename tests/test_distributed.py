@@ -260,6 +260,18 @@ def test_a_one_process_checkpoint_resharded_over_two_renders_the_same(two_proces
     assert torch.allclose(image, run["image_back"], atol=1e-5), float((image - run["image_back"]).abs().max())
 
 
+def test_shards_that_drift_apart_are_rebalanced_with_their_state(two_processes):
+    run = torch.load(two_processes[0] / "sharded.pt")
+    (ids0, rows0, adam0, sizes0), (ids1, rows1, adam1, sizes1) = run["rebalance_before"], run["rebalance_after"]
+    assert max(sizes0) > 1.5 * min(sizes0)  # the plan's imbalance
+    assert max(sizes1) - min(sizes1) <= 1 and sum(sizes1) == sum(sizes0)
+    order0, order1 = torch.argsort(ids0), torch.argsort(ids1)
+    assert torch.equal(ids0[order0], ids1[order1])
+    for name in rows0:
+        assert torch.equal(rows0[name][order0], rows1[name][order1]), name
+        assert torch.equal(adam0[name][order0], adam1[name][order1]), name
+
+
 def test_ns_eval_scores_the_gathered_checkpoint_in_one_process(two_processes, tmp_path):
     from nerfstudio.scripts.eval import ComputePSNR
 
