@@ -116,13 +116,14 @@ def worker_main(local_rank: int, world_size: int, cfg, global_rank: int = 0) -> 
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
     from nerfstudio.scripts.train import _set_random_seed
 
-    from peak_rss import peak_kib
+    from peak_rss import peak_kib, peak_reset
 
     record: dict = {}
     _instrument(record)
     _set_random_seed(cfg.machine.seed + global_rank)
     trainer = cfg.setup(local_rank=local_rank, world_size=world_size)
     trainer.setup()
+    setup_kib = peak_reset()  # the peak from here on: training, not the set-up (which builds the seed model whole)
     starts, steps, collective = {}, [], []
     state = {"c0": 0.0}
 
@@ -140,12 +141,13 @@ def worker_main(local_rank: int, world_size: int, cfg, global_rank: int = 0) -> 
     import torch
 
     model = trainer.pipeline.model
-    grads = sum(p.numel() * p.element_size() for p in model.gauss_params.values())
+    params = sum(p.numel() * p.element_size() for p in model.gauss_params.values())
     out = Path(cfg.output_dir) / f"timings.{global_rank}.json"
     out.write_text(json.dumps({"steps": steps, "collective": collective, "record": record, "threads":
                                torch.get_num_threads(), "gaussians_here": model.num_points,
-                               "gaussians": model.scene_gaussians or model.num_points, "gradient_bytes": grads,
-                               "peak_kib": peak_kib()}))
+                               "gaussians": model.scene_gaussians or model.num_points,
+                               "state_bytes": 4 * params,  # parameters, gradients, Adam's two moments
+                               "setup_kib": setup_kib, "peak_kib": peak_kib()}))
 
 
 def run_worker(args) -> None:
@@ -185,13 +187,16 @@ def summarise(name: str, runs: dict, warmup: int, images_per_step: int) -> dict:
     return {"run": name, "processes": len(ranks), "threads": ranks[0]["threads"], "images": images,
             "gaussians": ranks[0]["gaussians"], "here": ranks[0]["gaussians_here"], "step_s": step,
             "images_per_s": images / step, "collective_s": coll, "share": coll / step,
-            "bytes": reduced or exchanged, "peak_mib": max(r["peak_kib"] for r in ranks) / 1024}
+            "bytes": reduced or exchanged, "peak_mib": max(r["peak_kib"] for r in ranks) / 1024,
+            "setup_mib": max(r["setup_kib"] for r in ranks) / 1024,
+            "state_mib": max(r["state_bytes"] for r in ranks) / 2**20}
 
 
 def row(s: dict) -> str:
     return (f"| {s['run']} | {s['processes']} x {s['threads']} | {s['images']} | {s['gaussians']:,} | "
             f"{s['here']:,} | {s['step_s']:.3f} | {s['images_per_s']:.1f} | {s['collective_s']:.3f} "
-            f"({100 * s['share']:.0f} %) | {s['bytes'] / 2**20:.1f} | {s['peak_mib']:.0f} |")
+            f"({100 * s['share']:.0f} %) | {s['bytes'] / 2**20:.1f} | {s['state_mib']:.0f} | {s['setup_mib']:.0f} | "
+            f"{s['peak_mib']:.0f} |")
 
 
 def main() -> None:
@@ -236,8 +241,9 @@ def write(args, results) -> None:
     import torch
 
     head = ("| run | processes x threads | images / step | Gaussians | per process | s / step | images / s | "
-            "collectives s / step (share) | MiB exchanged / step / process | peak RSS MiB / process |\n"
-            "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+            "collectives s / step (share) | MiB exchanged / step / process | Gaussian state MiB / process | "
+            "RSS after set-up MiB | peak RSS in training MiB |\n"
+            "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     text = f"""# Distributed training on the CPU (gloo): time, traffic and memory per process
 
 - device: CPU, {platform.machine()}, {os.cpu_count()} cores (load average {os.getloadavg()[0]:.2f} when written), torch
@@ -249,7 +255,9 @@ def write(args, results) -> None:
   Gaussian count (no densification); SH degree 3 parameters; figures: median step wall time over steps
   {args.warmup}..{args.steps - 1} (the slowest process's), the median time per step inside the collectives, the
   payload per step and process (image-parallel: the gradient and statistics all-reduce; Gaussian-parallel: the
-  rows exchanged, forward and backward), each process's peak RSS.
+  rows exchanged, forward and backward), the Gaussian training state a process holds (parameters, gradients and
+  Adam's two moments: 4 x 4 bytes x 59 numbers per Gaussian), its RSS after set-up and its peak RSS in training
+  (RSS counts the process's whole heap: the image cache, the libraries, what the allocator keeps).
 
 {head}
 {chr(10).join(row(r) for r in results)}

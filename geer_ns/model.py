@@ -152,9 +152,12 @@ IGNORED_OPTIONS = ("rasterize_mode", "output_depth_during_training", "color_corr
 # geer's own options, listed first in `ns-train geer --help` (the method description).
 OWN_OPTIONS_HELP = (
     "geer's own options: --pipeline.model.renderer-backend {auto,torch,cuda,cpu}, --pipeline.model.lambda-mode "
-    "{opacity,paper}, --pipeline.model.strategy {default,mcmc}, --pipeline.model.max-pairs, "
+    "{opacity,paper}, --pipeline.model.strategy {default,mcmc}, --pipeline.model.densify-signal {angular,pixels}, "
+    "--pipeline.model.max-gaussians, --pipeline.model.prune-unseen, --pipeline.model.distributed {images,gaussians}, "
+    "--pipeline.model.max-pairs, "
     "--pipeline.model.central-half-angles-deg, --pipeline.datamanager.supervision, "
-    "--pipeline.datamanager.mask-edge-fill; resume with --load-dir <run>/nerfstudio_models. Splatfacto options "
+    "--pipeline.datamanager.mask-edge-fill, --pipeline.datamanager.images-per-step, --machine.timeout-s; resume "
+    "with --load-dir <run>/nerfstudio_models. Splatfacto options "
     "marked IGNORED are accepted and not used."
 )
 

@@ -228,10 +228,11 @@ def sharded_training_plan(local_rank, world_size, config, global_rank):
     resumed = back.setup(local_rank=local_rank, world_size=world_size)
     resumed.setup()
     image_back = sharded_render_of(resumed)
+    shard_back = resumed.pipeline.model.num_points
     rebalanced = rebalance_plan(resumed, global_rank)
     if global_rank == 0:
-        torch.save({"per_step": per_step, "image": image, "image_back": image_back,
-                    "shard_back": resumed.pipeline.model.num_points, **rebalanced}, out / "sharded.pt")
+        torch.save({"per_step": per_step, "image": image, "image_back": image_back, "shard_back": shard_back,
+                    **rebalanced}, out / "sharded.pt")
 
 
 def rebalance_plan(trainer, rank: int) -> dict:

@@ -100,10 +100,10 @@ def fingerprint(trainer) -> Dict[str, str]:
         "train cameras": _digest([cams.camera_to_worlds, cams.fx, cams.fy, cams.cx, cams.cy, cams.width, cams.height,
                                   cams.camera_type, cams.distortion_params if cams.distortion_params is not None else 0]),
         "eval images": f"{len(dm.eval_dataset)} ({_digest([str(PurePath(f).name) for f in dm.eval_dataset.image_filenames])})",
-        "Gaussians": str(model.num_points),
+        "Gaussians": str(model.scene_gaussians or model.num_points),  # a shard's: the scene's
         "start step": str(trainer._start_step),
     }
-    if trainer._start_step > 0:  # resumed: the loaded replicas must already agree
+    if trainer._start_step > 0 and model.scene_gaussians is None:  # resumed replicas must already agree
         found["loaded parameters"] = _digest(list(model.gauss_params.values()))
     config = getattr(trainer, "user_config", trainer.config)  # the values as given (before the batch rule)
     found.update({f"config {k}": v for k, v in _flat_config(config.pipeline, "pipeline").items()})

@@ -67,9 +67,14 @@ class GaussianParallel:
 
     # ------------------------------------------------------------------------------------- start-up
     def start(self) -> None:
+        """A fresh start: rank 0's model (the seed cloud), cut into shards here. A resumed run loaded its shard
+        alone (trainer._load_checkpoint with shard_checkpoint)."""
         trainer, model = self.trainer, self.trainer.pipeline.model
         if self.world.distributed:
             check_consistent(self.world, fingerprint(trainer))
+        if model.scene_gaussians is not None:  # loaded as a shard
+            return
+        if self.world.distributed:
             broadcast_replica(self.world, model, trainer.optimizers)  # one model, then cut into shards
         state = model.strategy_state
         if state.get("id") is None:
@@ -201,6 +206,32 @@ def sharded_outputs(model, cameras, me: int) -> Dict[str, Tensor]:
 
 
 # ----------------------------------------------------------------------------------------- rows
+def shard_checkpoint(state: dict, rank: int, processes: int) -> Tuple[dict, int]:
+    """A checkpoint (loaded on the CPU, memory-mapped) cut to rank `rank`'s rows before anything reaches the
+    model, so that resuming never holds the whole scene on a device; returns it and the scene's size."""
+    pipeline = dict(state["pipeline"])
+    total = int(pipeline[GAUSS_PREFIX + "means"].shape[0])
+    rows = shard_rows(rank, processes)
+
+    def cut(value):
+        is_rows = isinstance(value, Tensor) and value.dim() > 0 and value.shape[0] == total
+        return value[rows].clone() if is_rows else value
+
+    for key in [k for k in pipeline if k.startswith(GAUSS_PREFIX)]:
+        pipeline[key] = cut(pipeline[key])
+    extra = pipeline.get("_model._extra_state")
+    if extra is not None:
+        pipeline["_model._extra_state"] = {**extra, "strategy_state": {k: cut(v) for k, v in
+                                                                       extra["strategy_state"].items()}}
+    names = {k[len(GAUSS_PREFIX):] for k in pipeline if k.startswith(GAUSS_PREFIX)}
+    optimizers = {}
+    for group, saved in state["optimizers"].items():
+        if group in names:
+            saved = {**saved, "state": {i: {k: cut(v) for k, v in slot.items()} for i, slot in saved["state"].items()}}
+        optimizers[group] = saved
+    return {**state, "pipeline": pipeline, "optimizers": optimizers}, total
+
+
 def gather_rows(world: World, tensor: Tensor) -> Optional[Tensor]:
     """Every shard's rows of `tensor`, in rank order, on rank 0 (None elsewhere; the tensor itself on one
     process). Uneven shards are padded for the collective and cut back."""

@@ -28,7 +28,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from geer_ns import resume
 from geer_ns.distributed.replicas import ImageParallel, ReplicaMismatchError
 from geer_ns.distributed.schedule import EffectiveBatch, describe, scaled_config
-from geer_ns.distributed.sharded import GaussianParallel
+from geer_ns.distributed.sharded import GaussianParallel, shard_checkpoint
 from geer_ns.distributed.world import current_world
 
 
@@ -100,7 +100,42 @@ class GeerTrainer(Trainer):
             CONSOLE.log(f"geer: {line}")
 
     def _load_checkpoint(self) -> None:
-        super()._load_checkpoint()
+        """nerfstudio's (the checkpoint named by --load-dir / --load-step or --load-checkpoint), memory-mapped,
+        cut to this process's shard first when the Gaussians are sharded; then steps converted to this run's
+        effective batch."""
+        path = self._checkpoint_path()
+        if path is None:
+            CONSOLE.print("No Nerfstudio checkpoint to load, so training from scratch.")
+            return
+        state = torch.load(path, map_location="cpu", mmap=True)
+        if self.config.pipeline.model.distributed == "gaussians":
+            state, total = shard_checkpoint(state, self.world.rank, self.world.size)
+        self._start_step = state["step"] + 1
+        self.pipeline.load_pipeline(state["pipeline"], state["step"])
+        self.optimizers.load_optimizers(state["optimizers"])
+        if "schedulers" in state and self.config.load_scheduler:
+            self.optimizers.load_schedulers(state["schedulers"])
+        self.grad_scaler.load_state_dict(state["scalers"])
+        if self.config.pipeline.model.distributed == "gaussians":
+            self.pipeline.model.scene_gaussians = total
+        CONSOLE.print(f"Done loading Nerfstudio checkpoint from {path}")
+        self._convert_steps()
+
+    def _checkpoint_path(self):
+        if self.config.load_dir is not None:
+            step = self.config.load_step
+            if step is None:  # nerfstudio's rule: the latest step-*.ckpt
+                step = sorted(int(x[x.find("-") + 1 : x.find(".")]) for x in os.listdir(self.config.load_dir))[-1]
+            path = self.config.load_dir / f"step-{step:09d}.ckpt"
+        elif self.config.load_checkpoint is not None:
+            path = self.config.load_checkpoint
+        else:
+            return None
+        if not path.exists():
+            raise FileNotFoundError(f"geer: checkpoint {path} does not exist")
+        return path
+
+    def _convert_steps(self) -> None:
         saved, now = self.pipeline.model.loaded_images_per_step, self.batch.images
         if self._start_step == 0 or saved == now:
             return
