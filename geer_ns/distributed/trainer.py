@@ -1,11 +1,13 @@
-"""geer's training step on 1..N processes: nerfstudio's Trainer with the step made of images and replicas.
+"""geer's training step on 1..N processes: nerfstudio's Trainer with the step made of images, and an engine.
 
-A step renders this process's `images_per_step` training images one at a time (each its own backward, so
-only one image's graph is alive), sums their gradients, reduces them over the processes (replicas.py) and
-divides by the step's images (the effective batch), adds the regularisers' gradient once, reduces the
-densification statistics, and steps the optimisers; nerfstudio's callbacks (densification, the SH schedule)
-run around it as before. Everything else is nerfstudio's Trainer: rank 0 alone logs, evaluates, saves and
-serves the viewer (its decorators and this class), and every process trains the same replica.
+A step renders this process's `images_per_step` training images one at a time (each its own backward, so only
+one image's graph is alive), reduces the gradients and divides them by the step's images (the effective batch),
+adds the regularisers' gradient once, reduces the densification statistics and steps the optimisers;
+nerfstudio's callbacks (densification, the SH schedule) run around it as before. How images and Gaussians are
+shared out is the engine's (`--pipeline.model.distributed`): replicas.ImageParallel (every process holds the
+scene, gradients all-reduced) or sharded.GaussianParallel (every process a shard, cameras rendered from all
+of them). Everything else is nerfstudio's Trainer: rank 0 alone logs, evaluates, writes checkpoints (atomically)
+and serves the viewer.
 
 The launch (one process per device, the process group) is nerfstudio's `--machine.*` launcher, made to work
 on CPU machines by geer_ns.host_fixes.install_distributed_launch_fix.
