@@ -66,20 +66,20 @@ def plan(work: Path, steps: int) -> dict:
     """name -> (data, steps, model overrides, schedule overrides)."""
     from geer_ns.data.synthetic_room import default_scene_dir
 
-    dev = {"warmup_length": 300, "refine_every": 100, "stop_split_at": 1000, "num_downscales": 0}
     runs = {}
-    for size, n in ((128, steps), (256, max(steps // 3, 1000))):
-        room = resized_room(work, size)
-        for camera in ("fisheye", "pinhole"):
-            data = room / f"transforms_{camera}.json"
-            runs[f"{camera} {size}, former"] = (data, n, {**FORMER, **dev})
-            runs[f"{camera} {size}, current"] = (data, n, dict(dev))
     demo = {"num_downscales": 1, "resolution_schedule": 400, "warmup_length": 100, "refine_every": 50,
             "central_half_angles_deg": (60.0, 60.0)}
     room = default_scene_dir()
     runs["embedded room, former (demo: splits to 250)"] = (room, 800, {**FORMER, **demo, "stop_split_at": 251})
     runs["embedded room, current (demo: splits to 250)"] = (room, 800, {**demo, "stop_split_at": 251})
     runs["embedded room, current (splits to 800)"] = (room, 800, {**demo, "stop_split_at": 801})
+    dev = {"warmup_length": 300, "refine_every": 100, "stop_split_at": 1000, "num_downscales": 0}
+    for size, n in ((128, steps), (256, max(steps // 3, 1000))):
+        room = resized_room(work, size)
+        for camera in ("fisheye", "pinhole"):
+            data = room / f"transforms_{camera}.json"
+            runs[f"{camera} {size}, current"] = (data, n, dict(dev))
+            runs[f"{camera} {size}, former"] = (data, n, {**FORMER, **dev})
     return runs
 
 
