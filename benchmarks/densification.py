@@ -62,7 +62,7 @@ def resized_room(work: Path, size: int) -> Path:
     return out
 
 
-def plan(work: Path, steps: int) -> dict:
+def plan(work: Path, steps: int, former_steps: int = 0) -> dict:
     """name -> (data, steps, model overrides, schedule overrides)."""
     from geer_ns.data.synthetic_room import default_scene_dir
 
@@ -71,15 +71,16 @@ def plan(work: Path, steps: int) -> dict:
             "central_half_angles_deg": (60.0, 60.0)}
     room = default_scene_dir()
     runs["embedded room, former (demo: splits to 250)"] = (room, 800, {**FORMER, **demo, "stop_split_at": 251})
-    runs["embedded room, current (demo: splits to 250)"] = (room, 800, {**demo, "stop_split_at": 251})
-    runs["embedded room, current (splits to 800)"] = (room, 800, {**demo, "stop_split_at": 801})
+    runs["embedded room, current (splits throughout)"] = (room, 800, dict(demo))
     dev = {"warmup_length": 300, "refine_every": 100, "stop_split_at": 1000, "num_downscales": 0}
     for size, n in ((128, steps), (256, max(steps // 3, 1000))):
         room = resized_room(work, size)
         for camera in ("fisheye", "pinhole"):
             data = room / f"transforms_{camera}.json"
             runs[f"{camera} {size}, current"] = (data, n, dict(dev))
-            runs[f"{camera} {size}, former"] = (data, n, {**FORMER, **dev})
+            # the former defaults reach ~285k Gaussians by step 1000 (seconds a step on 2 cores): run to the
+            # end of the splits, where the counts and the time per step have stopped changing
+            runs[f"{camera} {size}, former"] = (data, former_steps or n, {**FORMER, **dev})
     return runs
 
 
@@ -167,7 +168,7 @@ def write(out_md: Path, records: list, args) -> None:
 - device: CPU, {platform.machine()}, {os.cpu_count()} cores (load average {os.getloadavg()[0]:.2f} when written), torch
   {torch.__version__}; renderer: the CPU build
 - commit: {commit}
-- command: `.venv/bin/python benchmarks/densification.py --steps {args.steps}`
+- command: `.venv/bin/python benchmarks/densification.py {' '.join(sys.argv[1:])}`
 - former: `densify-signal pixels`, summed gradients, `densify-grad-thresh 0.0002`, no unseen prune; current: the
   defaults (angular statistics, AbsGS gradients, 0.0008, unseen prune). Dev room: refinement every 100 steps
   from step 300, splits until step 1000, full resolution; eval: the 6 held-out views in native pixels
@@ -189,13 +190,15 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=int, default=3000)
     ap.add_argument("--eval-every", type=int, default=500)
+    ap.add_argument("--former-steps", type=int, default=0, help="steps of the former defaults' dev-room runs "
+                    "(default: --steps)")
     ap.add_argument("--only", nargs="*", help="names (or prefixes) of the runs to make; default all")
     ap.add_argument("--work", type=Path, default=Path("/tmp/geer_densification"))
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "densification.md")
     ap.add_argument("--run", help=argparse.SUPPRESS)
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
-    runs = plan(args.work, args.steps)
+    runs = plan(args.work, args.steps, args.former_steps)
     if args.run:
         data, steps, overrides = runs[args.run]
         eval_every = args.eval_every if steps >= args.eval_every else max(steps // 4, 1)
@@ -208,7 +211,8 @@ def main() -> None:
     for name in chosen:
         target = args.work / f"{name.replace(' ', '_')}.json"
         if not target.is_file():
-            subprocess.run([sys.executable, __file__, "--run", name, "--steps", str(args.steps), "--eval-every",
+            subprocess.run([sys.executable, __file__, "--run", name, "--steps", str(args.steps), "--former-steps",
+                            str(args.former_steps), "--eval-every",
                             str(args.eval_every), "--work", str(args.work)], check=True,
                            env=dict(os.environ, PYTHONPATH=str(ROOT)))
     records = [json.loads((args.work / f"{n.replace(' ', '_')}.json").read_text()) for n in runs

@@ -75,12 +75,15 @@ class GeerOwnOptions:
     strategy: Literal["default", "mcmc"] = "default"
     """Densification: gsplat's DefaultStrategy (3DGS heuristics) or MCMCStrategy."""
     densify_signal: Literal["angular", "pixels"] = "angular"
-    """Densification statistics: "angular" (the same value for the same Gaussian at any field of view,
-    projection and resolution, in the units gsplat's thresholds were tuned on: geer_ns/densify/signal.py) or
-    "pixels" (geer's former signal: BEAP pixels, normalised by the image size)."""
+    """Densification statistics: "angular" (the same value for the same Gaussian at any field of view and
+    projection, counted in the view's supervised pixels, in the units gsplat's thresholds were tuned on:
+    geer_ns/densify/signal.py) or "pixels" (geer's former signal: BEAP pixels, normalised by the image size)."""
     max_gaussians: int = 0
     """Most Gaussians densification may create (0: no limit); the strongest candidates grow first. With
     strategy=mcmc, the cap of MCMCStrategy when set."""
+    densify_min_pixels: float = 1.0
+    """A Gaussian splits or duplicates only where some training view resolves it: its radius (the 1/255
+    contour) at least this many of that view's pixels. Finer Gaussians add nothing the images can show."""
     prune_unseen: bool = True
     """Prune Gaussians whose blend weight stayed below 1/255 on every training ray for a whole pass over the
     training images (too faint, or hidden behind opaque surfaces in every view)."""
@@ -153,7 +156,7 @@ IGNORED_OPTIONS = ("rasterize_mode", "output_depth_during_training", "color_corr
 OWN_OPTIONS_HELP = (
     "geer's own options: --pipeline.model.renderer-backend {auto,torch,cuda,cpu}, --pipeline.model.lambda-mode "
     "{opacity,paper}, --pipeline.model.strategy {default,mcmc}, --pipeline.model.densify-signal {angular,pixels}, "
-    "--pipeline.model.max-gaussians, --pipeline.model.prune-unseen, --pipeline.model.distributed {images,gaussians}, "
+    "--pipeline.model.max-gaussians, --pipeline.model.densify-min-pixels, --pipeline.model.prune-unseen, --pipeline.model.distributed {images,gaussians}, "
     "--pipeline.model.max-pairs, "
     "--pipeline.model.central-half-angles-deg, --pipeline.datamanager.supervision, "
     "--pipeline.datamanager.mask-edge-fill, --pipeline.datamanager.images-per-step, --machine.timeout-s; resume "
@@ -298,6 +301,7 @@ class GeerModel(SplatfactoModel):
         pause = -(-self.num_train_data // cfg.images_per_step_total)  # one pass over the images, in steps
         strategy = GeerDefaultStrategy(
             max_gaussians=cfg.max_gaussians,
+            min_pixels=cfg.densify_min_pixels,
             prune_unseen=cfg.prune_unseen,
             images_per_pass=self.num_train_data,
             images_per_step=cfg.images_per_step_total,
@@ -408,10 +412,11 @@ class GeerModel(SplatfactoModel):
             **({} if probe is None or probe.absgrad is None else {"absgrad": (probe.signal.lateral, probe.absgrad)}),
         )
         if probe is not None:
-            radius = None
-            if probe.signal.radius is None:  # pixel_signal: the PBF's extent in pixels of the image's larger side
-                radius = pbf_radii(out.pbf, out.visible, view.steps) / float(max(height, width))
-            self.views.append(probe.record(out.visible.detach(), out.max_weight, radius))
+            radius = pixels = None
+            if probe.signal.radius is None:  # pixel_signal: the PBF's extent in pixels (of the image's larger side)
+                pixels = pbf_radii(out.pbf, out.visible, view.steps)
+                radius = pixels / float(max(height, width))
+            self.views.append(probe.record(out.visible.detach(), out.max_weight, radius, pixels))
         return self.view_outputs(out, view, background, camera)
 
     @staticmethod
@@ -437,7 +442,7 @@ class GeerModel(SplatfactoModel):
         else:
             lam2, _ = pbf_lambda_sq(opacities.detach(), self.config.lambda_mode)
             signal = angular_signal(view.project, int(view.rays.valid.sum()), view.center_solid_angle, means_c,
-                                    scales, lam2)
+                                    scales, lam2, view.source_project)
         return ViewProbe.zeros(signal, means, self.config.use_absgrad)
 
     def _get_background_color(self) -> Tensor:

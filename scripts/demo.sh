@@ -24,8 +24,8 @@ else
   # CPU: rendered by the kernels' code built for the CPU (backend auto; built once here, outside the
   # training time, and loudly replaced by the PyTorch renderer if it cannot be built). BEAP supervision
   # at half resolution (48 x 48 cells) for the first half, full resolution after; refinement every 50
-  # steps, splitting from step 100 to 250 only: each refinement nearly doubles the Gaussians early on, and
-  # ~25k of them fit 96 x 96 views (more only cost time per step; benchmarks/demo_schedule.md).
+  # steps from step 100, splitting to the end: densification counts the views' pixels, so each refinement
+  # adds fewer Gaussians as they reach what 96 x 96 views resolve (benchmarks/densification.md).
   echo "[demo] no GPU: CPU schedule (renderer: csrc/cpu_ops.cpp, built on first use)"
   "$PY" -c 'from geer_ns.render.backend import resolve_backend; import torch; print("[demo] renderer backend:", resolve_backend("auto", torch.device("cpu")))'
   STEPS=${GEER_DEMO_STEPS:-800}
@@ -34,7 +34,6 @@ else
     --pipeline.model.resolution-schedule $((STEPS / 2))
     --pipeline.model.warmup-length 100
     --pipeline.model.refine-every 50
-    --pipeline.model.stop-split-at 251
     --steps-per-eval-image 200
     --steps-per-eval-all-images 0
   )

@@ -23,10 +23,10 @@ def _model(n: int, seed: int = 0):
     return params, optimizers
 
 
-def _stats(grad, radius=None, weight=None):
+def _stats(grad, radius=None, weight=None, pixels=None):
     n = grad.shape[0]
     return StepStatistics(grad, torch.ones(n), torch.zeros(n) if radius is None else radius,
-                          torch.ones(n) if weight is None else weight)
+                          torch.ones(n) if weight is None else weight, torch.full((n,), 10.0) if pixels is None else pixels)
 
 
 def _refine(strategy, params, optimizers, state, stats, step=200):
@@ -90,3 +90,16 @@ def test_unseen_gaussians_are_pruned_after_a_whole_pass_only():
     strategy._prune_gs(params, optimizers, state, 4)
     assert strategy.log[-1]["pruned (unseen)"] == 3 and len(params["means"]) == 7
     assert state["weight_images"] == 0 and float(state["weight"].max()) == 0.0  # a new window starts
+
+
+def test_gaussians_finer_than_a_pixel_in_every_view_do_not_grow():
+    params, optimizers = _model(40)
+    grad = torch.ones(40)  # every Gaussian wants to grow
+    pixels = torch.full((40,), 3.0)
+    pixels[:25] = 0.6  # below one pixel of radius in every view of the window
+    strategy = GeerDefaultStrategy(grow_grad2d=0.5, grow_scale3d=0.1, min_pixels=1.0, reset_every=10**6, verbose=False)
+    state = strategy.initialize_state()
+    entry = _refine(strategy, params, optimizers, state, _stats(grad, pixels=pixels))
+    assert entry["duplicated (gradient)"] == 15 and entry["held back (finer than a pixel)"] == 25
+    assert len(params["means"]) == 55
+    assert float(state["pixels"].max()) == 0.0  # the next refinement judges its own window

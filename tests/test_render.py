@@ -248,22 +248,25 @@ def test_auto_backend_says_so_when_cuda_tensors_fall_back_to_pytorch():
 
 @pytest.mark.parametrize("backend", ["torch", "cpu"])
 def test_a_batch_of_cameras_renders_each_view_as_render_does(backend):
-    """render_batch over a mixed rig (a BEAP grid and a 180-degree fisheye) and two poses: each output and the
-    summed gradients are those of one render() per view."""
+    """render_batch over a mixed rig (a BEAP grid and a 180-degree fisheye) and two poses: each output, the
+    summed gradients and each view's absgrad sums are those of one render() per view."""
     pytest.importorskip("ninja")
     grids = [reference_grids()["beap"], reference_grids()["fisheye180"]]
     scene = random_scene(150, 21, around=True)
     viewmats = torch.stack([random_viewmat(5, translation_scale=0.2), random_viewmat(6, translation_scale=0.2)])
+    lateral = torch.randn(150, 3, 2, generator=torch.Generator().manual_seed(3), dtype=scene[0].dtype)
     from geer_ns.render import render_batch
 
     def run(batched: bool):
         inputs = [t.clone().requires_grad_(True) for t in scene]
+        sinks = [torch.zeros(150, 2, dtype=scene[0].dtype, requires_grad=True) for _ in range(2)]
         if batched:
-            outs = render_batch(*inputs, viewmats, grids, backend=backend)
+            outs = render_batch(*inputs, viewmats, grids, backend=backend, absgrad=[(lateral, s) for s in sinks])
         else:
-            outs = [_render(*inputs, viewmats[c], grids[c], backend=backend) for c in range(2)]
+            outs = [_render(*inputs, viewmats[c], grids[c], backend=backend, absgrad=(lateral, sinks[c]))
+                    for c in range(2)]
         sum(out.rgb.square().sum() + out.depth.sum() for out in outs).backward()
-        return outs, [t.grad for t in inputs]
+        return outs, [t.grad for t in inputs] + [s.grad for s in sinks]
 
     (batched, g_batched), (single, g_single) = run(True), run(False)
     assert [tuple(o.rgb.shape) for o in batched] == [(48, 80, 3), (64, 64, 3)]
@@ -271,8 +274,11 @@ def test_a_batch_of_cameras_renders_each_view_as_render_does(backend):
         assert float(b.accumulation.max()) > 0.3
         for name in ("rgb", "depth", "accumulation"):
             assert torch.equal(getattr(a, name), getattr(b, name)), name
-    for name, a, b in zip(FIELDS, g_batched, g_single):
+    for name, a, b in zip(FIELDS + ("absgrad view 0", "absgrad view 1"), g_batched, g_single):
         assert torch.equal(a, b), name
+    assert float(g_single[-1].abs().max()) > 0 and not torch.equal(g_single[-1], g_single[-2])  # views' own sums
+    with pytest.raises(ValueError, match="absgrad: expected 2"):
+        render_batch(*scene, viewmats, grids, backend=backend, absgrad=[None])
     with pytest.raises(ValueError, match="grids: expected one RayGrid or 2"):
         render_batch(*scene, viewmats, grids[:1], backend=backend)
     with pytest.raises(ValueError, match=r"viewmats: expected shape \[\*, 4, 4\]"):

@@ -50,6 +50,11 @@ class BeapView:
         """Solid angle of the cell on the optical axis (sr)."""
         return self.grid.step_theta * self.grid.step_phi
 
+    @property
+    def source_project(self):
+        """The projection of the camera whose pixels the BEAP image is resampled from."""
+        return self.camera.project
+
     def project(self, points_cam: Tensor) -> tuple[Tensor, Tensor]:
         """Camera-frame points [..., 3] -> BEAP cell coordinates [..., 2] (x along theta, y along phi) and
         whether the point lies in front of the camera inside the grid's angular range."""
@@ -77,6 +82,11 @@ class NativeView:
     def center_solid_angle(self) -> float:
         """Solid angle of a pixel at the principal point (sr)."""
         return self.step * self.step
+
+    @property
+    def source_project(self):
+        """None: the view's pixels are the camera's own."""
+        return None
 
     def project(self, points_cam: Tensor) -> tuple[Tensor, Tensor]:
         return self.camera.project(points_cam)

@@ -7,22 +7,40 @@ through the Gaussian's direction from the camera, and its gradient after backwar
 `ViewRecord` keeps the leaf and what turns its gradient into the statistic; `StepStatistics` sums a step's
 views (the views of every process, once reduced).
 
-One meaning at every field of view, projection and resolution (`angular_signal`, the default). A view's loss
-is a mean over its P supervised pixels, so dL/d(direction) of one Gaussian is (1/P) x the sum of its pixels'
-error gradients: wider views and finer resolutions dilute it, and pixel units stretch it (BEAP cells by up
-to 1/cos of the off-axis angle, x11 at 85 degrees). The statistic undoes both:
+One meaning at every field of view, projection and resolution (`angular_signal`, the default): both
+statistics count the view's own pixels, the units its supervision resolves. A view's loss is a mean over its
+P supervised pixels, so dL/d(direction) of one Gaussian is (1/P) x the sum of its pixels' error gradients:
+wider views dilute it, and BEAP cells stretch it (by up to 1/cos of the off-axis angle, x11 at 85 degrees).
+The statistics undo both:
 
-    gradient  = |dL_v/d alpha| * P_v * omega_v(u) / (4 t_ref)      alpha: the direction, radians
-    screen    = rho / (2 t_ref)                                      rho: the angular radius, radians
+    gradient  = |dL_v/d alpha| * P_v * sqrt(omega_v(u)) / (2 W_ref)     alpha: the direction, radians
+    screen    = rho / sqrt(omega_v(u)) / W_ref                           rho: the angular radius, radians
 
-omega_v(u) is the solid angle of one pixel of the view at the Gaussian's direction u, so P_v omega_v(u)
-dL_v/d alpha is the gradient of the view's error summed over its pixels, each weighted by the solid angle it
-covers: the integral of the error over the sphere, which no field of view, projection or pixel count changes.
-t_ref = tan(30 deg) is the reference camera gsplat's thresholds were tuned on (a 60-degree pinhole, the
-3DGS captures' 50-70 degrees): for it at its image centre both statistics are gsplat's own (|dL/d position|
-in units of half the image, radius / image width). rho is where the Gaussian's alpha falls to 1/255 as seen
-from the camera (its bounding sphere's half-angle, lambda = the PBF's). `pixel_signal` is the former
-definition (BEAP pixels, gsplat's normalisation by the image size), kept for comparisons.
+omega_v(u) is the solid angle of one pixel of the view at the Gaussian's direction u, sqrt(omega) the pixel's
+side there: P_v dL_v/d alpha is the gradient of the view's error summed over its pixels, and times
+sqrt(omega) it is that sum's gradient per pixel of movement; rho / sqrt(omega) is the Gaussian's radius in
+those pixels. A BEAP view is resampled from the camera's own pixels, and its cells are finer than them in
+places (1.1x on the axis of a 180-degree fisheye, more toward the rim, where BEAP cells shrink as
+cos(off-axis angle)); what it resolves there is the coarser of the two, so the pixel's side is
+sqrt(max(omega_v, omega_camera)), while the sum over the view's cells stays P_v omega_v dL_v/d alpha:
+
+    gradient  = |dL_v/d alpha| * P_v * omega_v(u) / sqrt(max(omega_v, omega_camera)(u)) / (2 W_ref) Neither depends on the field of view or on the projection (BEAP, native fisheye, pinhole), only
+on what the pixels see. The reference camera is a 60-degree pinhole W_ref pixels across; for it, at its image
+centre, both statistics are gsplat's own (|dL/d position| in units of half the image, radius / image width),
+so gsplat's thresholds keep their meaning.
+
+Why pixels and not radians: under splatfacto's L1 loss each pixel's error gradient has the same size whatever
+its residual, so the AbsGS statistic of a Gaussian is about 1.9 c sigma / (2 W_ref) for a footprint of sigma
+pixels and contrast c (alpha x colour step): a threshold on it is a floor on the Gaussian's size in pixels
+(c sigma >~ 0.25 px at 0.0008 and W_ref = 300). In radians, the same threshold is a fixed angle, 0.1 degree,
+whatever the images resolve: a 128-pixel 180-degree view (1.4 degrees a pixel) then splits every Gaussian to
+a tenth of a pixel, about x1.6 per refinement (measured: 4,000 -> 352,000 on the embedded room by step 800),
+and a screen size in radians splits every Gaussian a wide view of a room sees from close by. W_ref = 300
+sets the floor at about a pixel at contrasts of 0.1-0.25 (benchmarks/densification.md: 1,000 grows the
+embedded room to 4.9k Gaussians and 26.7 dB by step 800, 500 to 10k and 27.4 dB, 300 to 20.6k and 28.0 dB,
+each refinement adding fewer). rho is where the Gaussian's alpha falls to 1/255 as seen from the camera (its
+bounding sphere's half-angle, lambda = the PBF's). `pixel_signal` is the former definition (BEAP pixels,
+gsplat's normalisation by the image size), kept for comparisons.
 """
 
 from __future__ import annotations
@@ -34,8 +52,8 @@ from typing import Callable, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-# The reference camera of gsplat's thresholds: a pinhole 60 degrees across (see the module docstring).
-REFERENCE_HALF_WIDTH_TAN = math.tan(math.radians(30.0))
+# The reference camera of gsplat's thresholds: a pinhole 60 degrees and W_ref pixels across (module docstring).
+REFERENCE_WIDTH_PIXELS = 300.0
 Projection = Callable[[Tensor], Tuple[Tensor, Tensor]]  # camera-frame points [N,3] -> (pixels [N,2], valid [N])
 
 
@@ -114,16 +132,22 @@ class ViewSignal:
     lateral: Tensor  # [N, 3, 2] view-space move of each mean per unit offset (columns)
     scale: Tensor  # [N, 1] or [1, 2]: offsets' gradient -> the statistic's units
     radius: Optional[Tensor]  # [N] screen statistic before masking by visibility (None: from the render's PBF)
+    pixels: Optional[Tensor]  # [N] the radius in the view's own pixels there (None: from the render's PBF)
 
 
 def angular_signal(project: Projection, supervised_pixels: int, center_solid_angle: float, means_c: Tensor,
-                   scales: Tensor, lam2: Tensor) -> ViewSignal:
-    """The invariant statistics of the module docstring; offsets in radians of direction."""
+                   scales: Tensor, lam2: Tensor, source: Optional[Projection] = None) -> ViewSignal:
+    """The statistics of the module docstring; offsets in radians of direction. `source`: the camera whose
+    pixels a resampled view (BEAP) was made from, where they differ from the view's own cells."""
     lateral = lateral_basis(means_c)
     omega = pixel_solid_angle(project, means_c, center_solid_angle)
-    scale = (supervised_pixels * omega / (4.0 * REFERENCE_HALF_WIDTH_TAN))[:, None]
-    radius = angular_radius(means_c, scales, lam2) / (2.0 * REFERENCE_HALF_WIDTH_TAN)
-    return ViewSignal(lateral, scale.to(means_c.dtype), radius.to(means_c.dtype))
+    resolved = omega if source is None else torch.maximum(omega, pixel_solid_angle(source, means_c, 0.0))
+    side = torch.sqrt(resolved)  # the side of the pixel the supervision resolves there
+    scale = (supervised_pixels * omega / side / (2.0 * REFERENCE_WIDTH_PIXELS))[:, None]
+    rho = angular_radius(means_c, scales, lam2)
+    pixels = rho / side
+    radius = pixels / REFERENCE_WIDTH_PIXELS
+    return ViewSignal(lateral, scale.to(means_c.dtype), radius.to(means_c.dtype), pixels.to(means_c.dtype))
 
 
 def pixel_signal(means_c: Tensor, steps: Tuple[float, float], size: Tuple[int, int]) -> ViewSignal:
@@ -131,7 +155,7 @@ def pixel_signal(means_c: Tensor, steps: Tuple[float, float], size: Tuple[int, i
     image's height and width, the screen radius from the PBF in pixels / the image's larger side."""
     height, width = size
     lateral = angle_jacobian_pinv(means_c) * means_c.new_tensor(steps)
-    return ViewSignal(lateral, means_c.new_tensor([[width / 2.0, height / 2.0]]), None)
+    return ViewSignal(lateral, means_c.new_tensor([[width / 2.0, height / 2.0]]), None, None)
 
 
 def lateral_basis(means_c: Tensor) -> Tensor:
@@ -158,11 +182,15 @@ class ViewProbe:
         move = torch.einsum("nij,nj->ni", self.signal.lateral, self.offsets)
         return means + move @ viewmat[:3, :3].to(means.dtype)
 
-    def record(self, visible: Tensor, weight: Tensor, radius: Optional[Tensor] = None) -> "ViewRecord":
-        """The view's record once rendered: `radius` when the signal has none of its own (pixel_signal's)."""
+    def record(self, visible: Tensor, weight: Tensor, radius: Optional[Tensor] = None,
+               pixels: Optional[Tensor] = None) -> "ViewRecord":
+        """The view's record once rendered: `radius` and `pixels` where the signal has none of its own
+        (pixel_signal's, from the render's PBF)."""
         radius = self.signal.radius if radius is None else radius
-        radius = torch.where(visible, radius, torch.zeros_like(radius))
-        return ViewRecord(self.offsets, self.absgrad, visible, self.signal.scale, radius, weight)
+        pixels = self.signal.pixels if pixels is None else pixels
+        zero = torch.zeros_like(radius)
+        return ViewRecord(self.offsets, self.absgrad, visible, self.signal.scale, torch.where(visible, radius, zero),
+                          weight, torch.where(visible, pixels.to(zero), zero))
 
 
 @dataclass
@@ -175,6 +203,7 @@ class ViewRecord:
     scale: Tensor  # [N, 1] or [1, 2]: offsets' gradient -> the statistic's units (ViewSignal.scale)
     radius: Tensor  # [N] screen-size statistic; 0 where not visible
     weight: Tensor  # [N] the largest blend weight (transmittance x alpha) over the view's rays
+    pixels: Tensor  # [N] the Gaussian's radius in this view's pixels; 0 where not visible
 
     def gradient_norms(self) -> Tensor:
         """[N] the gradient statistic (AbsGS's per-pixel absolute sums where recorded); 0 where not visible."""
@@ -193,6 +222,7 @@ class StepStatistics:
     views: Tensor  # [N] float: number of views that rendered the Gaussian
     radius: Tensor  # [N] largest screen-size statistic over views
     weight: Tensor  # [N] largest blend weight over views
+    pixels: Tensor  # [N] largest radius in a view's pixels over views (what the images resolve of it)
 
     @staticmethod
     def of_views(records: Sequence[ViewRecord], n: int, device) -> "StepStatistics":
@@ -202,9 +232,11 @@ class StepStatistics:
         views = torch.zeros(n, device=device)
         radius = torch.zeros(n, device=device)
         weight = torch.zeros(n, device=device)
+        pixels = torch.zeros(n, device=device)
         for record in records:
             grad = grad + record.gradient_norms().to(grad)
             views = views + record.visible.to(views.dtype)
             radius = torch.maximum(radius, record.radius.to(radius))
             weight = torch.maximum(weight, record.weight.to(weight))
-        return StepStatistics(grad, views, radius, weight)
+            pixels = torch.maximum(pixels, record.pixels.to(pixels))
+        return StepStatistics(grad, views, radius, weight, pixels)

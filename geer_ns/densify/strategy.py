@@ -8,6 +8,10 @@ and the optimizer-state surgery are gsplat's (its ops); the growth and prune rul
 here so that each refinement can say how many Gaussians each rule moved (`log`, one line per refinement), and
 with two additions:
 
+* `min_pixels`: only a Gaussian that some training view resolves grows: its radius (the 1/255 contour) at
+  least this many of that view's pixels (StepStatistics.pixels, the largest over the window's views). Splitting
+  or cloning a Gaussian finer than the supervision's pixels adds nothing the images can show, and on a coarse or
+  wide view (a 96-pixel 180-degree fisheye: 1.9 degrees a pixel) it is what would multiply the count;
 * `max_gaussians`: growth stops at a budget; when the candidates exceed it, those furthest above a threshold
   (gradient or screen size, relative to it) grow first;
 * `prune_unseen`: a Gaussian whose blend weight stayed below 1/255 on every training ray of a whole pass over
@@ -40,6 +44,7 @@ VISIBLE_WEIGHT = 1.0 / 255.0  # the renderer's own threshold: a pair below it is
 @dataclass
 class GeerDefaultStrategy(DefaultStrategy):
     max_gaussians: int = 0  # 0: no budget
+    min_pixels: float = 0.0  # 0: every candidate grows, resolved or not (gsplat's rule)
     prune_unseen: bool = False
     images_per_pass: int = 1  # training images: the unseen rule waits for a whole pass over them
     images_per_step: int = 1
@@ -54,7 +59,7 @@ class GeerDefaultStrategy(DefaultStrategy):
         device = params["means"].device
         if state.get("id") is None:  # a model's Gaussians are numbered once, in their first step
             state["id"] = torch.arange(n, device=device)
-        for key in ("grad2d", "count", "weight") + (("radii",) if self.refine_scale2d_stop_iter > 0 else ()):
+        for key in ("grad2d", "count", "weight", "pixels") + (("radii",) if self.refine_scale2d_stop_iter > 0 else ()):
             if state.get(key) is None:
                 state[key] = torch.zeros(n, device=device)
         state["grad2d"] += stats.grad.to(state["grad2d"])
@@ -62,6 +67,7 @@ class GeerDefaultStrategy(DefaultStrategy):
         if self.refine_scale2d_stop_iter > 0:
             state["radii"] = torch.maximum(state["radii"], stats.radius.to(state["radii"]))
         state["weight"] = torch.maximum(state["weight"], stats.weight.to(state["weight"]))
+        state["pixels"] = torch.maximum(state["pixels"], stats.pixels.to(state["pixels"]))
         state["weight_images"] = int(state.get("weight_images", 0)) + self.images_per_step  # not per Gaussian
 
     @torch.no_grad()
@@ -79,9 +85,17 @@ class GeerDefaultStrategy(DefaultStrategy):
             is_split_screen = state["radii"] > self.grow_scale2d
             over = torch.maximum(over, state["radii"] / self.grow_scale2d)
         is_split = is_split_grad | is_split_screen
+        if self.min_pixels > 0:
+            resolved = state["pixels"] >= self.min_pixels
+            unresolved = int(((is_dupli | is_split) & ~resolved).sum())
+            is_dupli, is_split_grad, is_split_screen = is_dupli & resolved, is_split_grad & resolved, \
+                is_split_screen & resolved
+            is_split = is_split & resolved
         entry = {"step": step, "before": n, "duplicated (gradient)": int(is_dupli.sum()),
                  "split (gradient)": int(is_split_grad.sum()),
                  "split (screen size only)": int((is_split_screen & ~is_split_grad).sum())}
+        if self.min_pixels > 0:
+            entry["held back (finer than a pixel)"] = unresolved
         if self.max_gaussians > 0:  # each duplicate and each split adds one Gaussian
             room = max(self.max_gaussians - n, 0)
             wanted = is_dupli.long() + is_split.long()
@@ -146,6 +160,8 @@ class GeerDefaultStrategy(DefaultStrategy):
         if n_prune > 0:
             remove(params=params, optimizers=optimizers, state=state, mask=is_prune)
         entry["after"] = len(params["means"])
+        if state.get("pixels") is not None:
+            state["pixels"] = torch.zeros_like(state["pixels"])  # a window of its own for the next refinement
         self.log.append(entry)
         if self.verbose:
             said = ", ".join(f"{k} {v}" for k, v in entry.items() if k not in ("step", "before", "after") and v)

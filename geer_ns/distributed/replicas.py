@@ -56,7 +56,7 @@ def reduce_gradients(world: World, params: Sequence[torch.nn.Parameter], images:
 def reduce_statistics(world: World, stats: StepStatistics) -> StepStatistics:
     """The step's densification statistics over every process's views."""
     all_reduce_([stats.grad, stats.views])
-    all_reduce_([stats.radius, stats.weight], op="max")
+    all_reduce_([stats.radius, stats.weight, stats.pixels], op="max")
     return stats
 
 

@@ -140,9 +140,11 @@ def render_batch(
     lambda_mode: LambdaMode = "opacity",
     backend: Backend = "auto",
     max_pairs: int = 1 << 20,
+    absgrad: Sequence[tuple[Tensor, Tensor] | None] | None = None,
 ) -> list[RenderOutput]:
     """Render C cameras of one scene: viewmats [C,4,4], grids one RayGrid for every camera or one per camera
-    (mixed rigs). Each view is what `render` gives for it (checks included), outputs and gradients. Views are
+    (mixed rigs); `absgrad` one (lateral, sink) pair (or None) per camera, as `render`'s, each view's statistics
+    its own. Each view is what `render` gives for it (checks included), outputs and gradients. Views are
     rendered one after the other: their lists and pairs differ, and one view's pairs at a time is what bounds
     the memory (a training step with several images also runs each image's backward before the next image's
     forward: geer_ns/distributed/trainer.py)."""
@@ -151,8 +153,12 @@ def render_batch(
     grids = [grids] * views if isinstance(grids, RayGrid) else list(grids)
     if len(grids) != views:
         raise ValueError(f"grids: expected one RayGrid or {views} (one per viewmat), got {len(grids)}")
+    absgrad = [None] * views if absgrad is None else list(absgrad)
+    if len(absgrad) != views:
+        raise ValueError(f"absgrad: expected {views} (lateral, sink) pairs or None (one per viewmat), got {len(absgrad)}")
     return [render(means, quats, scales, opacities, colors, viewmats[c], grids[c], sh_degree=sh_degree,
-                   background=background, lambda_mode=lambda_mode, backend=backend, max_pairs=max_pairs)
+                   background=background, lambda_mode=lambda_mode, backend=backend, max_pairs=max_pairs,
+                   absgrad=absgrad[c])
             for c in range(views)]
 
 
