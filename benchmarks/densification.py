@@ -22,6 +22,7 @@ import argparse
 import json
 import os
 import platform
+import shlex
 import shutil
 import subprocess
 import sys
@@ -72,6 +73,8 @@ def plan(work: Path, steps: int, former_steps: int = 0) -> dict:
     room = default_scene_dir()
     runs["embedded room, former (demo: splits to 250)"] = (room, 800, {**FORMER, **demo, "stop_split_at": 251})
     runs["embedded room, current (splits throughout)"] = (room, 800, dict(demo))
+    for width in (1000, 500):  # the reference camera's width (signal.REFERENCE_WIDTH_PIXELS, 300): its calibration
+        runs[f"embedded room, current with W_ref {width}"] = (room, 800, {**demo, "reference_width": width})
     dev = {"warmup_length": 300, "refine_every": 100, "stop_split_at": 1000, "num_downscales": 0}
     for size, n in ((128, steps), (256, max(steps // 3, 1000))):
         room = resized_room(work, size)
@@ -103,7 +106,12 @@ def one_run(name: str, data: Path, steps: int, overrides: dict, eval_every: int,
     config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = 0
     config.steps_per_save = 10**9
     for key, value in overrides.items():
-        setattr(config.pipeline.model, key, value)
+        if key == "reference_width":  # not an option: the constant the thresholds' units are calibrated by
+            from geer_ns.densify import signal
+
+            signal.REFERENCE_WIDTH_PIXELS = float(value)
+        else:
+            setattr(config.pipeline.model, key, value)
     writer.EVENT_WRITERS.clear()
     _set_random_seed(config.machine.seed)
     trainer = config.setup(local_rank=0, world_size=1)
@@ -125,13 +133,15 @@ def one_run(name: str, data: Path, steps: int, overrides: dict, eval_every: int,
                                      "psnr": metrics["psnr"], "ssim": metrics["ssim"]})
             print(f"[{name}] step {step + 1}: {model.num_points} Gaussians, {clock['train']:.0f} s, "
                   f"PSNR {metrics['psnr']:.2f}", flush=True)
+            partial = {**record, "refinements": getattr(model.strategy, "log", []), "stopped_at": step + 1}
+            (out / f"{config.experiment_name}.partial.json").write_text(json.dumps(partial))  # if it is stopped
 
     trainer.callbacks.insert(0, TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], before))
     trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after))
-    trainer.train()
-    record["refinements"] = getattr(model.strategy, "log", [])
     report = pipeline.datamanager.supervision_report("train")
     record["supervised_pixels"] = sum(e.supervised_pixels for e in report.cameras.values())  # native pixels
+    trainer.train()
+    record["refinements"] = getattr(model.strategy, "log", [])
     (out / f"{config.experiment_name}.json").write_text(json.dumps(record))
 
 
@@ -148,14 +158,52 @@ def table(records: list) -> str:
 
 
 def rules(records: list) -> str:
-    lines = ["| run | step | before | duplicated (gradient) | split (gradient) | split (screen size only) | pruned "
-             "(opacity, 3D size, screen size, unseen) | after |",
-             "| --- | ---: | ---: | ---: | ---: | ---: | --- | ---: |"]
+    lines = ["| run | step | before | duplicated (gradient) | split (gradient) | split (screen size only) | held back "
+             "(finer than a pixel) | pruned (opacity, 3D size, screen size, unseen) | after | growth |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: |"]
     for r in records:
         for e in r.get("refinements", []):
             pruned = ", ".join(str(e.get(f"pruned ({k})", 0)) for k in ("opacity", "3D size", "screen size", "unseen"))
             lines.append(f"| {r['name']} | {e['step']} | {e['before']:,} | {e['duplicated (gradient)']:,} | "
-                         f"{e['split (gradient)']:,} | {e['split (screen size only)']:,} | {pruned} | {e['after']:,} |")
+                         f"{e['split (gradient)']:,} | {e['split (screen size only)']:,} | "
+                         f"{e.get('held back (finer than a pixel)', 0):,} | {pruned} | {e['after']:,} | "
+                         f"x{e['after'] / max(e['before'], 1):.2f} |")
+    return "\n".join(lines)
+
+
+def comparisons(records: list) -> str:
+    """Current over former at the last step both reached, per scene; counts per supervised pixel across the
+    fisheye and pinhole views of one room."""
+    by_name = {r["name"]: r for r in records}
+    lines = ["| scene | step | Gaussians, current / former | training time, current / former | PSNR, current - former |",
+             "| --- | ---: | ---: | ---: | ---: |"]
+    pairs = [(n, n.replace(", current", ", former")) for n in by_name if n.endswith(", current")]
+    pairs += [("embedded room, current (splits throughout)", "embedded room, former (demo: splits to 250)")]
+    for new, old in pairs:
+        old = next((n for n in by_name if n.startswith(old)), None)  # finished, or stopped early
+        if new not in by_name or old is None:
+            continue
+        steps = {p["step"]: p for p in by_name[new]["points"]}
+        common = [p for p in by_name[old]["points"] if p["step"] in steps]
+        if not common:
+            continue
+        o = common[-1]
+        c = steps[o["step"]]
+        lines.append(f"| {new.split(',')[0]} | {o['step']} | {c['gaussians']:,} / {o['gaussians']:,} = "
+                     f"{c['gaussians'] / o['gaussians']:.2f} | {c['seconds']:.0f} s / {o['seconds']:.0f} s = "
+                     f"{c['seconds'] / o['seconds']:.2f} | {c['psnr'] - o['psnr']:+.2f} dB |")
+    for size in (128, 256):
+        f, p = by_name.get(f"fisheye {size}, current"), by_name.get(f"pinhole {size}, current")
+        if f and p:
+            per = [r["points"][-1]["gaussians"] / r["supervised_pixels"] for r in (f, p)]
+            lines.append(f"\nDev room {size}^2, current, at the last step: {1000 * per[0]:.1f} Gaussians per 1k "
+                         f"supervised pixels with the fisheye views, {1000 * per[1]:.1f} with the pinhole views "
+                         f"(ratio {max(per) / min(per):.2f}).")
+    widths = [(n, by_name[n]) for n in by_name if n.startswith("embedded room, current")]
+    if len(widths) > 1:
+        lines.append("\nThe reference width W_ref (geer_ns/densify/signal.py), embedded room at step 800: " + "; ".join(
+            f"{n.split('with ')[-1] if 'W_ref' in n else 'W_ref 300 (the default)'}: {r['points'][-1]['gaussians']:,} Gaussians, "
+            f"{r['points'][-1]['psnr']:.2f} dB" for n, r in widths) + ".")
     return "\n".join(lines)
 
 
@@ -168,11 +216,19 @@ def write(out_md: Path, records: list, args) -> None:
 - device: CPU, {platform.machine()}, {os.cpu_count()} cores (load average {os.getloadavg()[0]:.2f} when written), torch
   {torch.__version__}; renderer: the CPU build
 - commit: {commit}
-- command: `.venv/bin/python benchmarks/densification.py {' '.join(sys.argv[1:])}`
-- former: `densify-signal pixels`, summed gradients, `densify-grad-thresh 0.0002`, no unseen prune; current: the
-  defaults (angular statistics, AbsGS gradients, 0.0008, unseen prune). Dev room: refinement every 100 steps
-  from step 300, splits until step 1000, full resolution; eval: the 6 held-out views in native pixels
-  (fisheye runs: fisheye views; pinhole runs: pinhole views). Training seconds exclude evaluation.
+- command: `.venv/bin/python benchmarks/densification.py {shlex.join(sys.argv[1:])}`
+- former: `densify-signal pixels`, summed gradients, `densify-grad-thresh 0.0002`, no unseen prune (the 1-pixel
+  growth floor stays on: it held back at most 17 Gaussians a refinement, see the rules table); current: the
+  defaults (statistics in the views' pixels, AbsGS gradients, 0.0008, unseen prune, 1-pixel floor). Dev room:
+  refinement every 100 steps from step 300, splits until step 1000, full resolution; eval: the 6 held-out
+  views in native pixels (fisheye runs: fisheye views; pinhole runs: pinhole views). Embedded room: the demo's
+  CPU schedule (96^2, half resolution for 400 steps, refinement every 50 steps from 100). Training seconds
+  exclude evaluation. Not run here: the 256^2 rows and the former's dev-room runs past step 1000 (their
+  ~290k Gaussians take seconds a step on 2 cores: hours), so the comparison is at step 1000.
+
+## Current against former
+
+{comparisons(records)}
 
 ## Time and quality
 
@@ -215,8 +271,15 @@ def main() -> None:
                             str(args.former_steps), "--eval-every",
                             str(args.eval_every), "--work", str(args.work)], check=True,
                            env=dict(os.environ, PYTHONPATH=str(ROOT)))
-    records = [json.loads((args.work / f"{n.replace(' ', '_')}.json").read_text()) for n in runs
-               if (args.work / f"{n.replace(' ', '_')}.json").is_file()]
+    records = []
+    for n in runs:  # finished runs, or what a stopped run had reached (its name says so)
+        done, partial = (args.work / f"{n.replace(' ', '_')}{ext}" for ext in (".json", ".partial.json"))
+        if done.is_file():
+            records.append(json.loads(done.read_text()))
+        elif partial.is_file():
+            record = json.loads(partial.read_text())
+            record["name"] += f" (stopped at step {record['stopped_at']} of {record['steps']})"
+            records.append(record)
     write(args.out, records, args)
 
 

@@ -7,7 +7,7 @@ through the Gaussian's direction from the camera, and its gradient after backwar
 `ViewRecord` keeps the leaf and what turns its gradient into the statistic; `StepStatistics` sums a step's
 views (the views of every process, once reduced).
 
-One meaning at every field of view, projection and resolution (`angular_signal`, the default): both
+One meaning at every field of view and projection (`angular_signal`, the default), at any resolution: both
 statistics count the view's own pixels, the units its supervision resolves. A view's loss is a mean over its
 P supervised pixels, so dL/d(direction) of one Gaussian is (1/P) x the sum of its pixels' error gradients:
 wider views dilute it, and BEAP cells stretch it (by up to 1/cos of the off-axis angle, x11 at 85 degrees).
@@ -24,7 +24,9 @@ places (1.1x on the axis of a 180-degree fisheye, more toward the rim, where BEA
 cos(off-axis angle)); what it resolves there is the coarser of the two, so the pixel's side is
 sqrt(max(omega_v, omega_camera)), while the sum over the view's cells stays P_v omega_v dL_v/d alpha:
 
-    gradient  = |dL_v/d alpha| * P_v * omega_v(u) / sqrt(max(omega_v, omega_camera)(u)) / (2 W_ref) Neither depends on the field of view or on the projection (BEAP, native fisheye, pinhole), only
+    gradient  = |dL_v/d alpha| * P_v * omega_v(u) / sqrt(max(omega_v, omega_camera)(u)) / (2 W_ref)
+
+Neither depends on the field of view or on the projection (BEAP, native fisheye, pinhole), only
 on what the pixels see. The reference camera is a 60-degree pinhole W_ref pixels across; for it, at its image
 centre, both statistics are gsplat's own (|dL/d position| in units of half the image, radius / image width),
 so gsplat's thresholds keep their meaning.
@@ -33,12 +35,13 @@ Why pixels and not radians: under splatfacto's L1 loss each pixel's error gradie
 its residual, so the AbsGS statistic of a Gaussian is about 1.9 c sigma / (2 W_ref) for a footprint of sigma
 pixels and contrast c (alpha x colour step): a threshold on it is a floor on the Gaussian's size in pixels
 (c sigma >~ 0.25 px at 0.0008 and W_ref = 300). In radians, the same threshold is a fixed angle, 0.1 degree,
-whatever the images resolve: a 128-pixel 180-degree view (1.4 degrees a pixel) then splits every Gaussian to
-a tenth of a pixel, about x1.6 per refinement (measured: 4,000 -> 352,000 on the embedded room by step 800),
-and a screen size in radians splits every Gaussian a wide view of a room sees from close by. W_ref = 300
-sets the floor at about a pixel at contrasts of 0.1-0.25 (benchmarks/densification.md: 1,000 grows the
-embedded room to 4.9k Gaussians and 26.7 dB by step 800, 500 to 10k and 27.4 dB, 300 to 20.6k and 28.0 dB,
-each refinement adding fewer). rho is where the Gaussian's alpha falls to 1/255 as seen from the camera (its
+whatever the images resolve: a 128-pixel 180-degree view (1.4 degrees a pixel) then splits its Gaussians far
+below its pixels, and a screen size in radians splits every Gaussian a wide view of a room sees from close by;
+the former statistic, in image units, did the same (x1.5 per refinement, 20k -> 290k Gaussians by step 1000
+on the dev room at 128^2, where these statistics give 27.5k at the same PSNR). W_ref = 300 sets the floor at
+about a pixel at contrasts of 0.1-0.25 (benchmarks/densification.md, the embedded room at step 800: W_ref
+1000 grows it to 4.5k Gaussians and 26.7 dB, 500 to 8.1k and 27.0 dB, 300 to 15.7k and 28.0 dB, each
+refinement adding fewer). rho is where the Gaussian's alpha falls to 1/255 as seen from the camera (its
 bounding sphere's half-angle, lambda = the PBF's). `pixel_signal` is the former definition (BEAP pixels,
 gsplat's normalisation by the image size), kept for comparisons.
 """
