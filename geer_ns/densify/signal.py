@@ -38,7 +38,7 @@ pixels and contrast c (alpha x colour step): a threshold on it is a floor on the
 whatever the images resolve: a 128-pixel 180-degree view (1.4 degrees a pixel) then splits its Gaussians far
 below its pixels, and a screen size in radians splits every Gaussian a wide view of a room sees from close by;
 the former statistic, in image units, did the same (x1.5 per refinement, 20k -> 290k Gaussians by step 1000
-on the dev room at 128^2, where these statistics give 27.5k at the same PSNR). W_ref = 300 sets the floor at
+on the dev room at 128^2, where these statistics give 27.5k and 0.9 dB more by step 3000). W_ref = 300 sets the floor at
 about a pixel at contrasts of 0.1-0.25 (benchmarks/densification.md, the embedded room at step 800: W_ref
 1000 grows it to 4.5k Gaussians and 26.7 dB, 500 to 8.1k and 27.0 dB, 300 to 15.7k and 28.0 dB, each
 refinement adding fewer). rho is where the Gaussian's alpha falls to 1/255 as seen from the camera (its
