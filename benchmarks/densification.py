@@ -223,9 +223,10 @@ def write(out_md: Path, records: list, args) -> None:
   refinement every 100 steps from step 300, splits until step 1000, full resolution; eval: the 6 held-out
   views in native pixels (fisheye runs: fisheye views; pinhole runs: pinhole views). Embedded room: the demo's
   CPU schedule (96^2, half resolution for 400 steps, refinement every 50 steps from 100). Training seconds
-  exclude evaluation. Runs are separate processes, one after the other, on one otherwise idle machine. Not
-  run here: the 256^2 rows and the former pinhole run (the former's ~290k Gaussians at 128^2 take about a
-  second a step on 2 cores, several times that at 256^2).
+  exclude evaluation. Runs are separate processes, one after the other, on one otherwise idle machine; the
+  256^2 runs make 1000 steps. Not run here: the former defaults at 256^2 (at 128^2 they reach ~290k
+  Gaussians, about a second a step on 2 cores; at 256^2 several times both); the former pinhole run was
+  stopped early (its name says at which step).
 
 ## Current against former
 
