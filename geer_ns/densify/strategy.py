@@ -88,9 +88,8 @@ class GeerDefaultStrategy(DefaultStrategy):
         if self.min_pixels > 0:
             resolved = state["pixels"] >= self.min_pixels
             unresolved = int(((is_dupli | is_split) & ~resolved).sum())
-            is_dupli, is_split_grad, is_split_screen = is_dupli & resolved, is_split_grad & resolved, \
-                is_split_screen & resolved
-            is_split = is_split & resolved
+            is_dupli, is_split_grad, is_split_screen = (m & resolved for m in (is_dupli, is_split_grad, is_split_screen))
+            is_split = is_split_grad | is_split_screen
         entry = {"step": step, "before": n, "duplicated (gradient)": int(is_dupli.sum()),
                  "split (gradient)": int(is_split_grad.sum()),
                  "split (screen size only)": int((is_split_screen & ~is_split_grad).sum())}

@@ -83,11 +83,10 @@ class _BlendLists(torch.autograd.Function):
             for k0, k1 in pieces:
                 starts.append(t)
                 g_idx = lists[sel, k0:k1]
-                g = g_idx.clamp_min(0)
+                g, listed = g_idx.clamp_min(0), g_idx >= 0
                 (*piece, t), _, _, weights = _blend_piece(o_u[g], whiten[g], opacities[g], colors[g], d, r_ok,
-                                                          g_idx >= 0, t)
+                                                          listed, t)
                 sums = [s + x for s, x in zip(sums, piece)]
-                listed = g_idx >= 0
                 max_weight.scatter_reduce_(0, g[listed], weights.amax(dim=-2)[listed], reduce="amax")
             keep = r_idx >= 0
             for o, s in zip(out, sums):
