@@ -8,12 +8,15 @@ rule by rule.
     current  the defaults (angular statistics, absgrad with splatfacto's 0.0008, the unseen prune)
 
 Dev room schedule (both): refinement every 100 steps from step 300, splits until step 1000, full resolution from
-the start (num-downscales 0), otherwise geer's defaults. The 128^2 / 256^2 datasets are the dev room's images
-and masks resized with OpenCV's INTER_AREA, intrinsics scaled. Every run is a fresh process, trained by
-nerfstudio's own loop; evaluation (ns-eval's metrics on the 6 held-out views, native pixels) every
---eval-every steps, outside the timed training. One run writes benchmarks/densification.md.
+the start (num-downscales 0), otherwise geer's defaults; one more run trains the 128^2 fisheye views with geer's
+own schedule (splits until step 15000, as splatfacto) to show where the count settles. The 128^2 / 256^2
+datasets are the dev room's images and masks resized with OpenCV's INTER_AREA, intrinsics scaled. Every run
+is a fresh process, trained by nerfstudio's own loop; evaluation (ns-eval's metrics on the 6 held-out views, native pixels) every
+--eval-every steps, outside the timed training. Each finished (or stopped) run's record, with the commit it ran
+at, is kept in benchmarks/densification_runs.json; the report, benchmarks/densification.md, is written from all
+the records there, so a later session adds runs without repeating the ones that took hours.
 
-    .venv/bin/python benchmarks/densification.py [--steps 3000] [--only NAME ...]
+    .venv/bin/python benchmarks/densification.py [--steps 3000] [--only NAME ...] [--again]
 """
 
 from __future__ import annotations
@@ -84,6 +87,11 @@ def plan(work: Path, steps: int, former_steps: int = 0) -> dict:
             # the former defaults reach ~285k Gaussians by step 1000 (seconds a step on 2 cores): run to the
             # end of the splits, where the counts and the time per step have stopped changing
             runs[f"{camera} {size}, former"] = (data, former_steps or n, {**FORMER, **dev})
+    # what a user's first run gets: geer's own schedule (splatfacto's: splits until step 15000, an opacity reset
+    # every 3000 steps, a coarse-to-fine resolution), to see whether the count settles or keeps growing
+    fisheye = resized_room(work, 128) / "transforms_fisheye.json"
+    runs["fisheye 128, current, default schedule"] = (fisheye, 5000, {})
+    runs["fisheye 128, former, default schedule"] = (fisheye, 5000, dict(FORMER))
     return runs
 
 
@@ -117,8 +125,8 @@ def one_run(name: str, data: Path, steps: int, overrides: dict, eval_every: int,
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     pipeline, model = trainer.pipeline, trainer.pipeline.model
-    record = {"name": name, "steps": steps, "overrides": {k: list(v) if isinstance(v, tuple) else v
-                                                          for k, v in overrides.items()}, "points": []}
+    record = {"name": name, "commit": git_commit(), "machine_session": machine_session(), "steps": steps,
+              "overrides": {k: list(v) if isinstance(v, tuple) else v for k, v in overrides.items()}, "points": []}
     clock = {"train": 0.0, "start": 0.0}
 
     def before(step):
@@ -146,14 +154,41 @@ def one_run(name: str, data: Path, steps: int, overrides: dict, eval_every: int,
 
 
 # ----------------------------------------------------------------------------------------- the report
+def git_commit() -> str:
+    done = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT)
+    return done.stdout.strip()
+
+
+def machine_session() -> str:
+    """This boot of this machine: wall times are comparable only between runs of one session."""
+    return Path("/proc/sys/kernel/random/boot_id").read_text().strip()[:8]
+
+
+def load_records(path: Path) -> dict:
+    """name -> record, from the kept records (a stopped run's record has `stopped_at`)."""
+    return {r["name"]: r for r in json.loads(path.read_text())} if path.is_file() else {}
+
+
+def keep_records(path: Path, records: dict, runs: dict) -> None:
+    order = {n: i for i, n in enumerate(runs)}
+    ordered = sorted(records.values(), key=lambda r: order.get(r["name"], len(order)))
+    path.write_text(json.dumps(ordered, indent=1) + "\n")
+
+
+def shown_name(record: dict) -> str:
+    if "stopped_at" in record:
+        return f"{record['name']} (stopped at step {record['stopped_at']} of {record['steps']})"
+    return record["name"]
+
+
 def table(records: list) -> str:
-    lines = ["| run | step | Gaussians | Gaussians / 1k supervised px | training s | PSNR | SSIM |",
-             "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    lines = ["| run | session | step | Gaussians | Gaussians / 1k supervised px | training s | PSNR | SSIM |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in records:
         for p in r["points"]:
             per = f"{1000 * p['gaussians'] / r['supervised_pixels']:.1f}" if r.get("supervised_pixels") else "n/a"
-            lines.append(f"| {r['name']} | {p['step']} | {p['gaussians']:,} | {per} | {p['seconds']:.0f} | "
-                         f"{p['psnr']:.2f} | {p['ssim']:.3f} |")
+            lines.append(f"| {shown_name(r)} | {r.get('machine_session', '?')} | {p['step']} | {p['gaussians']:,} | "
+                         f"{per} | {p['seconds']:.0f} | {p['psnr']:.2f} | {p['ssim']:.3f} |")
     return "\n".join(lines)
 
 
@@ -164,7 +199,7 @@ def rules(records: list) -> str:
     for r in records:
         for e in r.get("refinements", []):
             pruned = ", ".join(str(e.get(f"pruned ({k})", 0)) for k in ("opacity", "3D size", "screen size", "unseen"))
-            lines.append(f"| {r['name']} | {e['step']} | {e['before']:,} | {e['duplicated (gradient)']:,} | "
+            lines.append(f"| {shown_name(r)} | {e['step']} | {e['before']:,} | {e['duplicated (gradient)']:,} | "
                          f"{e['split (gradient)']:,} | {e['split (screen size only)']:,} | "
                          f"{e.get('held back (finer than a pixel)', 0):,} | {pruned} | {e['after']:,} | "
                          f"x{e['after'] / max(e['before'], 1):.2f} |")
@@ -177,11 +212,10 @@ def comparisons(records: list) -> str:
     by_name = {r["name"]: r for r in records}
     lines = ["| scene | step | Gaussians, current / former | training time, current / former | PSNR, current - former |",
              "| --- | ---: | ---: | ---: | ---: |"]
-    pairs = [(n, n.replace(", current", ", former")) for n in by_name if n.endswith(", current")]
+    pairs = [(n, n.replace(", current", ", former")) for n in by_name if ", current" in n and "W_ref" not in n]
     pairs += [("embedded room, current (splits throughout)", "embedded room, former (demo: splits to 250)")]
     for new, old in pairs:
-        old = next((n for n in by_name if n.startswith(old)), None)  # finished, or stopped early
-        if new not in by_name or old is None:
+        if new not in by_name or old not in by_name:  # a stopped run counts to the last step it reached
             continue
         steps = {p["step"]: p for p in by_name[new]["points"]}
         common = [p for p in by_name[old]["points"] if p["step"] in steps]
@@ -189,9 +223,13 @@ def comparisons(records: list) -> str:
             continue
         o = common[-1]
         c = steps[o["step"]]
-        lines.append(f"| {new.split(',')[0]} | {o['step']} | {c['gaussians']:,} / {o['gaussians']:,} = "
+        stopped = f" (former stopped at {by_name[old]['stopped_at']})" if "stopped_at" in by_name[old] else ""
+        apart = by_name[new].get("machine_session") != by_name[old].get("machine_session")
+        time_ratio = "not comparable (different sessions)" if apart else f"{c['seconds'] / o['seconds']:.2f}"
+        scene = new.replace(", current", "").replace(" (splits throughout)", "")
+        lines.append(f"| {scene}{stopped} | {o['step']} | {c['gaussians']:,} / {o['gaussians']:,} = "
                      f"{c['gaussians'] / o['gaussians']:.2f} | {c['seconds']:.0f} s / {o['seconds']:.0f} s = "
-                     f"{c['seconds'] / o['seconds']:.2f} | {c['psnr'] - o['psnr']:+.2f} dB |")
+                     f"{time_ratio} | {c['psnr'] - o['psnr']:+.2f} dB |")
     for size in (128, 256):
         f, p = by_name.get(f"fisheye {size}, current"), by_name.get(f"pinhole {size}, current")
         if f and p:
@@ -207,26 +245,30 @@ def comparisons(records: list) -> str:
     return "\n".join(lines)
 
 
-def write(out_md: Path, records: list, args) -> None:
+def write(out_md: Path, records: list, runs: dict, args) -> None:
     import torch
 
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+    commits = sorted({r.get("commit", "?") for r in records})
+    missing = [n for n in runs if n not in {r["name"] for r in records}]
+    stopped = [shown_name(r) for r in records if "stopped_at" in r]
     text = f"""# Densification: time to quality, the former defaults against the current ones
 
 - device: CPU, {platform.machine()}, {os.cpu_count()} cores (load average {os.getloadavg()[0]:.2f} when written), torch
   {torch.__version__}; renderer: the CPU build
-- commit: {commit}
-- command: `.venv/bin/python benchmarks/densification.py {shlex.join(sys.argv[1:])}`
+- report written at commit {git_commit()} from the kept records (`benchmarks/densification_runs.json`); the runs
+  were made at {", ".join(commits)} (the same training code: between them only benchmarks and documentation
+  changed)
+- command: `.venv/bin/python benchmarks/densification.py {shlex.join(sys.argv[1:])}` (runs already kept are
+  not repeated)
 - former: `densify-signal pixels`, summed gradients, `densify-grad-thresh 0.0002`, no unseen prune (the 1-pixel
-  growth floor stays on: it held back at most 17 Gaussians a refinement, see the rules table); current: the
-  defaults (statistics in the views' pixels, AbsGS gradients, 0.0008, unseen prune, 1-pixel floor). Dev room:
-  refinement every 100 steps from step 300, splits until step 1000, full resolution; eval: the 6 held-out
-  views in native pixels (fisheye runs: fisheye views; pinhole runs: pinhole views). Embedded room: the demo's
-  CPU schedule (96^2, half resolution for 400 steps, refinement every 50 steps from 100). Training seconds
-  exclude evaluation. Runs are separate processes, one after the other, on one otherwise idle machine; the
-  256^2 runs make 1000 steps. Not run here: the former defaults at 256^2 (at 128^2 they reach ~290k
-  Gaussians, about a second a step on 2 cores; at 256^2 several times both); the former pinhole run was
-  stopped early (its name says at which step).
+  growth floor stays on; the rules table shows what it held back); current: the defaults (statistics in the
+  views' pixels, AbsGS gradients, 0.0008, unseen prune, 1-pixel floor). Dev room: refinement every 100 steps
+  from step 300, splits until step 1000, full resolution; eval: the 6 held-out views in native pixels (fisheye
+  runs: fisheye views; pinhole runs: pinhole views). Embedded room: the demo's CPU schedule (96^2, half
+  resolution for 400 steps, refinement every 50 steps from 100). Training seconds exclude evaluation. Runs are
+  separate processes, one after the other, on one otherwise idle machine; wall times compare only within one
+  session (the table's session column: the machine's boot), so a time ratio across sessions is not given.
+- not run: {", ".join(missing) or "none"}; stopped before their last step: {"; ".join(stopped) or "none"}
 
 ## Current against former
 
@@ -253,6 +295,10 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", help="names (or prefixes) of the runs to make; default all")
     ap.add_argument("--work", type=Path, default=Path("/tmp/geer_densification"))
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "densification.md")
+    ap.add_argument("--records", type=Path, default=ROOT / "benchmarks" / "densification_runs.json")
+    ap.add_argument("--minutes", type=float, default=0, help="stop a run after this long (it keeps the points "
+                    "it reached); default: no limit")
+    ap.add_argument("--again", action="store_true", help="repeat the chosen runs even if their records are kept")
     ap.add_argument("--run", help=argparse.SUPPRESS)
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
@@ -265,24 +311,34 @@ def main() -> None:
     from geer_ns.render.cuda_backend import load_cpu_ops
 
     load_cpu_ops()
+    kept = load_records(args.records)
     chosen = [n for n in runs if not args.only or any(n.startswith(o) for o in args.only)]
     for name in chosen:
-        target = args.work / f"{name.replace(' ', '_')}.json"
-        if not target.is_file():
-            subprocess.run([sys.executable, __file__, "--run", name, "--steps", str(args.steps), "--former-steps",
-                            str(args.former_steps), "--eval-every",
-                            str(args.eval_every), "--work", str(args.work)], check=True,
-                           env=dict(os.environ, PYTHONPATH=str(ROOT)))
-    records = []
-    for n in runs:  # finished runs, or what a stopped run had reached (its name says so)
+        outputs = [args.work / f"{name.replace(' ', '_')}{ext}" for ext in (".json", ".partial.json")]
+        finished = outputs[0].is_file() or (name in kept and "stopped_at" not in kept[name])
+        if args.again or not finished:
+            for stale in outputs:  # a repeated run's record replaces the former one, even if it is stopped
+                stale.unlink(missing_ok=True)
+            command = [sys.executable, __file__, "--run", name, "--steps", str(args.steps), "--former-steps",
+                       str(args.former_steps), "--eval-every", str(args.eval_every), "--work", str(args.work)]
+            try:
+                subprocess.run(command, check=True, env=dict(os.environ, PYTHONPATH=str(ROOT)),
+                               timeout=args.minutes * 60 if args.minutes else None)
+            except subprocess.TimeoutExpired:  # the run keeps the points it reached (its .partial.json)
+                print(f"[{name}] stopped after {args.minutes} minutes", flush=True)
+    records = load_records(args.records)
+    for n in runs:  # this work dir's finished runs, or what a stopped run had reached
         done, partial = (args.work / f"{n.replace(' ', '_')}{ext}" for ext in (".json", ".partial.json"))
-        if done.is_file():
-            records.append(json.loads(done.read_text()))
-        elif partial.is_file():
-            record = json.loads(partial.read_text())
-            record["name"] += f" (stopped at step {record['stopped_at']} of {record['steps']})"
-            records.append(record)
-    write(args.out, records, args)
+        found = done if done.is_file() else partial if partial.is_file() else None
+        if found is not None:
+            record = json.loads(found.read_text())
+            record.setdefault("commit", git_commit())
+            record.setdefault("machine_session", machine_session())
+            if found is done:
+                record.pop("stopped_at", None)
+            records[n] = record
+    keep_records(args.records, records, runs)
+    write(args.out, list(load_records(args.records).values()), runs, args)
 
 
 if __name__ == "__main__":
