@@ -256,10 +256,11 @@ def write(out_md: Path, records: list, runs: dict, args) -> None:
 - device: CPU, {platform.machine()}, {os.cpu_count()} cores (load average {os.getloadavg()[0]:.2f} when written), torch
   {torch.__version__}; renderer: the CPU build
 - report written at commit {git_commit()} from the kept records (`benchmarks/densification_runs.json`); the runs
-  were made at {", ".join(commits)} (the same training code: between them only benchmarks and documentation
+  were made at {", ".join(commits)} (one training code: between them only benchmarks and documentation
   changed)
-- command: `.venv/bin/python benchmarks/densification.py {shlex.join(sys.argv[1:])}` (runs already kept are
-  not repeated)
+- commands: `.venv/bin/python benchmarks/densification.py [--only NAME ...] [--again]` makes the runs not yet
+  kept (or repeats the named ones) and rewrites this report; each record keeps its steps and overrides. This
+  report: `.venv/bin/python benchmarks/densification.py {shlex.join(sys.argv[1:])}`
 - former: `densify-signal pixels`, summed gradients, `densify-grad-thresh 0.0002`, no unseen prune (the 1-pixel
   growth floor stays on; the rules table shows what it held back); current: the defaults (statistics in the
   views' pixels, AbsGS gradients, 0.0008, unseen prune, 1-pixel floor). Dev room: refinement every 100 steps
@@ -332,8 +333,8 @@ def main() -> None:
         found = done if done.is_file() else partial if partial.is_file() else None
         if found is not None:
             record = json.loads(found.read_text())
-            record.setdefault("commit", git_commit())
-            record.setdefault("machine_session", machine_session())
+            for key, here in (("commit", git_commit), ("machine_session", machine_session)):
+                record.setdefault(key, records.get(n, {}).get(key) or here())  # a record from before they were kept
             if found is done:
                 record.pop("stopped_at", None)
             records[n] = record
