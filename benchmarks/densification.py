@@ -11,8 +11,8 @@ Dev room schedule (both): refinement every 100 steps from step 300, splits until
 the start (num-downscales 0), otherwise geer's defaults; one more run trains the 128^2 fisheye views with geer's
 own schedule (splits until step 15000, as splatfacto) to show where the count settles. The 128^2 / 256^2
 datasets are the dev room's images and masks resized with OpenCV's INTER_AREA, intrinsics scaled. Every run
-is a fresh process, trained by nerfstudio's own loop; evaluation (ns-eval's metrics on the 6 held-out views, native pixels) every
---eval-every steps, outside the timed training. Each finished (or stopped) run's record, with the commit it ran
+is a fresh process, trained by nerfstudio's own loop; evaluation (ns-eval's metrics on the 6 held-out views,
+native pixels) every --eval-every steps, outside the timed training. Each finished (or stopped) run's record, with the commit it ran
 at, is kept in benchmarks/densification_runs.json; the report, benchmarks/densification.md, is written from all
 the records there, so a later session adds runs without repeating the ones that took hours.
 
