@@ -12,9 +12,9 @@ the start (num-downscales 0), otherwise geer's defaults; one more run trains the
 own schedule (splits until step 15000, as splatfacto) to show where the count settles. The 128^2 / 256^2
 datasets are the dev room's images and masks resized with OpenCV's INTER_AREA, intrinsics scaled. Every run
 is a fresh process, trained by nerfstudio's own loop; evaluation (ns-eval's metrics on the 6 held-out views,
-native pixels) every --eval-every steps, outside the timed training. Each finished (or stopped) run's record, with the commit it ran
-at, is kept in benchmarks/densification_runs.json; the report, benchmarks/densification.md, is written from all
-the records there, so a later session adds runs without repeating the ones that took hours.
+native pixels) every --eval-every steps, outside the timed training. Each finished (or stopped) run's record,
+with the commit it ran at, is kept in benchmarks/densification_runs.json; the report, benchmarks/densification.md,
+is written from all the records there, so a later session adds runs without repeating the ones that took hours.
 
     .venv/bin/python benchmarks/densification.py [--steps 3000] [--only NAME ...] [--again]
 """
@@ -96,6 +96,12 @@ def plan(work: Path, steps: int, former_steps: int = 0) -> dict:
 
 
 # ------------------------------------------------------------------------------------------ one run
+def run_files(work: Path, name: str) -> tuple:
+    """A run's record in the work dir: (finished, what a stopped run had reached)."""
+    stem = work / name.replace(" ", "_")
+    return stem.with_name(stem.name + ".json"), stem.with_name(stem.name + ".partial.json")
+
+
 def one_run(name: str, data: Path, steps: int, overrides: dict, eval_every: int, out: Path) -> None:
     """Train in this process with nerfstudio's loop; evaluate every `eval_every` steps (not timed)."""
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
@@ -109,6 +115,7 @@ def one_run(name: str, data: Path, steps: int, overrides: dict, eval_every: int,
     config.data = config.pipeline.datamanager.data = data
     config.pipeline.datamanager.cache_images = "cpu"
     config.output_dir, config.experiment_name, config.timestamp = out / "runs", name.replace(" ", "_"), "run"
+    done_file, partial_file = run_files(out, name)
     config.vis = "tensorboard"
     config.max_num_iterations = steps
     config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = 0
@@ -142,7 +149,7 @@ def one_run(name: str, data: Path, steps: int, overrides: dict, eval_every: int,
             print(f"[{name}] step {step + 1}: {model.num_points} Gaussians, {clock['train']:.0f} s, "
                   f"PSNR {metrics['psnr']:.2f}", flush=True)
             partial = {**record, "refinements": getattr(model.strategy, "log", []), "stopped_at": step + 1}
-            (out / f"{config.experiment_name}.partial.json").write_text(json.dumps(partial))  # if it is stopped
+            partial_file.write_text(json.dumps(partial))  # if it is stopped
 
     trainer.callbacks.insert(0, TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], before))
     trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after))
@@ -150,7 +157,7 @@ def one_run(name: str, data: Path, steps: int, overrides: dict, eval_every: int,
     record["supervised_pixels"] = sum(e.supervised_pixels for e in report.cameras.values())  # native pixels
     trainer.train()
     record["refinements"] = getattr(model.strategy, "log", [])
-    (out / f"{config.experiment_name}.json").write_text(json.dumps(record))
+    done_file.write_text(json.dumps(record))
 
 
 # ----------------------------------------------------------------------------------------- the report
@@ -315,7 +322,7 @@ def main() -> None:
     kept = load_records(args.records)
     chosen = [n for n in runs if not args.only or any(n.startswith(o) for o in args.only)]
     for name in chosen:
-        outputs = [args.work / f"{name.replace(' ', '_')}{ext}" for ext in (".json", ".partial.json")]
+        outputs = run_files(args.work, name)
         finished = outputs[0].is_file() or (name in kept and "stopped_at" not in kept[name])
         if args.again or not finished:
             for stale in outputs:  # a repeated run's record replaces the former one, even if it is stopped
@@ -329,7 +336,7 @@ def main() -> None:
                 print(f"[{name}] stopped after {args.minutes} minutes", flush=True)
     records = load_records(args.records)
     for n in runs:  # this work dir's finished runs, or what a stopped run had reached
-        done, partial = (args.work / f"{n.replace(' ', '_')}{ext}" for ext in (".json", ".partial.json"))
+        done, partial = run_files(args.work, n)
         found = done if done.is_file() else partial if partial.is_file() else None
         if found is not None:
             record = json.loads(found.read_text())
