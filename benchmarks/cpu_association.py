@@ -74,7 +74,7 @@ def dev_room_case(room: Path = DATA / "fisheye_room_dev", with_scene: bool = Fal
 
     from geer_ns.cameras import EquidistantCamera
     from geer_ns.data.views import beap_view
-    from geer_ns.host_fixes import read_ply_points
+    from geer_ns.data.ply import read_ply_points
     from geer_ns.model import world_to_camera_opencv
 
     meta = json.loads((room / "transforms_fisheye.json").read_text())

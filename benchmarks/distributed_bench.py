@@ -36,7 +36,7 @@ def scene(root: Path, n: int) -> Path:
     from plyfile import PlyData, PlyElement
 
     from geer_ns.data.synthetic_room import default_scene_dir
-    from geer_ns.host_fixes import read_ply_points
+    from geer_ns.data.ply import read_ply_points
 
     out = root / f"room_{n}"
     if (out / "transforms.json").is_file():

@@ -41,28 +41,19 @@ from nerfstudio.models.splatfacto import (
 from nerfstudio.utils.colors import get_color
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from geer_ns import host_fixes, resume
+from geer_ns import compat, resume
 from geer_ns.cameras import CameraModel
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, native_view
 from geer_ns.densify.mcmc_cpu import install_mcmc_cpu_ops
 from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angular_signal, pbf_radii, pixel_signal
 from geer_ns.densify.strategy import GeerDefaultStrategy
+from geer_ns.perceptual import build_lpips_if_cached
 from geer_ns.render import render
 from geer_ns.render.backend import Backend, announce_backend
 from geer_ns.render.pbf import LambdaMode, pbf_lambda_sq
 from geer_ns.render.transforms import view_transform
 from geer_ns.render_guard import RenderGuard, camera_problem, in_viewer_thread, is_viewer_interrupt
-
-# Every geer checkpoint load (ns-eval, ns-viewer, ns-render, --load-dir) imports this module first, through
-# the method registry or config.yml: allow-list the checkpoint's globals for torch's weights_only loader
-# (nerfstudio issue 3683).
-host_fixes.allow_nerfstudio_checkpoints()
-host_fixes.install_two_keyframe_spline_fix()  # the viewer's camera path with two keyframes (splines 0.3.0)
-host_fixes.provide_ffmpeg()  # ns-render needs an `ffmpeg` program; imageio-ffmpeg ships one
-host_fixes.quiet_known_warnings()  # host FutureWarnings that every run would print
-host_fixes.report_dataset_errors_without_traceback()  # a broken dataset ends ns-train with its one line
-host_fixes.install_distributed_launch_fix()  # ns-train --machine.num-devices N on CPU machines too
 
 View = Union[BeapView, NativeView]
 
@@ -224,6 +215,7 @@ class GeerModel(SplatfactoModel):
 
     # ------------------------------------------------------------------------------------- set-up
     def populate_modules(self):
+        compat.install()  # before ns-eval / ns-viewer / ns-render load this model's checkpoint (geer_ns/compat.py)
         means = self._initial_means()
         distances, _ = self.k_nearest_sklearn(means.data, 3)
         avg_dist = torch.from_numpy(distances).mean(dim=-1, keepdim=True).clamp_min(1e-7)
@@ -587,7 +579,7 @@ class GeerModel(SplatfactoModel):
     # ------------------------------------------------------------------------------------ metrics
     def _lpips(self):
         if "lpips" not in self._perceptual:
-            metric = host_fixes.build_lpips_if_cached()
+            metric = build_lpips_if_cached()
             self._perceptual["lpips"] = metric.to(self.device) if metric is not None else None
         return self._perceptual["lpips"]
 

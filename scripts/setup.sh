@@ -23,8 +23,8 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   quiet "${PIP[@]}" install --force-reinstall --no-deps opencv-contrib-python-headless==4.10.0.84
   touch "$stamp"
 fi
-# The known host warnings filtered from interpreter start-up on (nerfstudio prints one before loading plugins).
-.venv/bin/python -c "import cv2; cv2.omnidir; cv2.fisheye; import geer_ns, nerfstudio, gsplat
-from geer_ns.host_fixes import install_startup_hook; install_startup_hook()" \
+# Earlier versions wrote a start-up hook into site-packages; geer changes nothing outside its own runs now.
+rm -f .venv/lib/python*/site-packages/geer_ns_host_warnings.pth
+.venv/bin/python -c "import cv2; cv2.omnidir; cv2.fisheye; import geer_ns, nerfstudio, gsplat" \
   || { echo "[setup] the environment is broken: delete .venv and run again" >&2; exit 1; }
 echo "[setup] ready: $(.venv/bin/python -c 'import torch, nerfstudio, cv2; print("torch", torch.__version__, "| cv2", cv2.__version__)')"

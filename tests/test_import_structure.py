@@ -27,7 +27,7 @@ PACKAGE = ROOT / "geer_ns"
 # Floors that must not import from above: each may import geer_ns only from itself and the names listed.
 BOTTOM_FLOORS = {
     "geer_ns.errors": (),
-    "geer_ns.host_fixes": ("geer_ns.errors",),
+    "geer_ns.compat": (),
     "geer_ns.render": (),
     "geer_ns.cameras": (),
 }

@@ -17,7 +17,7 @@ from geer_ns.data.beap import DEFAULT_MAX_HALF_ANGLE, directions_to_angles
 from geer_ns.data.datamanager import GeerDataManagerConfig, native_valid_mask
 from geer_ns.data.synthetic_room import default_scene_dir
 from geer_ns.data.views import beap_view, camera_model
-from geer_ns.host_fixes import read_ply_points
+from geer_ns.data.ply import read_ply_points
 
 from conftest import shared_data
 

@@ -1,7 +1,7 @@
 """`ns-render interpolate` and `ns-render camera-path` write videos on a machine without a system ffmpeg.
 
 A tiny model (3 steps on the embedded room) is rendered by the real ns-render command lines with a PATH that
-holds no `ffmpeg`; geer_ns.host_fixes.provide_ffmpeg links imageio-ffmpeg's binary in.
+holds no `ffmpeg`; geer_ns.compat.provide_ffmpeg links imageio-ffmpeg's binary in.
 """
 
 from __future__ import annotations

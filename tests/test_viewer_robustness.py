@@ -99,7 +99,9 @@ def test_two_keyframe_camera_path_spline_is_the_slerp():
     """nerfstudio's render panel call (splines 0.3.0 raises for two keyframes without geer's fix)."""
     import splines.quaternion
 
-    import geer_ns.model  # noqa: F401 - installs the fix, as loading any geer model does
+    from geer_ns import compat
+
+    compat.install()  # as building any geer model does (ns-viewer, ns-render)
 
     angle = 1.2
     keyframes = [np.array([0.0, 0.0, 0.0, 1.0]), np.array([0.0, 0.0, math.sin(angle / 2), math.cos(angle / 2)])]

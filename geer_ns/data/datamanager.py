@@ -39,8 +39,8 @@ from geer_ns.data.dataset_checks import check_transforms_json
 from geer_ns.data.image_circle import detect_image_circle_from_files
 from geer_ns.data.nerfstudio_parser import CROP_RADIUS_KEY, GeerNerfstudio, GeerNerfstudioDataParserConfig
 from geer_ns.data.supervision import Supervision, SupervisionReport, beap_covered, choose_view
+from geer_ns.data.ply import read_ply_points
 from geer_ns.data.views import beap_view, camera_kind, camera_model, native_view
-from geer_ns.host_fixes import pin_if_possible, read_ply_points
 
 # Key of Cameras.metadata telling the model in which view a training batch is supervised.
 VIEW_KEY = "geer_view"
@@ -141,6 +141,15 @@ def to_beap(image: torch.Tensor, camera: CameraModel, valid: torch.Tensor, rings
     img = image.float().numpy() / (255.0 if image.dtype == torch.uint8 else 1.0)
     img, ok = extend_beyond_mask(img, valid.numpy(), rings)
     return resample_to_beap(torch.from_numpy(img), camera, beap_view(camera).grid, torch.from_numpy(ok))
+
+
+def pin_if_possible(tensor: torch.Tensor) -> torch.Tensor:
+    """A pinned copy for fast host-to-GPU copies where a GPU exists, else the tensor itself: nerfstudio's
+    FullImageDatamanager(cache_images="cpu") pins unconditionally, which raises "Found no NVIDIA driver" with a
+    CUDA build of torch on a machine without a GPU."""
+    if torch.cuda.is_available() and tensor.device.type == "cpu":
+        return tensor.pin_memory()
+    return tensor
 
 
 def as_cache_type(image: torch.Tensor, cache_type: str) -> torch.Tensor:

@@ -23,7 +23,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from geer_ns.errors import DatasetError  # defined below host_fixes, which reports it; re-exported here
+from geer_ns.errors import DatasetError  # re-exported here
 from geer_ns.render.validate import ROTATION_TOLERANCE
 
 __all__ = ["DatasetError", "VALID_CAMERA_MODELS", "check_image_file", "check_transforms_json"]

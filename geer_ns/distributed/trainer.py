@@ -10,7 +10,7 @@ of them). Everything else is nerfstudio's Trainer: rank 0 alone logs, evaluates,
 and serves the viewer.
 
 The launch (one process per device, the process group) is nerfstudio's `--machine.*` launcher, made to work
-on CPU machines by geer_ns.host_fixes.install_distributed_launch_fix.
+on CPU machines by geer_ns.distributed.launch.
 """
 
 from __future__ import annotations
@@ -27,11 +27,13 @@ from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils import profiler
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from geer_ns import resume
+from geer_ns import compat, resume
+from geer_ns.distributed.launch import install_launch_router
 from geer_ns.distributed.replicas import ImageParallel, ReplicaMismatchError
 from geer_ns.distributed.schedule import EffectiveBatch, describe, scaled_config
 from geer_ns.distributed.sharded import GaussianParallel, shard_checkpoint
 from geer_ns.distributed.world import current_world
+from geer_ns.errors import report_dataset_errors_in_one_line
 
 
 @dataclass
@@ -45,15 +47,30 @@ class GeerMachineConfig(MachineConfig):
     differ (0: never; the replicas are identical by construction)."""
 
 
+def install_run_fixes() -> None:
+    """What a geer training run changes in its process, and only a geer run: the host fixes (geer_ns.compat),
+    DatasetError in one line (errors.py), nerfstudio's launcher routed for geer configs (launch.py)."""
+    compat.install()
+    report_dataset_errors_in_one_line()
+    install_launch_router()
+
+
 @dataclass
 class GeerTrainerConfig(TrainerConfig):
     _target: Type = field(default_factory=lambda: GeerTrainer)
+
+    def set_timestamp(self) -> None:
+        """nerfstudio's `ns-train` main calls this first, before it launches the run's processes: the one point
+        where a method's own code runs ahead of the launch, so geer's run fixes are installed here."""
+        install_run_fixes()
+        super().set_timestamp()
 
 
 class GeerTrainer(Trainer):
     config: GeerTrainerConfig
 
     def __init__(self, config: GeerTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        install_run_fixes()  # also for trainers built without ns-train's main (scripts, tests, spawned processes)
         self.world = current_world()
         images = config.pipeline.datamanager.images_per_step
         if images < 1:

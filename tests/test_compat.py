@@ -1,4 +1,5 @@
-"""Each host work-around in geer_ns.host_fixes, tested where the host bug shows."""
+"""Each host work-around in geer_ns.compat (and the two that moved where they are used), tested where the host
+bug shows."""
 
 from __future__ import annotations
 
@@ -11,7 +12,9 @@ import numpy as np
 import pytest
 import torch
 
-from geer_ns import host_fixes
+from geer_ns import compat, perceptual
+from geer_ns.data.datamanager import pin_if_possible
+from geer_ns.data.ply import read_ply_points
 
 TORCH_WEIGHTS_ONLY_DEFAULT = tuple(int(v) for v in torch.__version__.split(".")[:2]) >= (2, 6)
 
@@ -32,7 +35,7 @@ def test_checkpoint_loading_fails_without_the_fix(tmp_path):
 
 
 def test_checkpoint_loads_with_the_allow_list_and_weights_only_stays_on(tmp_path):
-    assert host_fixes.allow_nerfstudio_checkpoints()
+    assert compat.allow_nerfstudio_checkpoints()
     path = tmp_path / "step-000000007.ckpt"
     _save_checkpoint_like(path)
     loaded = torch.load(path, map_location="cpu")  # nerfstudio's call: no weights_only argument
@@ -46,17 +49,17 @@ def test_checkpoint_loads_with_the_allow_list_and_weights_only_stays_on(tmp_path
 
 def test_lpips_is_built_lazily_and_reported_missing_without_weights(monkeypatch, tmp_path, caplog):
     monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path))
-    monkeypatch.setattr(host_fixes, "_lpips_warned", False)
+    monkeypatch.setattr(perceptual, "_warned", False)
     with caplog.at_level(logging.WARNING, logger="geer_ns"):
-        assert host_fixes.build_lpips_if_cached() is None
-        assert host_fixes.build_lpips_if_cached() is None
+        assert perceptual.build_lpips_if_cached() is None
+        assert perceptual.build_lpips_if_cached() is None
     assert sum("LPIPS unavailable" in r.message for r in caplog.records) == 1
 
 
 def test_lpips_is_used_when_the_weights_are_cached():
-    if not host_fixes.alexnet_weights_path().is_file():
-        pytest.skip(f"AlexNet weights not cached at {host_fixes.alexnet_weights_path()}")
-    metric = host_fixes.build_lpips_if_cached()
+    if not perceptual.alexnet_weights_path().is_file():
+        pytest.skip(f"AlexNet weights not cached at {perceptual.alexnet_weights_path()}")
+    metric = perceptual.build_lpips_if_cached()
     img = torch.rand(1, 3, 64, 64)
     assert float(metric(img, img)) == pytest.approx(0.0, abs=1e-5)
 
@@ -76,7 +79,7 @@ def test_model_construction_never_touches_lpips(monkeypatch):
 
 def test_pin_if_possible_without_gpu():
     t = torch.zeros(3)
-    out = host_fixes.pin_if_possible(t)
+    out = pin_if_possible(t)
     if torch.cuda.is_available():
         assert out.is_pinned()
     else:
@@ -90,5 +93,5 @@ def test_ply_points_are_read_without_open3d(tmp_path):
                       dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
     path = tmp_path / "p.ply"
     PlyData([PlyElement.describe(vertex, "vertex")]).write(str(path))
-    xyz, rgb = host_fixes.read_ply_points(path)
+    xyz, rgb = read_ply_points(path)
     assert xyz.tolist() == [[0, 1, 2], [3, 4, 5]] and rgb.tolist() == [[10, 20, 30], [40, 50, 60]]
