@@ -4,7 +4,6 @@ set), known host warnings filtered, a COLMAP dataset read once for both splits."
 from __future__ import annotations
 
 import re
-import sysconfig
 import warnings
 from dataclasses import fields
 from pathlib import Path
@@ -12,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from geer_ns import host_fixes
+from geer_ns import compat
 from geer_ns.data import colmap_parser
 from geer_ns.data.datamanager import GeerDataManagerConfig, GeerDataOptions
 from geer_ns.model import IGNORED_OPTIONS, OWN_OPTIONS_HELP, GeerModelConfig, GeerOwnOptions
@@ -119,8 +118,9 @@ def test_setting_an_ignored_option_is_said_once(capsys):
 
 
 def test_known_host_warnings_are_filtered_and_others_are_not():
-    """Each known message is filtered only from the host module that raises it."""
-    host_fixes.quiet_known_warnings()
+    """In a geer run, each known message is filtered only from the host module that raises it (whether importing
+    geer leaves the filters alone: tests/test_plugin_scope.py)."""
+    compat.quiet_known_warnings()
     known = (
         (FutureWarning, "`torch.jit.script` is deprecated. Please switch to `torch.compile` or `torch.export`.",
          "torch.jit._script"),
@@ -139,74 +139,6 @@ def test_known_host_warnings_are_filtered_and_others_are_not():
         warnings.warn_explicit("something else is deprecated", FutureWarning, "host.py", 1,
                                module="nerfstudio.field_components.activations")  # shown
     assert [str(w.message) for w in caught] == [m for _, m, _ in known] + ["something else is deprecated"]
-
-
-# Four fresh interpreters, each importing nerfstudio's method registry (~13 s of CPU each): started together
-# (subprocess.Popen), they share the machine's cores instead of taking turns.
-PLUGIN_FIRST = ("import geer_ns.config, nerfstudio.configs.method_configs, warnings; "
-                "warnings.warn('not host noise', FutureWarning)")
-HOOK_THEN_NERFSTUDIO = ("import site, sys, warnings; sys.path.append(sys.argv[2]); site.addsitedir(sys.argv[1]); "
-                        "import nerfstudio.configs.method_configs; "
-                        "warnings.warn_explicit('`torch.jit.script` is deprecated. x', FutureWarning, 'elsewhere.py', "
-                        "1, module='elsewhere')")
-
-
-@pytest.fixture(scope="module")
-def fresh_starts(tmp_path_factory):
-    """The FutureWarning lines of each interpreter start the two tests below read."""
-    import os
-    import subprocess
-    import sys
-
-    root = Path(__file__).resolve().parents[1]
-    env = {**{k: v for k, v in os.environ.items() if k != "PYTHONWARNINGS"}, "PYTHONPATH": str(root)}
-    folder = tmp_path_factory.mktemp("site")
-    hook = host_fixes.install_startup_hook(folder)
-    empty = tmp_path_factory.mktemp("no_hook")
-    purelib = sysconfig.get_paths()["purelib"]
-    # python -S: site-packages on the path without their .pth files (the environment's own hook, if installed,
-    # stays out); then only the hook under test, then nerfstudio as ns-train imports it.
-    commands = {
-        "plugin first": [sys.executable, "-c", PLUGIN_FIRST],
-        "nerfstudio first": [sys.executable, "-c", "import nerfstudio.configs.method_configs"],
-        "without the hook": [sys.executable, "-S", "-c", HOOK_THEN_NERFSTUDIO, str(empty), purelib],
-        "with the hook": [sys.executable, "-S", "-c", HOOK_THEN_NERFSTUDIO, str(folder), purelib],
-    }
-    running = {name: subprocess.Popen(cmd, cwd=root, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                      text=True) for name, cmd in commands.items()}
-    found = {}
-    for name, proc in running.items():
-        _, err = proc.communicate(timeout=300)
-        assert proc.returncode == 0, (name, err)
-        found[name] = [line for line in err.splitlines() if "FutureWarning" in line]
-    return found, hook
-
-
-def test_importing_the_plugin_prints_no_host_future_warning(fresh_starts):
-    """The plugin's entry point, then nerfstudio's method registry (ns-train's imports): no FutureWarning; one
-    raised by other code still is."""
-    found, _ = fresh_starts
-    shown = found["plugin first"]
-    assert len(shown) == 1 and "not host noise" in shown[0], shown
-    # As ns-train imports: nerfstudio's camera code, then the plugins. The warning raised before any plugin is
-    # imported is shown without the environment's start-up hook and filtered with it (host_fixes).
-    shown = found["nerfstudio first"]
-    hook = Path(sysconfig.get_paths()["purelib"]) / host_fixes.STARTUP_HOOK_NAME
-    if not hook.is_file():  # an environment set up without scripts/setup.sh
-        assert len(shown) == 1 and "`torch.jit.script` is deprecated" in shown[0], shown
-    else:
-        assert shown == [], shown
-
-
-def test_the_start_up_hook_filters_what_nerfstudio_prints_before_plugins(fresh_starts):
-    """The .pth line scripts/setup.sh installs, loaded by Python's site module before nerfstudio's imports (as
-    in ns-train): no host FutureWarning; another module's FutureWarning with the same text still shows."""
-    found, hook = fresh_starts
-    assert hook.name == host_fixes.STARTUP_HOOK_NAME
-    without = found["without the hook"]
-    assert len(without) == 2 and "`torch.jit.script` is deprecated" in without[0], without
-    shown = found["with the hook"]
-    assert len(shown) == 1 and "elsewhere.py" in shown[0], shown
 
 
 def test_colmap_dataset_is_read_once_for_both_splits(monkeypatch):
