@@ -24,7 +24,6 @@ import torch.nn.functional as F
 from gsplat.strategy import MCMCStrategy
 from pytorch_msssim import SSIM
 from torch import Tensor
-from torchmetrics.image import PeakSignalNoiseRatio
 import tyro
 
 from nerfstudio.cameras.cameras import Cameras
@@ -232,7 +231,6 @@ class GeerModel(SplatfactoModel):
             }
         )
         self.camera_optimizer = self.config.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
-        self.psnr = PeakSignalNoiseRatio(data_range=1.0)
         self.ssim = SSIM(data_range=1.0, size_average=True, channel=3)
         self._perceptual: Dict[str, object] = {}  # LPIPS, built on first use (not a submodule: no state)
         self.step = 0
@@ -419,7 +417,6 @@ class GeerModel(SplatfactoModel):
     def view_outputs(self, out, view: View, background: Tensor, camera: Cameras) -> Dict[str, Tensor]:
         """nerfstudio's outputs of a render of `camera` (and its bilateral grid while training)."""
         height, width = view.size
-        self.last_size = (height, width)
         outputs = self._outputs(out, view, background)
         cam_idx = (camera.metadata or {}).get("cam_idx")
         if self.config.use_bilateral_grid and self.training and cam_idx is not None:
