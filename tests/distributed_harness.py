@@ -265,3 +265,49 @@ def rebalance_plan(trainer, rank: int) -> dict:
     engine._after_step(0)
     after = snapshot()
     return {"rebalance_before": before, "rebalance_after": after}
+
+
+# ------------------------------------------------------------------------------------------ NCCL's rule
+def nccl_rule_main(local_rank: int, world_size: int, config, global_rank: int = 0):
+    """A launch of its own: the engine's collectives under emulated NCCL (nccl_emulation.py), every tensor the
+    engine holds on (emulated) CUDA as on a GPU machine. Each case's outcome goes to nccl_<rank>.pt."""
+    from nccl_emulation import NcclRefused, cuda, nccl_rule
+
+    from geer_ns.distributed.replicas import reduce_gradients
+    from geer_ns.distributed.sharded import gather_rows
+    from geer_ns.distributed.shards import render_sharded, shard_rows
+    from geer_ns.distributed.world import current_world
+
+    results = {}
+
+    def attempt(name, fn):
+        try:
+            results[name] = fn()
+        except NcclRefused as refused:
+            results[name] = f"refused: {refused}"
+
+    with nccl_rule():
+        world = current_world()
+
+        def gradients():  # rank 0 has gradients for parameters 0 and 1, rank 1 for 0 only, nobody for 2
+            params = [cuda(torch.zeros(4, 3)), cuda(torch.zeros(5)), cuda(torch.zeros(2, 2))]
+            params[0].grad = cuda(torch.full((4, 3), 1.0 + 2 * global_rank))
+            if global_rank == 0:
+                params[1].grad = cuda(torch.full((5,), 2.0))
+            reduce_gradients(world, params, images=2)
+            return [None if p.grad is None else (p.grad.device.type, p.grad.cpu()) for p in params]
+
+        def sharded_render():
+            scene, viewmats, grids, _ = shard_case("fisheye180", torch.float64)
+            shard = [cuda(t[shard_rows(global_rank, 2)]) for t in scene]
+            image, views = render_sharded(*shard, cuda(viewmats), [g.to("cuda") for g in grids], backend="torch")
+            return {"device": image.rgb.device.type, "rgb": image.rgb.cpu(), "sent": views.sent}
+
+        def gathered():
+            rows = gather_rows(world, cuda(torch.arange(3.0 + global_rank)))
+            return None if rows is None else (rows.device.type, rows.cpu())
+
+        attempt("gradients", gradients)
+        attempt("sharded_render", sharded_render)
+        attempt("gather_rows", gathered)
+    torch.save(results, Path(config.output_dir) / f"nccl_{global_rank}.pt")
