@@ -339,7 +339,7 @@ class GeerModel(SplatfactoModel):
 
     def get_extra_state(self) -> Dict[str, object]:
         return {"step": self.step, "strategy_state": resume.strategy_state(self.strategy_state),
-                "rng": resume.rng_state(), "images_per_step": self.config.images_per_step_total}
+                "images_per_step": self.config.images_per_step_total}  # RNG states: the trainer's part
 
     def set_extra_state(self, state: Dict[str, object]) -> None:
         # A checkpoint's steps are in its own effective batch; this model's are in images_per_step_total.
@@ -347,7 +347,6 @@ class GeerModel(SplatfactoModel):
         self.step = resume.convert_step(int(state["step"]), self.loaded_images_per_step,
                                         self.config.images_per_step_total)
         resume.restore_strategy_state(self.strategy_state, state["strategy_state"], self.device)
-        resume.restore_rng_state(state["rng"])
 
     # ---------------------------------------------------------------------------------- rendering
     def _view_for(self, camera: Cameras) -> View:
