@@ -82,7 +82,8 @@ def preprocess_backward(means_c: Tensor, quats: Tensor, scales: Tensor, sh: Tens
 def _(means_c, quats, scales, sh, sh_dirs, rot_c, sh_degree, g_whiten, g_o_u, g_rgb):
     _one_device("preprocess_backward", means_c, quats, scales, sh, sh_dirs, rot_c, g_whiten, g_o_u, g_rgb)
     n = means_c.shape[0]
-    g_sh = torch.empty_like(sh) if sh_degree >= 0 else means_c.new_empty(0)
+    on_cpu = means_c.device.type == "cpu"  # the CPU build returns zeros like sh also without SH
+    g_sh = torch.empty_like(sh) if sh_degree >= 0 or on_cpu else means_c.new_empty(0)
     return means_c.new_empty(n, 3), means_c.new_empty(n, 4), means_c.new_empty(n, 3), g_sh, means_c.new_empty(n, 3)
 
 
@@ -105,8 +106,8 @@ def preprocess_grads(kernels, saved, sh_degree: int, g_whiten, g_o_u, g_rgb) -> 
 
 
 def _preprocess_backward(ctx, g_whiten, g_o_u, g_rgb, *_):
-    grads = preprocess_grads(KERNELS, ctx.saved_tensors, ctx.sh_degree, g_whiten, g_o_u, g_rgb)
-    return grads + (None,) * 4  # opacities (the PBF only), rot_c, sh_degree, paper
+    g_mc, g_q, g_s, g_sh, g_dirs = preprocess_grads(KERNELS, ctx.saved_tensors, ctx.sh_degree, g_whiten, g_o_u, g_rgb)
+    return g_mc, g_q, g_s, None, g_sh, g_dirs, None, None, None  # opacities: the PBF only
 
 
 torch.library.register_autograd("geer::preprocess_forward", _preprocess_backward, setup_context=_preprocess_setup)
