@@ -4,8 +4,8 @@ One process: no process group, every collective is the identity. Several (nerfst
 `--machine.num-devices N`, `--machine.num-machines M`): gloo on CPU tensors, NCCL on CUDA tensors; the
 same calls either way, so one engine trains on 1 or N processes. Every tensor a collective takes goes through
 `on_backend_device` first: NCCL serves CUDA tensors only, and a flag or count built on the CPU would stop a
-multi-GPU run at its first step while gloo, which every CPU test uses, accepts it (tests/test_collective_devices.py
-emulates NCCL's rule).
+multi-GPU run at its first step while gloo, which every CPU test uses, accepts it (docs/gpu_correctness.md:
+tests/test_distributed.py emulates NCCL's rule).
 """
 
 from __future__ import annotations
