@@ -43,7 +43,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from geer_ns import compat, resume
 from geer_ns.cameras import CameraModel
 from geer_ns.data.datamanager import VIEW_KEY
-from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, native_view
+from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, host_camera_model, native_view
 from geer_ns.densify.mcmc_cpu import install_mcmc_cpu_ops
 from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angular_signal, pbf_radii, pixel_signal
 from geer_ns.densify.strategy import GeerDefaultStrategy
@@ -329,7 +329,7 @@ class GeerModel(SplatfactoModel):
 
     def get_extra_state(self) -> Dict[str, object]:
         return {"step": self.step, "strategy_state": resume.strategy_state(self.strategy_state),
-                "rng": resume.rng_state(), "images_per_step": self.config.images_per_step_total}
+                "images_per_step": self.config.images_per_step_total}  # RNG states: the trainer's part
 
     def set_extra_state(self, state: Dict[str, object]) -> None:
         # A checkpoint's steps are in its own effective batch; this model's are in images_per_step_total.
@@ -337,7 +337,6 @@ class GeerModel(SplatfactoModel):
         self.step = resume.convert_step(int(state["step"]), self.loaded_images_per_step,
                                         self.config.images_per_step_total)
         resume.restore_strategy_state(self.strategy_state, state["strategy_state"], self.device)
-        resume.restore_rng_state(state["rng"])
 
     # ---------------------------------------------------------------------------------- rendering
     def _view_for(self, camera: Cameras) -> View:
@@ -346,11 +345,11 @@ class GeerModel(SplatfactoModel):
         kind = (camera.metadata or {}).get(VIEW_KEY, "native") if self.training else "native"
         factor = self._get_downscale_factor()
         if kind == "beap":
-            return beap_view(camera_model(camera, 0), factor)
+            return beap_view(host_camera_model(camera), factor)
         if factor > 1:
             camera = deepcopy(camera)
             camera.rescale_output_resolution(1.0 / factor)
-        return native_view(camera_model(camera, 0))
+        return native_view(camera_model(camera, 0) if factor > 1 else host_camera_model(camera))
 
     def _gaussians(self) -> Optional[Dict[str, Tensor]]:
         """Parameters to render (cropped to the viewer's box when one is set); None if nothing is left."""
@@ -430,7 +429,7 @@ class GeerModel(SplatfactoModel):
             signal = pixel_signal(means_c, view.steps, view.size)
         else:
             lam2, _ = pbf_lambda_sq(opacities.detach(), self.config.lambda_mode)
-            signal = angular_signal(view.project, int(view.rays.valid.sum()), view.center_solid_angle, means_c,
+            signal = angular_signal(view.project, view.rays.num_valid, view.center_solid_angle, means_c,
                                     scales, lam2, view.source_project)
         return ViewProbe.zeros(signal, means, self.config.use_absgrad)
 
@@ -453,14 +452,14 @@ class GeerModel(SplatfactoModel):
             "depth": depth,
             "accumulation": acc,
             "background": background if self.training else background.expand(height, width, 3),
-            "valid_rays": view.rays.valid.reshape(height, width, 1),
+            "valid_rays": view.rays.to(out.rgb.device).valid.reshape(height, width, 1),  # cached per device
         }
         if not self.training and isinstance(view, NativeView):
             dirs = view.rays.dirs.reshape(height, width, 3)
             half = self.config.central_half_angles_deg
             central = central_region(view.camera, dirs, None if half is None else tuple(math.radians(a) for a in half))
             if central is not None:
-                outputs["central_region"] = central[..., None]
+                outputs["central_region"] = central[..., None].to(out.rgb.device)
         return outputs
 
     @torch.no_grad()
@@ -535,7 +534,8 @@ class GeerModel(SplatfactoModel):
     def get_metrics_dict(self, outputs, batch) -> Dict[str, Tensor]:
         gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
         valid = self._batch_mask(outputs, batch)[..., 0]
-        mse = ((outputs["rgb"].detach() - gt) ** 2)[valid].mean().clamp_min(1e-10)
+        squared = torch.where(valid[..., None], (outputs["rgb"].detach() - gt) ** 2, 0.0)  # no boolean index: no sync
+        mse = (squared.sum() / (valid.sum() * gt.shape[-1]).clamp_min(1)).clamp_min(1e-10)
         metrics = {"psnr": -10.0 * torch.log10(mse), "gaussian_count": self.num_points}
         self.camera_optimizer.get_metrics_dict(metrics)
         return metrics

@@ -8,16 +8,20 @@ count stalls) and the first refinement indexes the stale optimizer state out of 
 * resizes the existing Parameters in place, so the optimizers the trainer built, and then filled with
   the checkpoint's optimizer state, hold the very tensors the model renders;
 * saves with the model (nn.Module extra state, plain tensors / numbers: loadable by torch's
-  weights_only loader) what nerfstudio leaves out: the training step, gsplat's strategy state (the
-  densification statistics gathered since the last refinement) and the torch / numpy / Python RNG
-  states, so refinement and random backgrounds go on as in an uninterrupted run;
+  weights_only loader) what nerfstudio leaves out: the training step and gsplat's strategy state (the
+  densification statistics gathered since the last refinement);
+* saves in the trainer's part of the checkpoint (key "rng") the torch CPU, current CUDA device, numpy and
+  Python RNG states, so refinement and random backgrounds go on as in an uninterrupted run. Only the
+  current device's CUDA state: a list of every visible GPU's (what geer wrote before) made ns-eval on a
+  machine with fewer GPUs fail, and made every rank restore its own index's state, so replicas drew
+  different CUDA numbers. Loading the model (ns-eval, ns-viewer, ns-export) touches no RNG;
 * the datamanager saves its camera queue and sampler state (which image comes next).
 """
 
 from __future__ import annotations
 
 import random
-from typing import Any, Dict, Mapping
+from typing import Any, Dict, Mapping, Optional
 
 import numpy as np
 import torch
@@ -47,7 +51,7 @@ def convert_step(step: int, saved_images_per_step: int, images_per_step: int) ->
 
 
 def rng_state() -> Dict[str, Any]:
-    """torch (CPU and CUDA), numpy and Python RNG states as tensors, ints and tuples."""
+    """torch (CPU and the current CUDA device), numpy and Python RNG states as tensors, ints and tuples."""
     np_state = np.random.get_state()
     state = {
         "torch": torch.get_rng_state(),
@@ -55,17 +59,30 @@ def rng_state() -> Dict[str, Any]:
         "python": random.getstate(),
     }
     if torch.cuda.is_available() and torch.cuda.is_initialized():
-        state["cuda"] = torch.cuda.get_rng_state_all()
+        state["cuda"] = torch.cuda.get_rng_state()
     return state
 
 
 def restore_rng_state(state: Mapping[str, Any]) -> None:
+    """rng_state()'s states back; the CUDA one into the current device (every rank restores the same one)."""
     torch.set_rng_state(state["torch"].cpu())
     name, keys, *rest = state["numpy"]
     np.random.set_state((name, keys.numpy().astype(np.uint32), *rest))
     random.setstate(_tuples(state["python"]))
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda"]])
+    cuda = state.get("cuda")
+    if isinstance(cuda, (list, tuple)):  # an older checkpoint: every visible GPU's; the saving rank's device 0
+        cuda = cuda[0] if cuda else None
+    if cuda is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state(cuda.cpu())
+
+
+def checkpoint_rng_state(checkpoint: Mapping[str, Any]) -> Optional[Mapping[str, Any]]:
+    """The RNG states of a nerfstudio checkpoint: the trainer's part ("rng"), or where older geer checkpoints
+    kept them (the model's extra state); None when it has none."""
+    if "rng" in checkpoint:
+        return checkpoint["rng"]
+    extra = checkpoint.get("pipeline", {}).get("_model._extra_state")
+    return extra.get("rng") if isinstance(extra, Mapping) else None
 
 
 def strategy_state(state: Mapping[str, Any]) -> Dict[str, Any]:

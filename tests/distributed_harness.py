@@ -57,11 +57,12 @@ def train(local_rank: int, world_size: int, config, global_rank: int = 0, callba
 
 
 def main(local_rank: int, world_size: int, config, global_rank: int = 0):
-    """The replica plans, the sharded renders, then the fault plan (which ends the launch: with exit status 1
-    when all is well)."""
+    """The replica plans, the sharded renders and training, the collectives under NCCL's rule, then the fault
+    plan (which ends the launch: with exit status 1 when all is well)."""
     replicas_plan(local_rank, world_size, config, global_rank)
     sharded_render_plan(global_rank, Path(config.output_dir))
     sharded_training_plan(local_rank, world_size, config, global_rank)
+    nccl_rule_plan(global_rank, Path(config.output_dir))
     fault_plan(local_rank, world_size, config, global_rank)
 
 
@@ -265,3 +266,49 @@ def rebalance_plan(trainer, rank: int) -> dict:
     engine._after_step(0)
     after = snapshot()
     return {"rebalance_before": before, "rebalance_after": after}
+
+
+# ------------------------------------------------------------------------------------------ NCCL's rule
+def nccl_rule_plan(global_rank: int, out: Path) -> None:
+    """The engine's collectives under emulated NCCL (nccl_emulation.py), every tensor the engine holds on
+    (emulated) CUDA as on a GPU machine. Each case's outcome (or its error) goes to nccl_<rank>.pt."""
+    from nccl_emulation import cuda, nccl_rule
+
+    from geer_ns.distributed.replicas import reduce_gradients
+    from geer_ns.distributed.sharded import gather_rows
+    from geer_ns.distributed.shards import render_sharded, shard_rows
+    from geer_ns.distributed.world import current_world
+
+    results = {}
+
+    def attempt(name, fn):
+        try:
+            results[name] = fn()
+        except Exception as error:  # noqa: BLE001 - recorded for the test; the launch goes on to the fault plan
+            results[name] = f"{type(error).__name__}: {error}"
+
+    with nccl_rule():
+        world = current_world()
+
+        def gradients():  # rank 0 has gradients for parameters 0 and 1, rank 1 for 0 only, nobody for 2
+            params = [cuda(torch.zeros(4, 3)), cuda(torch.zeros(5)), cuda(torch.zeros(2, 2))]
+            params[0].grad = cuda(torch.full((4, 3), 1.0 + 2 * global_rank))
+            if global_rank == 0:
+                params[1].grad = cuda(torch.full((5,), 2.0))
+            reduce_gradients(world, params, images=2)
+            return [None if p.grad is None else (p.grad.device.type, p.grad.cpu()) for p in params]
+
+        def sharded_render():
+            scene, viewmats, grids, _ = shard_case("fisheye180", torch.float64)
+            shard = [cuda(t[shard_rows(global_rank, 2)]) for t in scene]
+            image, views = render_sharded(*shard, cuda(viewmats), [g.to("cuda") for g in grids], backend="torch")
+            return {"device": image.rgb.device.type, "rgb": image.rgb.cpu(), "sent": views.sent}
+
+        def gathered():
+            rows = gather_rows(world, cuda(torch.arange(3.0 + global_rank)))
+            return None if rows is None else (rows.device.type, rows.cpu())
+
+        attempt("gradients", gradients)
+        attempt("sharded_render", sharded_render)
+        attempt("gather_rows", gathered)
+    torch.save(results, out / f"nccl_{global_rank}.pt")

@@ -320,3 +320,31 @@ def test_ns_train_on_two_cpu_processes_then_ns_eval_and_a_resume_on_one(tmp_path
     # 20 steps of 2 images = 40 steps of 1: the resumed run goes on at step 40 for its 3 steps
     assert last["step"] == 42
     assert last["pipeline"]["_model._extra_state"]["images_per_step"] == 1
+
+
+# ------------------------------------------------------------------------------------------ NCCL's rule
+def test_collectives_under_nccls_rule(two_processes):
+    """Collectives get tensors on the device their backend serves: NCCL serves CUDA tensors only, and a flag or
+    count built on the CPU stops a multi-GPU run at step 0 while gloo accepts it. The launch's nccl plan runs
+    the engine's collectives under emulated NCCL (nccl_emulation.py: the world says NCCL, a collective refuses
+    non-CUDA tensors, the engine's tensors are emulated CUDA tensors); expected: sums worked out by hand and
+    the one-process render of the whole scene."""
+    ranks = [torch.load(two_processes[0] / f"nccl_{rank}.pt") for rank in (0, 1)]
+    for rank, got in enumerate(ranks):
+        # reduce_gradients: the has-gradient flags, then the sum over both processes / 2 images.
+        grads = got["gradients"]
+        assert not isinstance(grads, str), (rank, grads)
+        assert grads[0][0] == "cuda" and torch.equal(grads[0][1], torch.full((4, 3), (1.0 + 3.0) / 2))
+        assert grads[1][0] == "cuda" and torch.equal(grads[1][1], torch.full((5,), (2.0 + 0.0) / 2))
+        assert grads[2] is None
+        # render_sharded: the all-to-all's counts, then the rows; the render is the one-process render.
+        shard = got["sharded_render"]
+        assert not isinstance(shard, str), (rank, shard)
+        scene, viewmats, grids, _ = harness.shard_case("fisheye180", torch.float64)
+        whole = _render(*scene, viewmats[rank], grids[rank], backend="torch")
+        assert shard["device"] == "cuda" and shard["sent"] > 0
+        assert torch.allclose(shard["rgb"], whole.rgb, atol=1e-12), float((shard["rgb"] - whole.rgb).abs().max())
+    gathered = ranks[0]["gather_rows"]
+    assert not isinstance(gathered, str), gathered
+    assert gathered[0] == "cuda" and torch.equal(gathered[1], torch.tensor([0.0, 1.0, 2.0, 0.0, 1.0, 2.0, 3.0]))
+    assert ranks[1]["gather_rows"] is None

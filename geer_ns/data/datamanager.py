@@ -40,7 +40,7 @@ from geer_ns.data.image_circle import detect_image_circle_from_files
 from geer_ns.data.nerfstudio_parser import CROP_RADIUS_KEY, GeerNerfstudio, GeerNerfstudioDataParserConfig
 from geer_ns.data.supervision import Supervision, SupervisionReport, beap_covered, choose_view
 from geer_ns.data.ply import read_ply_points
-from geer_ns.data.views import beap_view, camera_kind, camera_model, native_view
+from geer_ns.data.views import HOST_MODEL_KEY, beap_view, camera_kind, camera_model, native_view
 
 # Key of Cameras.metadata telling the model in which view a training batch is supervised.
 VIEW_KEY = "geer_view"
@@ -342,6 +342,7 @@ class GeerDataManager(FullImageDatamanager):
         camera.metadata = dict(camera.metadata or {})
         camera.metadata["cam_idx"] = index
         camera.metadata[VIEW_KEY] = self.cached_train[index][VIEW_KEY]
+        camera.metadata[HOST_MODEL_KEY] = camera_model(self.train_dataset.cameras, index)  # the host copy: no sync
         return camera
 
 

@@ -102,6 +102,17 @@ def camera_model(cameras: Cameras, index: int = 0) -> CameraModel:
     return camera_model_from_cameras(cameras, index)
 
 
+# Camera metadata key: the camera's model made on the host when the batch was made (datamanager.train_camera),
+# so that a render on the GPU reads no camera parameter back from it (one host sync per float).
+HOST_MODEL_KEY = "geer_camera_model"
+
+
+def host_camera_model(camera: Cameras) -> CameraModel:
+    """The model of a one-camera batch: the one its datamanager attached, else read from the camera."""
+    found = (camera.metadata or {}).get(HOST_MODEL_KEY)
+    return found if found is not None else camera_model(camera, 0)
+
+
 def camera_kind(cameras: Cameras, index: int = 0) -> str:
     """The name metrics and reports use for camera `index`'s model: the COLMAP model (geer-colmap), the
     transforms.json camera_model (geer's nerfstudio parser), else nerfstudio's camera type."""

@@ -38,7 +38,7 @@ from geer_ns.distributed.replicas import (
     reduce_gradients,
 )
 from geer_ns.distributed.shards import render_sharded, shard_rows
-from geer_ns.distributed.world import World, all_gather_objects
+from geer_ns.distributed.world import World, all_gather_objects, on_backend_device
 from geer_ns.render.sh import sh_to_color
 from geer_ns.render.transforms import camera_offsets
 
@@ -238,9 +238,8 @@ def gather_rows(world: World, tensor: Tensor) -> Optional[Tensor]:
     if not world.distributed:
         return tensor
     sizes = all_gather_objects(int(tensor.shape[0]))
-    device = tensor.device if dist.get_backend() != "gloo" else torch.device("cpu")
-    padded = tensor.new_zeros((max(sizes),) + tuple(tensor.shape[1:]), device=device)
-    padded[: tensor.shape[0]] = tensor.detach().to(device)
+    padded = on_backend_device(tensor.new_zeros((max(sizes),) + tuple(tensor.shape[1:])))
+    padded[: tensor.shape[0]] = tensor.detach()
     parts = [torch.empty_like(padded) for _ in sizes] if world.is_main else None
     dist.gather(padded, parts, dst=0)
     if not world.is_main:
@@ -266,9 +265,10 @@ def rebalance(world: World, model, optimizers, sizes: List[int]) -> None:
     keep = sizes[me] - sum(send)
 
     def exchange(t: Tensor) -> Tensor:
-        out = t.new_empty((sum(recv),) + tuple(t.shape[1:]))
-        dist.all_to_all_single(out, t[keep:].contiguous(), recv, send)
-        return torch.cat([t[:keep], out])
+        sending = on_backend_device(t[keep:])
+        out = sending.new_empty((sum(recv),) + tuple(t.shape[1:]))
+        dist.all_to_all_single(out, sending, recv, send)
+        return torch.cat([t[:keep], out.to(t.device)])
 
     _update_param_with_optimizer(lambda name, p: torch.nn.Parameter(exchange(p.detach())),
                                  lambda key, v: exchange(v), model.gauss_params, optimizers,

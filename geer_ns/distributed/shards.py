@@ -27,7 +27,7 @@ import torch.distributed as dist
 import torch.distributed.nn.functional as dist_nn
 from torch import Tensor
 
-from geer_ns.distributed.world import current_world
+from geer_ns.distributed.world import current_world, exchange_counts, on_backend_device
 from geer_ns.render import RayGrid, render
 from geer_ns.render.associate import seen_by
 from geer_ns.render.outputs import RenderOutput
@@ -61,12 +61,6 @@ def _colours(colors: Tensor, means: Tensor, viewmat: Tensor, sh_degree: Optional
         return colors
     degree = int(math.isqrt(colors.shape[1]) - 1) if sh_degree is None else sh_degree
     return sh_to_color(colors, camera_offsets(means, viewmat), degree)
-
-
-def _exchange_counts(send: Tensor) -> Tensor:
-    recv = torch.empty_like(send)
-    dist.all_to_all_single(recv, send)
-    return recv
 
 
 def render_sharded(
@@ -120,12 +114,13 @@ def render_sharded(
         mask = torch.zeros(means.shape[-2], dtype=torch.bool, device=means.device)
         mask[rows] = True
         seen.append(mask)
-    send_counts = torch.tensor([b.shape[0] for b in blocks], dtype=torch.int64)
+    send_counts = [b.shape[0] for b in blocks]
     payload = torch.cat(blocks)
     if world.distributed:
-        recv_counts = _exchange_counts(send_counts)
-        received = payload.new_empty(int(recv_counts.sum()), payload.shape[1])
-        received = dist_nn.all_to_all_single(received, payload, recv_counts.tolist(), send_counts.tolist())
+        recv_counts = exchange_counts(send_counts)
+        sending = on_backend_device(payload)
+        received = sending.new_empty(sum(recv_counts), payload.shape[1])
+        received = dist_nn.all_to_all_single(received, sending, recv_counts, send_counts).to(payload.device)
     else:
         recv_counts, received = send_counts, payload
     me = world.rank
@@ -138,19 +133,20 @@ def render_sharded(
                  lambda_mode=lambda_mode, backend=backend, max_pairs=max_pairs, **extra)
     weights = _weights_home(out, send_counts, recv_counts, world.distributed, payload)
     max_weight = []
-    for q, chunk in enumerate(weights.split(send_counts.tolist())):
+    for q, chunk in enumerate(weights.split(send_counts)):
         w = torch.zeros(means.shape[-2], dtype=chunk.dtype, device=chunk.device)
         w[seen[q]] = chunk
         max_weight.append(w)
-    return out, ShardViews(seen, max_weight, int(send_counts.sum()))
+    return out, ShardViews(seen, max_weight, sum(send_counts))
 
 
-def _weights_home(out: RenderOutput, send_counts: Tensor, recv_counts: Tensor, distributed: bool,
+def _weights_home(out: RenderOutput, send_counts: List[int], recv_counts: List[int], distributed: bool,
                   like: Tensor) -> Tensor:
     """Each sent row's largest blend weight in its camera, back at its owner (the reverse exchange)."""
     weight = out.max_weight.to(like.dtype)
     if not distributed:
         return weight
-    home = like.new_empty(int(send_counts.sum()))
-    dist.all_to_all_single(home, weight.contiguous(), send_counts.tolist(), recv_counts.tolist())
-    return home
+    sending = on_backend_device(weight)
+    home = sending.new_empty(sum(send_counts))
+    dist.all_to_all_single(home, sending, send_counts, recv_counts)
+    return home.to(like.device)

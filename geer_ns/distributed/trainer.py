@@ -135,6 +135,9 @@ class GeerTrainer(Trainer):
         if "schedulers" in state and self.config.load_scheduler:
             self.optimizers.load_schedulers(state["schedulers"])
         self.grad_scaler.load_state_dict(state["scalers"])
+        rng = resume.checkpoint_rng_state(state)
+        if rng is not None:
+            resume.restore_rng_state(rng)
         if self.config.pipeline.model.distributed == "gaussians":
             self.pipeline.model.scene_gaussians = total
         CONSOLE.print(f"Done loading Nerfstudio checkpoint from {path}")
@@ -240,6 +243,7 @@ class GeerTrainer(Trainer):
         state = self.engine.checkpoint_state(step)
         if state is None:
             return
+        state["rng"] = resume.rng_state()
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
         path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
         partial = self.base_dir / f".{path.name}.partial"  # not in the folder --load-dir lists

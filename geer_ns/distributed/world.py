@@ -2,7 +2,10 @@
 
 One process: no process group, every collective is the identity. Several (nerfstudio's launcher,
 `--machine.num-devices N`, `--machine.num-machines M`): gloo on CPU tensors, NCCL on CUDA tensors; the
-same calls either way, so one engine trains on 1 or N processes.
+same calls either way, so one engine trains on 1 or N processes. Every tensor a collective takes goes through
+`on_backend_device` first: NCCL serves CUDA tensors only, and a flag or count built on the CPU would stop a
+multi-GPU run at its first step while gloo, which every CPU test uses, accepts it (docs/gpu_correctness.md:
+tests/test_distributed.py emulates NCCL's rule).
 """
 
 from __future__ import annotations
@@ -41,9 +44,31 @@ def current_world() -> World:
     return World()
 
 
-def _comm_device(like: Tensor) -> torch.device:
-    """NCCL reduces CUDA tensors only; gloo reduces CPU tensors (and copies CUDA ones through the host)."""
-    return like.device if dist.get_backend() != "gloo" else torch.device("cpu")
+def backend_device(like: Tensor) -> torch.device:
+    """The device the process group's backend takes `like` on: its own device when the backend serves that
+    device type, else the served one. NCCL serves CUDA tensors only (the process's current CUDA device); gloo
+    serves CPU tensors (it would copy CUDA ones through the host); a group with a backend per device type
+    ("cpu:gloo,cuda:nccl") serves each type."""
+    backend = str(dist.get_backend())
+    if ":" in backend:
+        served = [part.split(":")[0] for part in backend.split(",")]
+    else:
+        served = ["cuda" if backend == "nccl" else "cpu"]
+    return like.device if like.device.type in served else torch.device(served[0])
+
+
+def on_backend_device(t: Tensor) -> Tensor:
+    """`t`, contiguous, on backend_device(t): what every collective takes (a copy only where the device or
+    layout differs; differentiable, for torch.distributed.nn)."""
+    return t.contiguous().to(backend_device(t))
+
+
+def exchange_counts(send: Sequence[int]) -> List[int]:
+    """All-to-all of one count per process: send[q] goes to rank q; returns what each rank sent to this one."""
+    counts = on_backend_device(torch.tensor(list(send), dtype=torch.int64))
+    received = torch.empty_like(counts)
+    dist.all_to_all_single(received, counts)
+    return received.cpu().tolist()
 
 
 def all_reduce_(tensors: Sequence[Tensor], op: str = "sum", bucket_bytes: int = BUCKET_BYTES) -> None:
@@ -54,7 +79,7 @@ def all_reduce_(tensors: Sequence[Tensor], op: str = "sum", bucket_bytes: int = 
     reduce_op = {"sum": dist.ReduceOp.SUM, "max": dist.ReduceOp.MAX}[op]
     pending = []
     for bucket in _buckets(tensors, bucket_bytes):
-        flat = torch.cat([t.reshape(-1) for t in bucket]).to(_comm_device(bucket[0]))
+        flat = on_backend_device(torch.cat([t.reshape(-1) for t in bucket]))
         pending.append((bucket, flat, dist.all_reduce(flat, op=reduce_op, async_op=True)))
     for bucket, flat, work in pending:
         work.wait()
@@ -105,6 +130,6 @@ def broadcast_(tensors: Sequence[Tensor], src: int = 0) -> None:
     for t in tensors:
         if t.numel() == 0:
             continue
-        buffer = t.detach().contiguous().to(_comm_device(t))
+        buffer = on_backend_device(t.detach())
         dist.broadcast(buffer, src=src)
         t.detach().copy_(buffer.view_as(t))

@@ -43,6 +43,7 @@ from .extensions import (  # noqa: F401 - the loaders, re-exported where callers
     load_cpu_ops,
     load_extension,
 )
+from .ops import KERNELS, preprocess_grads, render_grads
 from .outputs import RenderOutput, images
 from .pbf import PBF, LambdaMode
 from .raygrid import RayGrid
@@ -72,16 +73,7 @@ class _Preprocess(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_whiten, g_o_u, g_rgb, *_):
-        means_c, quats, scales, sh, sh_dirs, rot_c = ctx.saved_tensors
-        n = means_c.shape[0]
-        g_whiten = _zeros_if_none(g_whiten, (n, 3, 3), means_c)
-        g_o_u = _zeros_if_none(g_o_u, (n, 3), means_c)
-        g_rgb = _zeros_if_none(g_rgb, (n, 3), means_c)
-        g_mc, g_q, g_s, g_sh, g_dirs = ctx.ops.preprocess_backward(
-            means_c, quats, scales, sh, sh_dirs, rot_c, ctx.sh_degree, g_whiten, g_o_u, g_rgb
-        )
-        has_sh = ctx.sh_degree >= 0
-        return (g_mc, g_q, g_s, g_sh if has_sh else None, g_dirs if has_sh else None) + (None,) * 5
+        return preprocess_grads(ctx.ops, ctx.saved_tensors, ctx.sh_degree, g_whiten, g_o_u, g_rgb) + (None,) * 5
 
 
 class _Rasterize(torch.autograd.Function):
@@ -111,21 +103,9 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_rgb, g_depth, g_acc, _g_max_weight):
-        whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib, blended_lanes, rows = ctx.saved_tensors
-        r = geometry[1].shape[0]
-        g_rgb = _zeros_if_none(g_rgb, (r, 3), whiten).contiguous()
-        g_depth = _zeros_if_none(g_depth, (r,), whiten).contiguous()
-        g_acc = _zeros_if_none(g_acc, (r,), whiten).contiguous()
-        grads, absgrad = ctx.ops.render_backward(
-            whiten, o_u, rgb, opacities, *geometry, *ctx.layout, t_final, n_contrib, blended_lanes, g_rgb, g_depth, g_acc,
-            rows,
-        )  # [N, 16] rows (csrc/geer_blocks.h kGradValues): W row-major, o_u, colour, opacity; absgrad [N, 2] or empty
-        gw, go, gc, gs = grads.split([9, 3, 3, 1], dim=1)
-        return (gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1)) + (None,) * 12 + (absgrad if rows.numel() else None,)
-
-
-def _zeros_if_none(g: Tensor | None, shape, like: Tensor) -> Tensor:
-    return like.new_zeros(shape) if g is None else g.contiguous()
+        *saved, rows = ctx.saved_tensors
+        *grads, absgrad = render_grads(ctx.ops, saved, ctx.layout, g_rgb, g_depth, g_acc, rows)
+        return tuple(grads) + (None,) * 12 + (absgrad,)
 
 
 # ----------------------------------------------------------------------------------------- helpers
@@ -178,15 +158,16 @@ def render_cuda(
     ops: ModuleType | None = None,
     absgrad: tuple[Tensor, Tensor] | None = None,
 ):
-    """rasterize.render on the kernels (inputs already validated by render). `ops` defaults to the CUDA
-    extension; pass load_cpu_ops() to run the same pipeline on the CPU."""
+    """rasterize.render on the kernels (inputs already validated by render). `ops` defaults to the torch
+    operators (ops.KERNELS: the kernels for CUDA tensors, the CPU build for CPU ones); an extension module
+    (load_cpu_ops(), load_extension()) is called directly."""
     if ops is None:
-        ops = load_extension()
+        ops = KERNELS
     if lambda_mode not in ("opacity", "paper"):
         raise ValueError(f"lambda_mode must be 'opacity' or 'paper', got {lambda_mode!r}")
     if viewmat.requires_grad and torch.is_grad_enabled():
         raise ValueError("viewmat: gradients w.r.t. the camera pose are not supported by the CUDA backend")
-    if not 1 <= grid.tile_size <= 32 and ops is not _modules.get("geer_cpu_ops"):
+    if not 1 <= grid.tile_size <= 32 and means.device.type == "cuda":
         raise ValueError(f"the CUDA backend needs tile_size in 1..32 (one thread per ray), got {grid.tile_size}")
     dtype, device = means.dtype, means.device
     n = means.shape[0]

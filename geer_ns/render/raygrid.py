@@ -57,14 +57,31 @@ class RayGrid:
     def tiles_x(self) -> int:
         return -(-self.width // self.tile_size)
 
+    @property
+    def num_valid(self) -> int:
+        """The number of valid rays (counted once per grid: no host sync per render of a device grid)."""
+        if "num_valid" not in self._cache:
+            self._cache["num_valid"] = int(self.valid.sum())
+        return self._cache["num_valid"]
+
     def to(self, device: torch.device | str) -> "RayGrid":
-        if torch.device(device) == self.dirs.device:
-            return self  # keeps the cached per-grid facts
-        return RayGrid(
-            self.dirs.to(device), self.valid.to(device), self.height, self.width, self.tile_size,
-            self.tile_rays.to(device), self.tile_theta.to(device), self.tile_phi.to(device),
-            self.tile_active.to(device),
-        )
+        """This grid on `device`: made on the first call for that device and kept, with the per-grid facts
+        computed so far (pyramids, cull bounds, ray count) moved along; later calls upload nothing and the
+        copy keeps its own facts (a training view renders the same grid every time it comes round)."""
+        device = torch.device(device)
+        if device == self.dirs.device:
+            return self
+        copies = self._cache.setdefault("on_device", {})
+        if str(device) not in copies:
+            copy = RayGrid(
+                self.dirs.to(device), self.valid.to(device), self.height, self.width, self.tile_size,
+                self.tile_rays.to(device), self.tile_theta.to(device), self.tile_phi.to(device),
+                self.tile_active.to(device),
+            )
+            copy._cache.update({key: _moved(value, device) for key, value in self._cache.items()
+                                if key != "on_device"})
+            copies[str(device)] = copy
+        return copies[str(device)]
 
     def tile_mirror_bounds(self, xi: float = 1.0) -> tuple[Tensor, Tensor]:
         """Tile bounds in the mirror-tangent domain (Eq. D.7): ([n_tiles, 2] theta, [n_tiles, 2] phi)."""
@@ -135,7 +152,9 @@ class RayGrid:
         x, y, z = d.unbind(-1)
         tile_theta = _tile_angle_bounds(x, z, ray_ok)
         tile_phi = _tile_angle_bounds(y, z, ray_ok)
-        return cls(unit, valid, height, width, tile_size, tile_rays, tile_theta, tile_phi, ray_ok.any(-1))
+        grid = cls(unit, valid, height, width, tile_size, tile_rays, tile_theta, tile_phi, ray_ok.any(-1))
+        grid.num_valid  # counted where the grid is made (the host), carried to its device copies
+        return grid
 
     @classmethod
     def beap(
@@ -250,3 +269,12 @@ def _tile_angle_bounds(a: Tensor, z: Tensor, ok: Tensor) -> Tensor:
     lo = torch.where(full, torch.full_like(lo, -math.pi), lo - _TILE_BOUND_SLACK)
     hi = torch.where(full, torch.full_like(hi, math.pi), hi + _TILE_BOUND_SLACK)
     return torch.stack([lo, hi], -1)
+
+
+def _moved(value, device: torch.device):
+    """A cached per-grid fact on `device` (tensors, tile pyramids, numbers)."""
+    if isinstance(value, Tensor):
+        return value.to(device)
+    if isinstance(value, TilePyramid):
+        return TilePyramid(value.bounds.to(device), value.active.to(device), value.levels, value.offsets)
+    return value

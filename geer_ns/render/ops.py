@@ -1,0 +1,216 @@
+"""The csrc/ kernels as torch operators (torch.library): `torch.ops.geer.*`.
+
+Each operation of the extension (bindings.cpp) and of its CPU build (cpu_ops.cpp, same names and signatures)
+is one operator with a schema, a fake (shape) implementation and, for the two forward stages, a registered
+backward. The operator runs the build of its inputs' device: CUDA tensors the kernels (extension built on
+first use), CPU tensors the CPU build. Registered, the kernels take part in torch's machinery like any aten
+op: FakeTensorMode (shapes and devices without data; a training step on a fake `cuda:0` runs on a machine
+without a GPU, and a CPU tensor among its CUDA tensors raises), torch.compile and opcheck.
+
+    preprocess_forward    per Gaussian: (W, o_u, colour, PBF bounds, alive, inside)
+    associate             per tile: ids sorted by (tile, depth), ranges, counts, tests; len(ids) depends on
+                          the data (a fake run needs a ShapeEnv: torch.library.get_ctx().new_dynamic_size)
+    render_forward        per ray: rgb, depth, acc, T_final, n_contrib, blended lanes (CPU build), max_weight
+    render_backward       per Gaussian gradient rows [N,16] (and absgrad [N,2])
+    preprocess_backward   to means_c, quats, scales, SH, SH directions
+
+`KERNELS` holds them under the extension's names, for the autograd wrappers of cuda_backend.py (which
+also carry absgrad's sink, that an operator cannot). Why: docs/gpu_correctness.md.
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+from typing import Tuple
+
+import torch
+from torch import Tensor
+
+from .extensions import load_cpu_ops, load_extension
+
+T2 = Tuple[Tensor, Tensor]
+T4 = Tuple[Tensor, Tensor, Tensor, Tensor]
+T5 = Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]
+T6 = Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]
+T7 = Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]
+GRAD_VALUES, ABSGRAD_VALUES = 16, 2  # csrc/geer_blocks.h kGradValues, kAbsgradValues
+
+
+def _build(like: Tensor):
+    """The build that runs tensors on like's device: the CUDA extension or the CPU build."""
+    return load_extension() if like.device.type == "cuda" else load_cpu_ops()
+
+
+def _one_device(op: str, *tensors: Tensor) -> torch.device:
+    """The inputs' one device; a tensor elsewhere is an error (the kernels would read a host pointer)."""
+    device = tensors[0].device
+    for t in tensors[1:]:
+        if t.device != device and t.numel() > 0:
+            raise RuntimeError(f"geer::{op}: expected all tensors on {device}, got one on {t.device} "
+                               f"{tuple(t.shape)}")
+    return device
+
+
+# ------------------------------------------------------------------------------------------ stage 1
+@torch.library.custom_op("geer::preprocess_forward", mutates_args=())
+def preprocess_forward(means_c: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor,
+                       sh_dirs: Tensor, rot_c: Tensor, sh_degree: int, paper: bool) -> T6:
+    """Per Gaussian -> (W [N,3,3], o_u [N,3], colour [N,3], PBF bounds [N,4], alive [N], inside [N])."""
+    _one_device("preprocess_forward", means_c, quats, scales, opacities, sh, sh_dirs, rot_c)
+    return tuple(_build(means_c).preprocess_forward(means_c, quats, scales, opacities, sh, sh_dirs, rot_c,
+                                                    sh_degree, paper))
+
+
+@preprocess_forward.register_fake
+def _(means_c, quats, scales, opacities, sh, sh_dirs, rot_c, sh_degree, paper):
+    _one_device("preprocess_forward", means_c, quats, scales, opacities, sh, sh_dirs, rot_c)
+    n = means_c.shape[0]
+    new = means_c.new_empty
+    return (new(n, 3, 3), new(n, 3), new(n, 3), new(n, 4), new(n, dtype=torch.bool), new(n, dtype=torch.bool))
+
+
+@torch.library.custom_op("geer::preprocess_backward", mutates_args=())
+def preprocess_backward(means_c: Tensor, quats: Tensor, scales: Tensor, sh: Tensor, sh_dirs: Tensor, rot_c: Tensor,
+                        sh_degree: int, g_whiten: Tensor, g_o_u: Tensor, g_rgb: Tensor) -> T5:
+    """-> gradients to (means_c, quats, scales, SH (empty without SH), SH directions)."""
+    _one_device("preprocess_backward", means_c, quats, scales, sh, sh_dirs, rot_c, g_whiten, g_o_u, g_rgb)
+    return tuple(_build(means_c).preprocess_backward(means_c, quats, scales, sh, sh_dirs, rot_c, sh_degree, g_whiten,
+                                                     g_o_u, g_rgb))
+
+
+@preprocess_backward.register_fake
+def _(means_c, quats, scales, sh, sh_dirs, rot_c, sh_degree, g_whiten, g_o_u, g_rgb):
+    _one_device("preprocess_backward", means_c, quats, scales, sh, sh_dirs, rot_c, g_whiten, g_o_u, g_rgb)
+    n = means_c.shape[0]
+    on_cpu = means_c.device.type == "cpu"  # the CPU build returns zeros like sh also without SH
+    g_sh = torch.empty_like(sh) if sh_degree >= 0 or on_cpu else means_c.new_empty(0)
+    return means_c.new_empty(n, 3), means_c.new_empty(n, 4), means_c.new_empty(n, 3), g_sh, means_c.new_empty(n, 3)
+
+
+def _preprocess_setup(ctx, inputs, output) -> None:
+    means_c, quats, scales, _opacities, sh, sh_dirs, rot_c, sh_degree, _paper = inputs
+    ctx.save_for_backward(means_c, quats, scales, sh, sh_dirs, rot_c)
+    ctx.sh_degree = sh_degree
+
+
+def preprocess_grads(kernels, saved, sh_degree: int, g_whiten, g_o_u, g_rgb) -> T5:
+    """The preprocess stage's backward (missing gradients are zeros): to (means_c, quats, scales, SH, SH
+    directions), the last two None without SH. `kernels`: KERNELS or an extension module."""
+    means_c = saved[0]
+    n = means_c.shape[0]
+    g_whiten, g_o_u, g_rgb = (_zeros_if_none(g, shape, means_c) for g, shape in
+                              ((g_whiten, (n, 3, 3)), (g_o_u, (n, 3)), (g_rgb, (n, 3))))
+    g_mc, g_q, g_s, g_sh, g_dirs = kernels.preprocess_backward(*saved, sh_degree, g_whiten, g_o_u, g_rgb)
+    has_sh = sh_degree >= 0
+    return g_mc, g_q, g_s, g_sh if has_sh else None, g_dirs if has_sh else None
+
+
+def _preprocess_backward(ctx, g_whiten, g_o_u, g_rgb, *_):
+    g_mc, g_q, g_s, g_sh, g_dirs = preprocess_grads(KERNELS, ctx.saved_tensors, ctx.sh_degree, g_whiten, g_o_u, g_rgb)
+    return g_mc, g_q, g_s, None, g_sh, g_dirs, None, None, None  # opacities: the PBF only
+
+
+torch.library.register_autograd("geer::preprocess_forward", _preprocess_backward, setup_context=_preprocess_setup)
+
+
+# ------------------------------------------------------------------------------------------ stage 2
+@torch.library.custom_op("geer::associate", mutates_args=())
+def associate(bounds: Tensor, alive: Tensor, order: Tensor, node_bounds: Tensor, node_active: Tensor, tiles_x: int,
+              tiles_y: int) -> T4:
+    """-> (ids [M] int32 by (tile, depth order), ranges [T,2] int32, counts [N] int32, tests [N] int32)."""
+    _one_device("associate", bounds, alive, order, node_bounds, node_active)
+    return tuple(_build(bounds).associate(bounds, alive, order, node_bounds, node_active, tiles_x, tiles_y))
+
+
+@associate.register_fake
+def _(bounds, alive, order, node_bounds, node_active, tiles_x, tiles_y):
+    _one_device("associate", bounds, alive, order, node_bounds, node_active)
+    pairs = torch.library.get_ctx().new_dynamic_size()  # the number of (Gaussian, tile) pairs: data
+    n, new = bounds.shape[0], bounds.new_empty
+    return (new(pairs, dtype=torch.int32), new(tiles_x * tiles_y, 2, dtype=torch.int32), new(n, dtype=torch.int32),
+            new(n, dtype=torch.int32))
+
+
+# ------------------------------------------------------------------------------------------ stage 3
+@torch.library.custom_op("geer::render_forward", mutates_args=())
+def render_forward(whiten: Tensor, o_u: Tensor, rgb: Tensor, opacities: Tensor, pbf_pieces: Tensor, dirs: Tensor,
+                   ray_bounds: Tensor, warp_bounds: Tensor, valid: Tensor, ids: Tensor, ranges: Tensor, height: int,
+                   width: int, tile_size: int, record: bool) -> T7:
+    """Per ray -> (rgb [R,3], depth [R], acc [R], T_final [R], n_contrib [R] int32, blended lanes int32 (the CPU
+    build's record for its backward, when `record`; empty from the kernels), max_weight [N]). Pass record=True
+    when a backward will run."""
+    _one_device("render_forward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
+                ranges)
+    return tuple(_build(whiten).render_forward(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds,
+                                               warp_bounds, valid, ids, ranges, height, width, tile_size, record))
+
+
+@render_forward.register_fake
+def _(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height, width,
+      tile_size, record):
+    _one_device("render_forward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
+                ranges)
+    r, new = height * width, whiten.new_empty
+    on_cpu = whiten.device.type == "cpu" and record
+    lanes = new(ids.shape[0], warp_bounds.shape[0] // ranges.shape[0], dtype=torch.int32) if on_cpu else \
+        new(0, dtype=torch.int32)
+    return new(r, 3), new(r), new(r), new(r), new(r, dtype=torch.int32), lanes, new(whiten.shape[0])
+
+
+@torch.library.custom_op("geer::render_backward", mutates_args=())
+def render_backward(whiten: Tensor, o_u: Tensor, rgb: Tensor, opacities: Tensor, pbf_pieces: Tensor, dirs: Tensor,
+                    ray_bounds: Tensor, warp_bounds: Tensor, valid: Tensor, ids: Tensor, ranges: Tensor, height: int,
+                    width: int, tile_size: int, t_final: Tensor, n_contrib: Tensor, blended_lanes: Tensor,
+                    g_rgb: Tensor, g_depth: Tensor, g_acc: Tensor, absgrad_rows: Tensor) -> T2:
+    """-> (gradient rows [N,16]: W row-major, o_u, colour, opacity; absgrad [N,2], empty when absgrad_rows is)."""
+    _one_device("render_backward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
+                ranges, t_final, n_contrib, g_rgb, g_depth, g_acc, absgrad_rows)
+    return tuple(_build(whiten).render_backward(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds,
+                                                warp_bounds, valid, ids, ranges, height, width, tile_size, t_final,
+                                                n_contrib, blended_lanes, g_rgb, g_depth, g_acc, absgrad_rows))
+
+
+@render_backward.register_fake
+def _(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height, width,
+      tile_size, t_final, n_contrib, blended_lanes, g_rgb, g_depth, g_acc, absgrad_rows):
+    _one_device("render_backward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
+                ranges, t_final, n_contrib, g_rgb, g_depth, g_acc, absgrad_rows)
+    n = whiten.shape[0]
+    absgrad = whiten.new_empty(n, ABSGRAD_VALUES) if absgrad_rows.numel() > 0 else whiten.new_empty(0)
+    return whiten.new_empty(n, GRAD_VALUES), absgrad
+
+
+def render_grads(kernels, saved, layout, g_rgb, g_depth, g_acc, rows: Tensor) -> Tuple[Tensor, ...]:
+    """The render stage's backward (missing gradients are zeros): (W, o_u, colour, opacity, absgrad or None).
+    saved: the forward's 11 inputs from whiten to ranges, then T_final, n_contrib, blended lanes."""
+    whiten, dirs = saved[0], saved[5]
+    r = dirs.shape[0]
+    g_rgb, g_depth, g_acc = (_zeros_if_none(g, shape, whiten) for g, shape in
+                             ((g_rgb, (r, 3)), (g_depth, (r,)), (g_acc, (r,))))
+    grads, absgrad = kernels.render_backward(*saved[:11], *layout, *saved[11:], g_rgb, g_depth, g_acc, rows)
+    gw, go, gc, gs = grads.split([9, 3, 3, 1], dim=1)
+    return gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1), (absgrad if rows.numel() else None)
+
+
+def _render_setup(ctx, inputs, output) -> None:
+    ctx.save_for_backward(*inputs[:11], *output[3:6])
+    ctx.layout = tuple(inputs[11:14])
+
+
+def _render_backward(ctx, g_rgb, g_depth, g_acc, *_):
+    saved = ctx.saved_tensors
+    grads = render_grads(KERNELS, saved, ctx.layout, g_rgb, g_depth, g_acc, saved[0].new_zeros(0))
+    return grads[:4] + (None,) * 11
+
+
+torch.library.register_autograd("geer::render_forward", _render_backward, setup_context=_render_setup)
+
+
+def _zeros_if_none(g, shape, like: Tensor) -> Tensor:
+    return like.new_zeros(shape) if g is None else g.contiguous()
+
+
+# The operators under the extension's names: what cuda_backend's autograd wrappers call.
+KERNELS = SimpleNamespace(preprocess_forward=torch.ops.geer.preprocess_forward, associate=torch.ops.geer.associate,
+                          render_forward=torch.ops.geer.render_forward, render_backward=torch.ops.geer.render_backward,
+                          preprocess_backward=torch.ops.geer.preprocess_backward)
