@@ -547,7 +547,7 @@ class GeerModel(SplatfactoModel):
         gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
         valid = self._batch_mask(outputs, batch)[..., 0]
         mse = ((outputs["rgb"].detach() - gt) ** 2)[valid].mean().clamp_min(1e-10)
-        metrics = {"psnr": -10.0 * torch.log10(mse), "gaussian_count": self.num_points}
+        metrics = {"psnr": -10.0 * torch.log10(mse), "gaussian_count": self.scene_gaussians or self.num_points}
         self.camera_optimizer.get_metrics_dict(metrics)
         return metrics
 
