@@ -150,29 +150,32 @@ def worker_main(local_rank: int, world_size: int, cfg, global_rank: int = 0) -> 
                                "setup_kib": setup_kib, "peak_kib": peak_kib()}))
 
 
-def run_worker(args) -> None:
+def run_worker(args, main=None) -> None:
+    """The worker's run of `main` (default worker_main) on args.processes processes."""
     import pickle
 
+    main = main or worker_main
     cfg = pickle.loads(Path(args.worker).read_bytes())
     if args.processes == 1:
-        worker_main(0, 1, cfg)
+        main(0, 1, cfg)
         return
     from nerfstudio.scripts.train import launch
 
-    launch(worker_main, num_devices_per_machine=args.processes, device_type="cpu", config=cfg)
+    launch(main, num_devices_per_machine=args.processes, device_type="cpu", config=cfg)
 
 
 # ------------------------------------------------------------------------------------------ driver
-def measure(cfg, processes: int, work: Path) -> dict:
+def measure(cfg, processes: int, work: Path, script: str = __file__, record: str = "timings") -> dict:
+    """`script --worker` in a fresh process tree; each rank's <record>.<rank>.json."""
     import pickle
 
     path = work / f"{cfg.experiment_name}.pkl"
     path.write_bytes(pickle.dumps(cfg))
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    subprocess.run([sys.executable, __file__, "--worker", str(path), "--processes", str(processes)], check=True,
+    subprocess.run([sys.executable, script, "--worker", str(path), "--processes", str(processes)], check=True,
                    env=env, stdout=subprocess.DEVNULL)
     base = Path(cfg.output_dir) / cfg.experiment_name
-    return {r: json.loads((base / f"timings.{r}.json").read_text()) for r in range(processes)}
+    return {r: json.loads((base / f"{record}.{r}.json").read_text()) for r in range(processes)}
 
 
 def summarise(name: str, runs: dict, warmup: int, images_per_step: int) -> dict:

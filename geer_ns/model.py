@@ -536,7 +536,7 @@ class GeerModel(SplatfactoModel):
         valid = self._batch_mask(outputs, batch)[..., 0]
         squared = torch.where(valid[..., None], (outputs["rgb"].detach() - gt) ** 2, 0.0)  # no boolean index: no sync
         mse = (squared.sum() / (valid.sum() * gt.shape[-1]).clamp_min(1)).clamp_min(1e-10)
-        metrics = {"psnr": -10.0 * torch.log10(mse), "gaussian_count": self.num_points}
+        metrics = {"psnr": -10.0 * torch.log10(mse), "gaussian_count": self.scene_gaussians or self.num_points}
         self.camera_optimizer.get_metrics_dict(metrics)
         return metrics
 

@@ -60,6 +60,8 @@ def main(local_rank: int, world_size: int, config, global_rank: int = 0):
     """The replica plans, the sharded renders and training, the collectives under NCCL's rule, then the fault
     plan (which ends the launch: with exit status 1 when all is well)."""
     replicas_plan(local_rank, world_size, config, global_rank)
+    resume_plan(local_rank, world_size, config, global_rank)
+    budget_plan(global_rank, Path(config.output_dir))
     sharded_render_plan(global_rank, Path(config.output_dir))
     sharded_training_plan(local_rank, world_size, config, global_rank)
     nccl_rule_plan(global_rank, Path(config.output_dir))
@@ -114,6 +116,108 @@ def replicas_plan(local_rank, world_size, config, global_rank):
         results[name] = per_step
     if global_rank == 0:
         _write(out / "replicas.json", results)
+
+
+# ------------------------------------------------------------------------------------ resume, schedule
+def set_up(local_rank: int, world_size: int, config):
+    """A trainer set up (its checkpoint loaded, if any), not trained."""
+    from nerfstudio.utils import writer
+
+    writer.EVENT_WRITERS.clear()
+    trainer = config.setup(local_rank=local_rank, world_size=world_size)
+    trainer.setup()
+    return trainer
+
+
+def optimizer_record(trainer) -> dict:
+    """What the optimisers will step with next: every group's hyper-parameters and Adam's step counts, every
+    scheduler's base learning rates, position and learning rate; and the step the run starts at."""
+    record = {"start": trainer._start_step, "groups": {}, "adam_steps": {}, "schedulers": {}}
+    for name, opt in trainer.optimizers.optimizers.items():
+        record["groups"][name] = [{k: (list(g[k]) if k == "betas" else g[k]) for k in ("lr", "betas", "eps")}
+                                  for g in opt.param_groups]
+        record["adam_steps"][name] = sorted({float(slot["step"]) for slot in opt.state.values() if "step" in slot})
+    for name, scheduler in trainer.optimizers.schedulers.items():
+        record["schedulers"][name] = {"base_lrs": list(scheduler.base_lrs), "last_epoch": scheduler.last_epoch,
+                                      "lr": list(scheduler.get_last_lr())}
+    return record
+
+
+def fresh_record(trainer, start: int) -> dict:
+    """optimizer_record of a fresh trainer brought to step `start` as training would (one scheduler step per
+    step; Adam's step counts are then `start`)."""
+    for _ in range(start):
+        for scheduler in trainer.optimizers.schedulers.values():
+            scheduler.step()
+    record = optimizer_record(trainer)
+    record["start"] = start
+    record["adam_steps"] = {name: [float(start)] for name in record["adam_steps"]}
+    return record
+
+
+def resume_plan(local_rank, world_size, config, global_rank):
+    """A one-process checkpoint (kappa = 1, the test's, made before the launch) resumed on 2 processes
+    (kappa = 2), image- and Gaussian-parallel; and a fresh 2-process run at the resumed step."""
+    data, out = Path(config.pipeline.datamanager.data), Path(config.output_dir)
+    results = {}
+    for engine in ("images", "gaussians"):
+        cfg = scenario_config(data, out, f"resumed_{engine}")
+        cfg.pipeline.model.distributed = engine
+        cfg.load_dir = Path((out / "kappa1_checkpoints.txt").read_text())
+        results[engine] = optimizer_record(set_up(local_rank, world_size, cfg))
+    fresh = set_up(local_rank, world_size, scenario_config(data, out, "fresh"))
+    results["fresh"] = fresh_record(fresh, results["images"]["start"])
+    if global_rank == 0:
+        _write(out / "resume.json", results)
+
+
+def budget_plan(rank: int, out: Path) -> None:
+    """The densification budget over 2 shards: the scene of budget_case, rank r holding rows r::2 except that
+    rank 0 also holds the second half of the candidates (unequal candidates); one refinement's growth with the
+    sharded engine's scene-wide budget. The ids grown go to budget_<rank>.pt."""
+    from geer_ns.distributed.sharded import scene_budget
+
+    params, optimizers, state, strategy = budget_case()
+    n = params["means"].shape[0]
+    mine = torch.tensor([budget_owner(i, n) == rank for i in range(n)])
+    keep = {k: torch.nn.Parameter(v[mine].clone()) for k, v in params.items()}
+    optimizers = {k: torch.optim.Adam([p], lr=1e-3) for k, p in keep.items()}
+    shard_state = {k: (v[mine].clone() if torch.is_tensor(v) and v.dim() > 0 else v) for k, v in state.items()}
+    strategy.budget = scene_budget
+    strategy._grow_gs(keep, optimizers, shard_state, step=100)
+    torch.save({"ids": shard_state["id"], "n": keep["means"].shape[0], "candidates": int(mine[BUDGET_WANTED].sum())},
+               out / f"budget_{rank}.pt")
+
+
+BUDGET_GAUSSIANS, BUDGET = 60, 75
+BUDGET_WANTED = slice(0, 40)  # the rows with a gradient above the threshold
+
+
+def budget_owner(row: int, n: int) -> int:
+    """Rank 0 holds rows 0::2 and every candidate row from 20 on: 30 of the 40 candidates."""
+    return 0 if (row % 2 == 0 or 20 <= row < 40) else 1
+
+
+def budget_case():
+    """A model of BUDGET_GAUSSIANS Gaussians, 40 of them candidates for growth (gradients above the threshold,
+    several equal: ties), a budget of BUDGET (room for 15 of them); (params, optimizers, state, strategy)."""
+    from geer_ns.densify.strategy import GeerDefaultStrategy
+
+    n = BUDGET_GAUSSIANS
+    gen = torch.Generator().manual_seed(3)
+    params = {"means": torch.randn(n, 3, generator=gen), "scales": torch.full((n, 3), -3.0),
+              "quats": torch.randn(n, 4, generator=gen), "opacities": torch.zeros(n, 1),
+              "features_dc": torch.rand(n, 3, generator=gen), "features_rest": torch.zeros(n, 15, 3)}
+    params["scales"][::3] = 0.0  # large: these split, the others duplicate
+    grad = torch.zeros(n)
+    grad[BUDGET_WANTED] = torch.randint(1, 9, (40,), generator=gen).float() * 1e-3  # ties on purpose
+    state = {"grad2d": grad, "count": torch.ones(n), "radii": torch.zeros(n), "weight": torch.ones(n),
+             "pixels": torch.ones(n), "id": torch.arange(n) * 7 + 11, "scene_scale": 1.0}
+    strategy = GeerDefaultStrategy(max_gaussians=BUDGET, grow_grad2d=5e-4, grow_scale3d=0.01,
+                                   refine_scale2d_stop_iter=0, verbose=False)
+    params = {k: torch.nn.Parameter(v) for k, v in params.items()}
+    optimizers = {k: torch.optim.Adam([p], lr=1e-3) for k, p in params.items()}
+    return params, optimizers, state, strategy
 
 
 def fault_plan(local_rank, world_size, config, global_rank, distributed: str = "images"):
@@ -220,6 +324,9 @@ def sharded_training_plan(local_rank, world_size, config, global_rank):
     trainer = train(local_rank, world_size, cfg, global_rank, callbacks=[lambda t, step: per_step.append(
         (step, t.pipeline.model.num_points, t.pipeline.model.scene_gaussians))])
     image = sharded_render_of(trainer)
+    evaluated = {}
+    trainer.config.steps_per_eval_all_images = 1  # due now: rank 0 evaluates, rendering from both shards
+    trainer.engine.evaluate(1, lambda: evaluated.update(trainer.pipeline.get_average_eval_image_metrics(step=1)))
     back = sharded_config(data, out, "from_one_process")
     back.pipeline.model.distributed = "gaussians"
     back.load_dir = Path((out / "reference_checkpoints.txt").read_text())
@@ -233,7 +340,7 @@ def sharded_training_plan(local_rank, world_size, config, global_rank):
     rebalanced = rebalance_plan(resumed, global_rank)
     if global_rank == 0:
         torch.save({"per_step": per_step, "image": image, "image_back": image_back, "shard_back": shard_back,
-                    **rebalanced}, out / "sharded.pt")
+                    "evaluated": evaluated, **rebalanced}, out / "sharded.pt")
 
 
 def rebalance_plan(trainer, rank: int) -> dict:

@@ -82,6 +82,7 @@ def one_process(room, tmp_path_factory, single_thread):
     runs = {strategy: train_in_process(harness.scenario_config(
         room, out, f"equal_{strategy}", strategy=strategy, images_per_step=2)) for strategy in ("default", "mcmc")}
     runs["sharded"] = train_in_process(harness.sharded_config(room, out, "sharded", images_per_step=2))
+    runs["kappa1"] = train_in_process(harness.scenario_config(room, out, "kappa1", steps=3))  # 6 steps of 1 image
     return {name: (path, torch.load(path, map_location="cpu")) for name, path in runs.items()}
 
 
@@ -91,6 +92,7 @@ def two_processes(room, tmp_path_factory, one_process):
     is killed (the launch's end)."""
     out = tmp_path_factory.mktemp("dist_runs")
     (out / "reference_checkpoints.txt").write_text(str(one_process["sharded"][0].parent))
+    (out / "kappa1_checkpoints.txt").write_text(str(one_process["kappa1"][0].parent))
     config = harness.scenario_config(room, out, "replicas")
     start = time.perf_counter()
     stop, ended = _killed_launch(config, out / "log.txt", harness.main)
@@ -201,6 +203,99 @@ def test_a_sharded_render_is_the_single_process_render(two_processes, case, dtyp
             assert ranks[0]["sent"] < 300  # a 180-degree camera does not see everything: not all rows travel
 
 
+# ------------------------------------------------------------------------------ resume, schedule, budget
+def _assert_same_optimisers(resumed: dict, fresh: dict) -> None:
+    assert resumed["start"] == fresh["start"]
+    assert resumed["groups"].keys() == fresh["groups"].keys()
+    for name in fresh["groups"]:
+        for got, want in zip(resumed["groups"][name], fresh["groups"][name]):
+            assert got["betas"] == want["betas"] and got["eps"] == want["eps"], (name, got, want)
+            assert got["lr"] == pytest.approx(want["lr"], rel=1e-12), (name, got, want)
+        if resumed["adam_steps"][name]:  # the groups the checkpoint's run stepped
+            assert resumed["adam_steps"][name] == fresh["adam_steps"][name], name
+    assert resumed["schedulers"].keys() == fresh["schedulers"].keys() and fresh["schedulers"]
+    for name, want in fresh["schedulers"].items():
+        got = resumed["schedulers"][name]
+        assert got["base_lrs"] == pytest.approx(want["base_lrs"], rel=1e-12), name
+        assert got["last_epoch"] == want["last_epoch"], name
+        assert got["lr"] == pytest.approx(want["lr"], rel=1e-12), name
+
+
+@pytest.mark.parametrize("engine", ["images", "gaussians"])
+def test_a_resume_from_one_process_on_two_steps_with_a_fresh_two_process_runs_optimisers(two_processes, engine):
+    """A kappa = 1 checkpoint (6 steps of one image) resumed on 2 processes (kappa = 2): learning rates, betas,
+    epsilon, Adam's step counts and the schedulers are those of a 2-process run started afresh and brought
+    to the same step (3), not the checkpoint's."""
+    results = json.loads((two_processes[0] / "resume.json").read_text())
+    assert results[engine]["start"] == 3
+    _assert_same_optimisers(results[engine], results["fresh"])
+
+
+def test_a_resume_from_two_processes_on_one_steps_with_a_fresh_one_process_runs_optimisers(two_processes, room):
+    """The 2-process run's checkpoint (kappa = 2, 12 steps) resumed on 1 process with 1 image per step: the
+    optimisers are a fresh kappa = 1 run's at step 24."""
+    checkpoints = two_processes[0] / "equal_default" / "geer" / "run" / "nerfstudio_models"
+    out = two_processes[0] / "back_on_one"
+    config = harness.scenario_config(room, out, "resumed")
+    config.load_dir = checkpoints
+    resumed = harness.optimizer_record(harness.set_up(0, 1, config))
+    fresh = harness.fresh_record(harness.set_up(0, 1, harness.scenario_config(room, out, "fresh")), 24)
+    assert resumed["start"] == 24
+    _assert_same_optimisers(resumed, fresh)
+
+
+def test_the_batch_rule_keeps_each_images_decay_of_adams_moments():
+    """8 processes x 2 images: a step's beta is the product of 16 one-image decays (the moments forget at the
+    same rate per image), not the linear rule's 0 (clamped from kappa = 10)."""
+    from geer_ns.distributed.schedule import EffectiveBatch
+
+    lr, eps, betas = EffectiveBatch(8, 2).adam(1e-3, 1e-15, (0.9, 0.999))
+    decay = [1.0, 1.0]
+    for _ in range(16):
+        decay = [d * b for d, b in zip(decay, (0.9, 0.999))]
+    assert betas == pytest.approx(decay, rel=1e-12) and min(betas) > 0.18
+    assert lr == pytest.approx(4e-3) and eps == pytest.approx(0.25e-15)
+
+
+def test_the_densification_budget_is_the_scenes_over_shards_with_unequal_candidates(two_processes):
+    """2 shards, one with 30 of the 40 candidates, a budget of 75 for 60 Gaussians: together they grow exactly
+    the Gaussians (by id) one process holding the scene grows, and never more than the budget."""
+    parts = [torch.load(two_processes[0] / f"budget_{r}.pt") for r in range(2)]
+    assert [p["candidates"] for p in parts] == [30, 10]
+    params, optimizers, state, strategy = harness.budget_case()
+    strategy._grow_gs(params, optimizers, state, step=100)
+    one = state["id"]
+    assert one.numel() == harness.BUDGET  # the budget binds: 40 candidates, room for 15
+    assert sum(p["n"] for p in parts) <= harness.BUDGET
+    assert torch.equal(torch.sort(torch.cat([p["ids"] for p in parts])).values, torch.sort(one).values)
+
+
+def test_gaussian_parallel_evaluates_at_the_scaled_steps(room, tmp_path, single_thread):
+    """kappa = 3 (one process, 3 images per step, Gaussian-parallel): --steps-per-eval-all-images 6 counts
+    images, so the all-images evaluation runs at step 2 of the 4 steps (12 images), as nerfstudio's loop
+    schedules it on the scaled configuration."""
+    from nerfstudio.utils import writer
+
+    config = harness.sharded_config(room, tmp_path, "eval_kappa3", images_per_step=3, steps=2)
+    config.max_num_iterations = 12
+    config.steps_per_eval_all_images = 6
+    config.pipeline.model.distributed = "gaussians"
+    writer.EVENT_WRITERS.clear()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    evaluated = []
+    average = trainer.pipeline.get_average_eval_image_metrics
+
+    def spy(step=None, **kwargs):
+        evaluated.append(step)
+        return average(step=step, **kwargs)
+
+    trainer.pipeline.get_average_eval_image_metrics = spy
+    trainer.train()
+    writer.EVENT_WRITERS.clear()
+    assert trainer.config.steps_per_eval_all_images == 2 and evaluated == [2]
+
+
 # ---------------------------------------------------------------------------------- sharded training
 def _by_id(ckpt: dict) -> tuple:
     """(ids, {name: parameter rows}) in id order: shards keep no global row order, every Gaussian its id."""
@@ -249,6 +344,17 @@ def test_a_gathered_checkpoint_renders_in_one_process_as_the_shards_did(two_proc
     image = _one_process_render(_pipeline_from(tmp_path, _checkpoint(out, "sharded"), room))
     assert float(image.max()) > 0.2
     assert torch.allclose(image, run["image"], atol=1e-5), float((image - run["image"]).abs().max())
+
+
+def test_gaussian_parallel_evaluation_scores_as_one_process_holding_the_checkpoint(two_processes, room, tmp_path):
+    """Rank 0's evaluation, each eval camera rendered from the rows both shards send it, against one process
+    evaluating the written checkpoint (streamed, never gathered)."""
+    run = torch.load(two_processes[0] / "sharded.pt")
+    pipeline = _pipeline_from(tmp_path, _checkpoint(two_processes[0], "sharded"), room)
+    one = pipeline.get_average_eval_image_metrics(step=1)
+    assert run["evaluated"]["psnr"] > 8.0
+    for key in ("psnr", "ssim"):
+        assert run["evaluated"][key] == pytest.approx(one[key], abs=1e-4), key
 
 
 def test_a_one_process_checkpoint_resharded_over_two_renders_the_same(two_processes, one_process, room, tmp_path):

@@ -13,7 +13,9 @@ with two additions:
   or cloning a Gaussian finer than the supervision's pixels adds nothing the images can show, and on a coarse or
   wide view (a 96-pixel 180-degree fisheye: 1.9 degrees a pixel) it is what would multiply the count;
 * `max_gaussians`: growth stops at a budget; when the candidates exceed it, those furthest above a threshold
-  (gradient or screen size, relative to it) grow first;
+  (gradient or screen size, relative to it) grow first, ties by id. The budget is the scene's: with the
+  Gaussians sharded over processes, `budget` is the engine's scene-wide rule (distributed.sharded.scene_budget:
+  the strongest candidates over every shard), by default this process's (`local_budget`);
 * `prune_unseen`: a Gaussian whose blend weight stayed below 1/255 on every training ray of a whole pass over
   the training images (too faint everywhere, or hidden behind opaque surfaces in every view) is pruned; the
   weights come from the renderer's forward (RenderOutput.max_weight).
@@ -27,18 +29,40 @@ optimizer state (the 3DGS rule).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, List
+from typing import Any, Callable, Dict, List, Optional
 
 import torch
 import torch.nn.functional as F
 from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import duplicate, remove
+from torch import Tensor
 
 from geer_ns.densify.identity import child_ids, normals
 from geer_ns.densify.signal import StepStatistics
 from geer_ns.render.transforms import quat_to_rotmat
 
 VISIBLE_WEIGHT = 1.0 / 255.0  # the renderer's own threshold: a pair below it is skipped
+PER_GAUSSIAN_STATE = ("id", "grad2d", "count", "radii", "weight", "pixels")  # the strategy state's rows
+
+# (wanted [N] Gaussians each row would add, over [N] strength, ids [N], rows N here, budget) -> allowed [N] bool
+Budget = Callable[[Tensor, Tensor, Tensor, int, int], Tensor]
+
+
+def strongest_first(wanted: Tensor, over: Tensor, ids: Tensor, room: int) -> Tensor:
+    """Which rows may grow when growth may add `room` Gaussians: candidates (wanted > 0, each adding `wanted`)
+    by strength `over` descending, equal strengths by id ascending (an order independent of rows and
+    shards), the longest run of them whose additions fit. Returns a [N] bool mask."""
+    candidates = torch.nonzero(wanted > 0).squeeze(1)
+    order = candidates[torch.argsort(ids[candidates], stable=True)]
+    order = order[torch.argsort(over[order], descending=True, stable=True)]
+    allowed = torch.zeros(wanted.shape[0], dtype=torch.bool, device=wanted.device)
+    allowed[order[torch.cumsum(wanted[order], 0) <= room]] = True
+    return allowed
+
+
+def local_budget(wanted: Tensor, over: Tensor, ids: Tensor, n: int, budget: int) -> Tensor:
+    """The budget over this process's `n` Gaussians (one process or replicas: the scene)."""
+    return strongest_first(wanted, over, ids, max(budget - n, 0))
 
 
 @dataclass
@@ -49,6 +73,9 @@ class GeerDefaultStrategy(DefaultStrategy):
     images_per_pass: int = 1  # training images: the unseen rule waits for a whole pass over them
     images_per_step: int = 1
     log: List[Dict[str, int]] = field(default_factory=list)  # one entry per refinement, counts by rule
+    budget: Optional[Budget] = field(default=None, repr=False)  # None: local_budget
+    # A refinement's counts over the scene (sharded: summed over the processes); None: these Gaussians'
+    totals: Optional[Callable[[Dict[str, int]], Dict[str, int]]] = field(default=None, repr=False)
 
     def step_pre_backward(self, params, optimizers, state, step, info) -> None:
         """Nothing to prepare: every view's offsets are leaves, whose gradients autograd keeps."""
@@ -96,14 +123,12 @@ class GeerDefaultStrategy(DefaultStrategy):
         if self.min_pixels > 0:
             entry["held back (finer than a pixel)"] = unresolved
         if self.max_gaussians > 0:  # each duplicate and each split adds one Gaussian
-            room = max(self.max_gaussians - n, 0)
             wanted = is_dupli.long() + is_split.long()
-            if int(wanted.sum()) > room:
-                order = torch.argsort(torch.where(wanted > 0, over, torch.full_like(over, -1.0)), descending=True)
-                allowed = torch.zeros_like(is_dupli)
-                allowed[order[torch.cumsum(wanted[order], 0) <= room]] = True
-                is_dupli, is_split = is_dupli & allowed, is_split & allowed
-                entry["held back by max_gaussians"] = int(wanted.sum()) - int(is_dupli.sum() + is_split.sum())
+            allowed = (self.budget or local_budget)(wanted, over, state["id"], n, self.max_gaussians)
+            is_dupli, is_split = is_dupli & allowed, is_split & allowed
+            held = int(wanted.sum()) - int(is_dupli.sum() + is_split.sum())
+            if held:
+                entry["held back by max_gaussians"] = held
         n_dupli, n_split = int(is_dupli.sum()), int(is_split.sum())
         if n_dupli > 0:
             ids = state["id"][is_dupli]
@@ -159,6 +184,8 @@ class GeerDefaultStrategy(DefaultStrategy):
         if n_prune > 0:
             remove(params=params, optimizers=optimizers, state=state, mask=is_prune)
         entry["after"] = len(params["means"])
+        if self.totals is not None:
+            entry = self.totals(entry)
         if state.get("pixels") is not None:
             state["pixels"] = torch.zeros_like(state["pixels"])  # a window of its own for the next refinement
         self.log.append(entry)

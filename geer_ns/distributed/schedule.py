@@ -8,9 +8,13 @@ Rule (applied by default, said once at start-up): a step of kappa = N x B images
   the same number of images' statistics as with kappa = 1.
 * Adam follows the square-root scaling rule (Malladi et al. 2022, "On the SDEs and Scaling Rules for Adaptive
   Gradient Algorithms", the rule gsplat's trainer uses for its batch size): learning rate x sqrt(kappa),
-  1 - beta_i x kappa, epsilon / sqrt(kappa). The gradient of a kappa-image step is the mean over its images, whose
-  noise is 1/sqrt(kappa) of one image's; the rule keeps the optimiser's trajectory (its SDE) the same. It is a
-  first-order argument: beta_1 reaches 0 at kappa = 10 and is clamped there.
+  epsilon / sqrt(kappa), beta_i ** kappa. The gradient of a kappa-image step is the mean over its images, whose
+  noise is 1/sqrt(kappa) of one image's; the rule keeps the optimiser's trajectory (its SDE) the same.
+* beta ** kappa, not Malladi et al.'s 1 - kappa (1 - beta): both agree to first order in (1 - beta), but a moving
+  average that decays by beta per image decays by exactly beta ** kappa over a step of kappa images, so the
+  averages' memory, measured in images, is the same at every kappa (and Adam's bias correction 1 - beta ** t
+  is the same function of the images seen); the linear rule reaches 0 at kappa = 1 / (1 - beta) (beta_1 = 0.9:
+  kappa = 10, 8 GPUs x 2 images) and then forgets the moment altogether. docs/distributed.md has the numbers.
 """
 
 from __future__ import annotations
@@ -18,9 +22,13 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass
-from typing import List, Tuple
+from typing import Any, Dict, List, Tuple
+
+import torch
 
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
+
+from geer_ns import resume
 
 # Step-valued options of the model config (splatfacto's, which geer keeps). reset_alpha_every counts
 # refinements, so it scales through refine_every.
@@ -54,7 +62,7 @@ class EffectiveBatch:
 
     def adam(self, lr: float, eps: float, betas: Tuple[float, float] = (0.9, 0.999)) -> Tuple[float, float, Tuple[float, float]]:
         k = self.images
-        scaled_betas = tuple(max(0.0, 1.0 - k * (1.0 - b)) for b in betas)
+        scaled_betas = tuple(b**k for b in betas)
         return lr * math.sqrt(k), eps / math.sqrt(k), scaled_betas  # type: ignore[return-value]
 
 
@@ -103,3 +111,39 @@ def describe(config, original, batch: EffectiveBatch) -> List[str]:
         f"Adam (square-root rule): learning rates x{lr:.3g}, epsilon x{eps:.3g}, betas "
         f"({betas[0]:.3g}, {betas[1]:.4g})",
     ]
+
+
+# ------------------------------------------------------------------------------------------- resume
+HYPERPARAMETERS = ("lr", "initial_lr", "betas", "eps", "weight_decay")
+
+
+def optimizer_hyperparameters(optimizers) -> Dict[str, Any]:
+    """This run's optimiser hyper-parameters (nerfstudio's Optimizers: each group's param_groups and its
+    scheduler's base learning rates), taken before a checkpoint's state replaces them."""
+    return {
+        "groups": {name: [{k: group[k] for k in HYPERPARAMETERS if k in group} for group in opt.param_groups]
+                   for name, opt in optimizers.optimizers.items()},
+        "base_lrs": {name: list(s.base_lrs) for name, s in optimizers.schedulers.items()},
+    }
+
+
+def apply_optimizer_hyperparameters(optimizers, fresh: Dict[str, Any], saved_images: int, images: int,
+                                    schedulers_loaded: bool) -> None:
+    """After Optimizer/LRScheduler.load_state_dict (which restore the saved run's learning rates, betas,
+    epsilon and base_lrs): this run's `fresh` ones back; Adam's step counts and the loaded schedulers'
+    positions converted from steps of `saved_images` images to steps of `images`; each scheduled learning
+    rate set to its schedule's value there. The result equals a fresh run of this batch at the same point."""
+    for name, opt in optimizers.optimizers.items():
+        for group, values in zip(opt.param_groups, fresh["groups"].get(name, [])):
+            group.update(values)
+        if saved_images != images:
+            for slot in opt.state.values():
+                step = slot.get("step")
+                if step is not None:  # Adam's bias correction 1 - beta ** t: t counts this run's steps
+                    converted = round(float(step) * saved_images / images)
+                    slot["step"] = torch.full_like(step, converted) if torch.is_tensor(step) else converted
+    for name, scheduler in optimizers.schedulers.items():
+        scheduler.base_lrs = list(fresh["base_lrs"][name])
+        if schedulers_loaded:  # last_epoch counts the steps taken (else the schedule restarts: fresh already)
+            scheduler.last_epoch = resume.convert_step(scheduler.last_epoch - 1, saved_images, images)
+            scheduler.step()

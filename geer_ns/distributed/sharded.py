@@ -19,6 +19,8 @@ Gaussians, its parameters and optimiser state; scenes are limited by the sum of 
 
 from __future__ import annotations
 
+import threading
+from contextlib import contextmanager
 from typing import Callable, Dict, Iterator, List, Optional, Tuple
 
 import torch
@@ -28,8 +30,9 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocati
 from nerfstudio.utils.misc import step_check
 from torch import Tensor
 
+from geer_ns import resume
 from geer_ns.densify.signal import lateral_basis
-from geer_ns.densify.strategy import GeerDefaultStrategy
+from geer_ns.densify.strategy import PER_GAUSSIAN_STATE, GeerDefaultStrategy, local_budget, strongest_first
 from geer_ns.distributed.replicas import (
     broadcast_replica,
     check_consistent,
@@ -38,7 +41,17 @@ from geer_ns.distributed.replicas import (
     reduce_gradients,
 )
 from geer_ns.distributed.shards import render_sharded, shard_rows
-from geer_ns.distributed.world import World, all_gather_objects, on_backend_device
+from geer_ns.distributed.streamed_checkpoint import leaves, replaced, save_rows_streamed
+from geer_ns.distributed.world import (
+    World,
+    all_gather_objects,
+    backend_device,
+    broadcast_object,
+    current_world,
+    on_backend_device,
+)
+from geer_ns.render.associate import seen_by
+from geer_ns.render.rasterize import preprocess
 from geer_ns.render.sh import sh_to_color
 from geer_ns.render.transforms import camera_offsets
 
@@ -72,6 +85,8 @@ class GaussianParallel:
         trainer, model = self.trainer, self.trainer.pipeline.model
         if self.world.distributed:
             check_consistent(self.world, fingerprint(trainer))
+        model.strategy.budget = scene_budget  # --pipeline.model.max-gaussians is the scene's
+        model.strategy.totals = scene_totals  # refinement lines count the scene
         if model.scene_gaussians is not None:  # loaded as a shard
             return
         if self.world.distributed:
@@ -123,50 +138,128 @@ class GaussianParallel:
             rebalance(self.world, model, self.trainer.optimizers.optimizers, sizes)
 
     # ------------------------------------------------------------------------- checkpoints, eval
-    def checkpoint_state(self, step: int) -> Optional[dict]:
-        """The gathered checkpoint on rank 0 (None elsewhere); every process takes part."""
+    def write_checkpoint(self, step: int, path) -> bool:
+        """This run's checkpoint at `path`, one ordinary file of every shard's rows in rank order, streamed to
+        rank 0's file in bounded messages (streamed_checkpoint): nothing is gathered. A collective; True on
+        the process that wrote the file (rank 0)."""
         trainer = self.trainer
-        model = trainer.pipeline.model
-        pipeline = trainer.pipeline.state_dict()
-        for key in [k for k in pipeline if k.startswith(GAUSS_PREFIX)]:
-            pipeline[key] = gather_rows(self.world, pipeline[key])
-        extra = pipeline.get("_model._extra_state")
-        if extra is not None:
-            extra["strategy_state"] = {k: gather_rows(self.world, v) if _per_gaussian(v, model) else v
-                                       for k, v in extra["strategy_state"].items()}
-        optimizers = {}
-        for name, optimizer in trainer.optimizers.optimizers.items():
-            saved = optimizer.state_dict()
-            if name in model.gauss_params:
-                for slot in saved["state"].values():
-                    for key in list(slot):
-                        if _per_gaussian(slot[key], model):
-                            slot[key] = gather_rows(self.world, slot[key])
-            optimizers[name] = saved
-        if not self.world.is_main:
-            return None
-        return {"step": step, "pipeline": pipeline, "optimizers": optimizers,
-                "schedulers": {k: v.state_dict() for k, v in trainer.optimizers.schedulers.items()},
-                "scalers": trainer.grad_scaler.state_dict()}
+        state = {"step": step, "pipeline": trainer.pipeline.state_dict(),
+                 "optimizers": {k: v.state_dict() for k, v in trainer.optimizers.optimizers.items()},
+                 "schedulers": {k: v.state_dict() for k, v in trainer.optimizers.schedulers.items()},
+                 "scalers": trainer.grad_scaler.state_dict(), "rng": resume.rng_state()}
+        save_rows_streamed(self.world, state, per_gaussian(set(trainer.pipeline.model.gauss_params)), path)
+        return self.world.is_main
 
     def evaluate(self, step: int, run: Callable[[], None]) -> None:
-        """Gather the model to rank 0 when it evaluates (or its viewer is due a refresh), then run there."""
-        config = self.trainer.user_config
+        """Rank 0 evaluates (nerfstudio's eval_iteration, on the scaled schedule) rendering every camera from
+        the rows of every shard that camera sees (collective_renders); the viewer's copy of the model is
+        gathered to host memory every VIEWER_REFRESH_STEPS steps while a viewer runs."""
+        config = self.trainer.config  # the scaled schedule, the one nerfstudio's loop evaluates on
         due = any(step_check(step, n) for n in (config.steps_per_eval_batch, config.steps_per_eval_image,
                                                  config.steps_per_eval_all_images))
         viewer = config.vis.startswith("viewer") and step_check(step, VIEWER_REFRESH_STEPS)
-        if not (due or viewer):
-            return
         model = self.trainer.pipeline.model
-        gathered = {name: gather_rows(self.world, p.detach()) for name, p in model.gauss_params.items()}
-        if self.world.is_main:
-            model.display_gaussians = gathered
-            if due:
-                run()
+        if viewer:
+            model.display_gaussians = None  # the last copy goes before the next is gathered
+            gathered = {name: gather_rows(self.world, p.detach(), device=torch.device("cpu"))
+                        for name, p in model.gauss_params.items()}
+            model.display_gaussians = gathered if self.world.is_main else None
+        if not due:
+            return
+        if not self.world.is_main:
+            serve_renders(model)
+            return
+        with collective_renders(model):
+            run()
 
 
-def _per_gaussian(value, model) -> bool:
-    return isinstance(value, Tensor) and value.dim() > 0 and value.shape[0] == model.num_points
+def per_gaussian(groups) -> Callable[[Tuple], bool]:
+    """Whether a checkpoint entry (its path of keys) is per Gaussian, by its name: the Gaussian parameters, the
+    strategy's per-Gaussian statistics, and their optimisers' moments (`groups`: the Gaussian parameters'
+    names). The same answer on every process, whatever the shards' sizes."""
+    def test(path: Tuple) -> bool:
+        if path[:1] == ("pipeline",) and len(path) > 1:
+            if path[1].startswith(GAUSS_PREFIX):
+                return True
+            return path[1:3] == ("_model._extra_state", "strategy_state") and path[3:] in (
+                (k,) for k in PER_GAUSSIAN_STATE)
+        return (path[:1] == ("optimizers",) and len(path) == 5 and path[1] in groups and path[2] == "state"
+                and path[4] != "step")
+    return test
+
+
+@contextmanager
+def collective_renders(model):
+    """On rank 0, while evaluating: each camera the main thread renders is first sent to every process, which
+    send the rows of their shard that camera sees (visible_rows); rank 0 renders those (its own first, then
+    rank by rank) and lets them go. The viewer's thread renders what it rendered before."""
+    world, original, shown = current_world(), model.get_outputs_for_camera, model.display_gaussians
+
+    def render(camera, obb_box=None):
+        if threading.current_thread() is not threading.main_thread():
+            return original(camera, obb_box)
+        broadcast_object(camera.to("cpu"))
+        model.display_gaussians = visible_rows(model, camera, world)
+        try:
+            return original(camera, obb_box)
+        finally:
+            model.display_gaussians = shown
+
+    model.get_outputs_for_camera = render
+    try:
+        yield
+    finally:
+        del model.get_outputs_for_camera
+        broadcast_object(None)  # the others stop serving
+
+
+def serve_renders(model) -> None:
+    """Rank > 0 while rank 0 evaluates: the rows of this shard each of its cameras sees, until it says stop."""
+    world = current_world()
+    while True:
+        camera = broadcast_object(None)
+        if camera is None:
+            return
+        visible_rows(model, camera, world)
+
+
+@torch.no_grad()
+def visible_rows(model, camera, world: World) -> Optional[Dict[str, Tensor]]:
+    """The Gaussians `camera` sees (evaluation's view of it: the association's tile search on each shard), every
+    shard's in rank order, on rank 0 (None elsewhere): point-to-point messages into one tensor per parameter."""
+    training = model.training
+    model.eval()
+    try:
+        view = model._view_for(camera)
+    finally:
+        model.train(training)
+    params = {name: p.detach() for name, p in model.gauss_params.items()}
+    scales, opacities = model.activated(params)
+    viewmat = model.viewmat(camera.camera_to_worlds[0], params["means"].device)
+    pre = preprocess(params["means"], params["quats"], scales, opacities, params["means"].new_zeros(len(scales), 3),
+                     viewmat, lambda_mode=model.config.lambda_mode)
+    rows = torch.nonzero(seen_by(pre.pbf, view.rays.to(params["means"].device))).squeeze(1)
+    del pre
+    if not world.distributed:
+        return {name: p[rows] for name, p in params.items()}
+    counts = all_gather_objects(int(rows.numel()))
+    if not world.is_main:
+        for name in sorted(params):
+            if counts[world.rank]:
+                dist.send(params[name][rows].to(backend_device(params[name])), dst=0)
+        return None
+    out = {}
+    for name in sorted(params):
+        p = params[name]
+        out[name] = p.new_empty((sum(counts),) + tuple(p.shape[1:]), device=backend_device(p))
+        out[name][: counts[0]] = p[rows]
+        start = counts[0]
+        for rank in range(1, world.size):
+            if counts[rank]:
+                dist.recv(out[name][start : start + counts[rank]], src=rank)
+            start += counts[rank]
+        out[name] = out[name].to(p.device)
+    return out
 
 
 def sharded_outputs(model, cameras, me: int) -> Dict[str, Tensor]:
@@ -209,34 +302,52 @@ def sharded_outputs(model, cameras, me: int) -> Dict[str, Tensor]:
 def shard_checkpoint(state: dict, rank: int, processes: int) -> Tuple[dict, int]:
     """A checkpoint (loaded on the CPU, memory-mapped) cut to rank `rank`'s rows before anything reaches the
     model, so that resuming never holds the whole scene on a device; returns it and the scene's size."""
-    pipeline = dict(state["pipeline"])
+    pipeline = state["pipeline"]
     total = int(pipeline[GAUSS_PREFIX + "means"].shape[0])
     rows = shard_rows(rank, processes)
-
-    def cut(value):
-        is_rows = isinstance(value, Tensor) and value.dim() > 0 and value.shape[0] == total
-        return value[rows].clone() if is_rows else value
-
-    for key in [k for k in pipeline if k.startswith(GAUSS_PREFIX)]:
-        pipeline[key] = cut(pipeline[key])
-    extra = pipeline.get("_model._extra_state")
-    if extra is not None:
-        pipeline["_model._extra_state"] = {**extra, "strategy_state": {k: cut(v) for k, v in
-                                                                       extra["strategy_state"].items()}}
-    names = {k[len(GAUSS_PREFIX):] for k in pipeline if k.startswith(GAUSS_PREFIX)}
-    optimizers = {}
-    for group, saved in state["optimizers"].items():
-        if group in names:
-            saved = {**saved, "state": {i: {k: cut(v) for k, v in slot.items()} for i, slot in saved["state"].items()}}
-        optimizers[group] = saved
-    return {**state, "pipeline": pipeline, "optimizers": optimizers}, total
+    is_rows = per_gaussian({k[len(GAUSS_PREFIX):] for k in pipeline if k.startswith(GAUSS_PREFIX)})
+    cut = {path: value[rows].clone() for path, value in leaves(state) if isinstance(value, Tensor) and is_rows(path)}
+    return replaced(state, cut), total
 
 
-def gather_rows(world: World, tensor: Tensor) -> Optional[Tensor]:
-    """Every shard's rows of `tensor`, in rank order, on rank 0 (None elsewhere; the tensor itself on one
-    process). Uneven shards are padded for the collective and cut back."""
+def scene_budget(wanted: Tensor, over: Tensor, ids: Tensor, n: int, budget: int) -> Tensor:
+    """The strategy's budget (densify.strategy.Budget) over every shard: the scene's count against `budget`,
+    the candidates of all shards ranked together (strength, then id: what one process holding the scene
+    decides). A collective of every process, at refinements only; what travels is the candidates."""
+    world = current_world()
+    if not world.distributed:
+        return local_budget(wanted, over, ids, n, budget)
+    scene = sum(all_gather_objects(int(n)))
+    mine = torch.nonzero(wanted > 0).squeeze(1)
+    every = [all_gather_rows(world, t[mine]) for t in (wanted, over, ids)]
+    allowed = strongest_first(*every, room=max(budget - scene, 0))
+    return (wanted > 0) & torch.isin(ids, every[2][allowed].to(ids.device))
+
+
+def scene_totals(entry: Dict[str, int]) -> Dict[str, int]:
+    """A refinement's counts (densify.strategy's log entry) summed over the shards; a collective at refinements."""
+    every = all_gather_objects(entry)
+    keys = dict.fromkeys(key for e in every for key in e)  # a rule that moved nothing here may be absent
+    return {key: (entry["step"] if key == "step" else sum(e.get(key, 0) for e in every)) for key in keys}
+
+
+def all_gather_rows(world: World, tensor: Tensor) -> Tensor:
+    """Every shard's rows of `tensor`, in rank order, on every process (padded for the collective)."""
     if not world.distributed:
         return tensor
+    sizes = all_gather_objects(int(tensor.shape[0]))
+    padded = on_backend_device(tensor.new_zeros((max(max(sizes), 1),) + tuple(tensor.shape[1:])))
+    padded[: tensor.shape[0]] = tensor.detach()
+    parts = [torch.empty_like(padded) for _ in sizes]
+    dist.all_gather(parts, padded)
+    return torch.cat([part[:k] for part, k in zip(parts, sizes)]).to(tensor.device)
+
+
+def gather_rows(world: World, tensor: Tensor, device: Optional[torch.device] = None) -> Optional[Tensor]:
+    """Every shard's rows of `tensor`, in rank order, on rank 0 (None elsewhere; the tensor itself on one
+    process), on `device` (default: the tensor's). Uneven shards are padded for the collective and cut back."""
+    if not world.distributed:
+        return tensor if device is None else tensor.to(device)
     sizes = all_gather_objects(int(tensor.shape[0]))
     padded = on_backend_device(tensor.new_zeros((max(sizes),) + tuple(tensor.shape[1:])))
     padded[: tensor.shape[0]] = tensor.detach()
@@ -244,7 +355,7 @@ def gather_rows(world: World, tensor: Tensor) -> Optional[Tensor]:
     dist.gather(padded, parts, dst=0)
     if not world.is_main:
         return None
-    return torch.cat([part[:n] for part, n in zip(parts, sizes)]).to(tensor.device)
+    return torch.cat([part[:n] for part, n in zip(parts, sizes)]).to(device or tensor.device)
 
 
 def rebalance(world: World, model, optimizers, sizes: List[int]) -> None:

@@ -30,7 +30,13 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from geer_ns import compat, resume
 from geer_ns.distributed.launch import install_launch_router
 from geer_ns.distributed.replicas import ImageParallel, ReplicaMismatchError
-from geer_ns.distributed.schedule import EffectiveBatch, describe, scaled_config
+from geer_ns.distributed.schedule import (
+    EffectiveBatch,
+    apply_optimizer_hyperparameters,
+    describe,
+    optimizer_hyperparameters,
+    scaled_config,
+)
 from geer_ns.distributed.sharded import GaussianParallel, shard_checkpoint
 from geer_ns.distributed.world import current_world
 from geer_ns.errors import report_dataset_errors_in_one_line
@@ -121,7 +127,7 @@ class GeerTrainer(Trainer):
     def _load_checkpoint(self) -> None:
         """nerfstudio's (the checkpoint named by --load-dir / --load-step or --load-checkpoint), memory-mapped,
         cut to this process's shard first when the Gaussians are sharded; then steps converted to this run's
-        effective batch."""
+        effective batch, and this run's optimiser hyper-parameters (its kappa's) put back over the saved ones."""
         path = self._checkpoint_path()
         if path is None:
             CONSOLE.print("No Nerfstudio checkpoint to load, so training from scratch.")
@@ -131,8 +137,10 @@ class GeerTrainer(Trainer):
             state, total = shard_checkpoint(state, self.world.rank, self.world.size)
         self._start_step = state["step"] + 1
         self.pipeline.load_pipeline(state["pipeline"], state["step"])
+        fresh = optimizer_hyperparameters(self.optimizers)
         self.optimizers.load_optimizers(state["optimizers"])
-        if "schedulers" in state and self.config.load_scheduler:
+        schedulers = "schedulers" in state and self.config.load_scheduler
+        if schedulers:
             self.optimizers.load_schedulers(state["schedulers"])
         self.grad_scaler.load_state_dict(state["scalers"])
         rng = resume.checkpoint_rng_state(state)
@@ -141,7 +149,7 @@ class GeerTrainer(Trainer):
         if self.config.pipeline.model.distributed == "gaussians":
             self.pipeline.model.scene_gaussians = total
         CONSOLE.print(f"Done loading Nerfstudio checkpoint from {path}")
-        self._convert_steps()
+        self._convert_steps(fresh, schedulers)
 
     def _checkpoint_path(self):
         if self.config.load_dir is not None:
@@ -157,16 +165,19 @@ class GeerTrainer(Trainer):
             raise FileNotFoundError(f"geer: checkpoint {path} does not exist")
         return path
 
-    def _convert_steps(self) -> None:
+    def _convert_steps(self, fresh, schedulers: bool) -> None:
+        """The loaded state in this run's effective batch: the step, Adam's step counts and the schedulers'
+        positions converted (the images seen carry over), and this run's learning rates, betas, epsilon and
+        the schedulers' base learning rates (the batch rule's, geer_ns/distributed/schedule.py) in place of
+        the checkpoint's, so that a resume equals a fresh run at this kappa."""
         saved, now = self.pipeline.model.loaded_images_per_step, self.batch.images
+        apply_optimizer_hyperparameters(self.optimizers, fresh, saved, now, schedulers)
         if self._start_step == 0 or saved == now:
             return
         start = resume.convert_step(self._start_step - 1, saved, now) + 1
-        for scheduler in self.optimizers.schedulers.values():
-            scheduler.last_epoch = resume.convert_step(scheduler.last_epoch - 1, saved, now)
-            scheduler.step()  # the learning rate of the converted step
         CONSOLE.log(f"geer: the checkpoint's steps saw {saved} image(s) each, this run's see {now}: step "
-                    f"{self._start_step} there is step {start} here (the images seen carry over)")
+                    f"{self._start_step} there is step {start} here (the images seen carry over; learning rates, "
+                    f"betas and epsilon are this run's)")
         self._start_step = start
 
     # --------------------------------------------------------------------------------- the step
@@ -238,16 +249,21 @@ class GeerTrainer(Trainer):
         self.engine.evaluate(step, lambda: Trainer.eval_iteration(self, step))
 
     def save_checkpoint(self, step: int) -> None:
-        """nerfstudio's checkpoint (of the whole model: a sharded one is gathered, every rank helping), written
-        by rank 0 whole or not at all (a temporary file renamed into place)."""
-        state = self.engine.checkpoint_state(step)
-        if state is None:
-            return
-        state["rng"] = resume.rng_state()
-        self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+        """nerfstudio's checkpoint (of the whole model: a sharded one streamed to rank 0's file, every rank
+        helping, nothing gathered), written by rank 0 whole or not at all (a temporary file renamed into place)."""
         path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
         partial = self.base_dir / f".{path.name}.partial"  # not in the folder --load-dir lists
-        torch.save(state, partial)
+        if self.world.is_main:
+            self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+        if isinstance(self.engine, GaussianParallel):
+            if not self.engine.write_checkpoint(step, partial):
+                return
+        else:
+            state = self.engine.checkpoint_state(step)
+            if state is None:
+                return
+            state["rng"] = resume.rng_state()
+            torch.save(state, partial)
         os.replace(partial, path)
         if self.config.save_only_latest_checkpoint:
             for old in self.checkpoint_dir.glob("*.ckpt"):
