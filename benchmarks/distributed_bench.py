@@ -80,7 +80,7 @@ def _instrument(record: dict) -> None:
     """Wall time inside the collectives and the payload they carry, this process's."""
     import torch.distributed as dist
 
-    from geer_ns.distributed import replicas, sharded
+    from geer_ns.distributed import gaussian_parallel as sharded, reductions
 
     record.update(collective_s=0.0, allreduce_bytes=0, exchanged_rows=0, payload_numbers=0)
 
@@ -98,7 +98,7 @@ def _instrument(record: dict) -> None:
     def all_reduce_bytes(args, kwargs):
         record["allreduce_bytes"] += sum(t.numel() * t.element_size() for t in args[0])
 
-    replicas.all_reduce_ = timed(replicas.all_reduce_, all_reduce_bytes)
+    reductions.all_reduce_ = timed(reductions.all_reduce_, all_reduce_bytes)
     dist.all_to_all_single = timed(dist.all_to_all_single)  # the payload (both ways), counts, weights
     render = sharded.render_sharded
 

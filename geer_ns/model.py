@@ -80,7 +80,7 @@ class GeerOwnOptions:
     distributed: Literal["images", "gaussians"] = "images"
     """With several processes (--machine.num-devices): "images", every process holds the whole model and trains
     on its own images; "gaussians", each holds a shard of the Gaussians (scenes larger than one device), and
-    every camera is rendered from the shards' Gaussians it sees (geer_ns/distributed/shards.py)."""
+    every camera is rendered from the shards' Gaussians it sees (geer_ns/distributed/sharded_render.py)."""
     renderer_backend: Backend = "auto"
     """geer_ns.render backend: auto (CPU tensors: the kernels' math compiled for the CPU, JIT-built once, else
     the PyTorch renderer, said once; CUDA tensors: the PyTorch renderer until the kernels are verified on a GPU),

@@ -73,8 +73,8 @@ def _write(path: Path, value) -> None:
 
 
 def replicas_plan(local_rank, world_size, config, global_rank):
-    from geer_ns.distributed import replicas as engine
-    from geer_ns.distributed.replicas import ReplicaMismatchError, check_replicas_identical
+    from geer_ns.distributed import image_parallel as engine
+    from geer_ns.distributed.consistency import ReplicaMismatchError, check_replicas_identical
     from geer_ns.distributed.world import current_world
 
     data, out = Path(config.pipeline.datamanager.data), Path(config.output_dir)
@@ -175,7 +175,7 @@ def budget_plan(rank: int, out: Path) -> None:
     """The densification budget over 2 shards: the scene of budget_case, rank r holding rows r::2 except that
     rank 0 also holds the second half of the candidates (unequal candidates); one refinement's growth with the
     sharded engine's scene-wide budget. The ids grown go to budget_<rank>.pt."""
-    from geer_ns.distributed.sharded import scene_budget
+    from geer_ns.distributed.gaussian_parallel import scene_budget
 
     params, optimizers, state, strategy = budget_case()
     n = params["means"].shape[0]
@@ -276,7 +276,7 @@ def shard_loss(out, weights):
 def sharded_render_plan(rank: int, out: Path) -> None:
     """Each case and precision: this rank's camera rendered from both shards, one backward of the rank's loss;
     the image, the shard's gradients and what each camera saw of the shard go to shards_<case>_<dtype>_<rank>.pt."""
-    from geer_ns.distributed.shards import render_sharded, shard_rows
+    from geer_ns.distributed.sharded_render import render_sharded, shard_rows
 
     for name in SHARD_CASES:
         for dtype in (torch.float32, torch.float64):
@@ -302,7 +302,7 @@ def sharded_config(data: Path, out: Path, name: str, **kw):
 
 def sharded_render_of(trainer, index: int = 0):
     """Training camera `index` rendered by every process from its shard (both render the same camera)."""
-    from geer_ns.distributed.sharded import sharded_outputs
+    from geer_ns.distributed.gaussian_parallel import sharded_outputs
     from geer_ns.distributed.world import current_world
 
     dm, model = trainer.pipeline.datamanager, trainer.pipeline.model
@@ -349,7 +349,7 @@ def rebalance_plan(trainer, rank: int) -> dict:
     unchanged by the move."""
     from gsplat.strategy.ops import remove
 
-    from geer_ns.distributed.sharded import gather_rows
+    from geer_ns.distributed.gaussian_parallel import gather_rows
     from geer_ns.distributed.world import all_gather_objects, current_world
 
     world, model, engine = current_world(), trainer.pipeline.model, trainer.engine
@@ -381,9 +381,9 @@ def nccl_rule_plan(global_rank: int, out: Path) -> None:
     (emulated) CUDA as on a GPU machine. Each case's outcome (or its error) goes to nccl_<rank>.pt."""
     from nccl_emulation import cuda, nccl_rule
 
-    from geer_ns.distributed.replicas import reduce_gradients
-    from geer_ns.distributed.sharded import gather_rows
-    from geer_ns.distributed.shards import render_sharded, shard_rows
+    from geer_ns.distributed.reductions import reduce_gradients
+    from geer_ns.distributed.gaussian_parallel import gather_rows
+    from geer_ns.distributed.sharded_render import render_sharded, shard_rows
     from geer_ns.distributed.world import current_world
 
     results = {}

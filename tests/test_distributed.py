@@ -175,7 +175,7 @@ def test_a_killed_process_stops_the_other_with_one_line_within_the_timeout(launc
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("case", harness.SHARD_CASES)
 def test_a_sharded_render_is_the_single_process_render(two_processes, case, dtype):
-    """Each rank's camera, rendered from both ranks' shards (geer_ns/distributed/shards.py), against one process
+    """Each rank's camera, rendered from both ranks' shards (geer_ns/distributed/sharded_render.py), against one process
     rendering the whole scene: images and every gradient bit for bit (the same pairs in the same order, a sum of
     the same two per-camera gradients), on a 180-degree fisheye, a 360-degree panorama and a BEAP grid whose
     rank-0 camera sees only rank 1's Gaussians and rank-1 camera sees none."""

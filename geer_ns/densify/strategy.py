@@ -14,7 +14,7 @@ with two additions:
   wide view (a 96-pixel 180-degree fisheye: 1.9 degrees a pixel) it is what would multiply the count;
 * `max_gaussians`: growth stops at a budget; when the candidates exceed it, those furthest above a threshold
   (gradient or screen size, relative to it) grow first, ties by id. The budget is the scene's: with the
-  Gaussians sharded over processes, `budget` is the engine's scene-wide rule (distributed.sharded.scene_budget:
+  Gaussians sharded over processes, `budget` is the engine's scene-wide rule (distributed.gaussian_parallel.scene_budget:
   the strongest candidates over every shard), by default this process's (`local_budget`);
 * `prune_unseen`: a Gaussian whose blend weight stayed below 1/255 on every training ray of a whole pass over
   the training images (too faint everywhere, or hidden behind opaque surfaces in every view) is pruned; the

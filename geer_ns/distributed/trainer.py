@@ -4,8 +4,8 @@ A step renders this process's `images_per_step` training images one at a time (e
 one image's graph is alive), reduces the gradients and divides them by the step's images (the effective batch),
 adds the regularisers' gradient once, reduces the densification statistics and steps the optimisers;
 nerfstudio's callbacks (densification, the SH schedule) run around it as before. How images and Gaussians are
-shared out is the engine's (`--pipeline.model.distributed`): replicas.ImageParallel (every process holds the
-scene, gradients all-reduced) or sharded.GaussianParallel (every process a shard, cameras rendered from all
+shared out is the engine's (`--pipeline.model.distributed`): image_parallel.ImageParallel (every process holds the
+scene, gradients all-reduced) or gaussian_parallel.GaussianParallel (every process a shard, cameras rendered from all
 of them). Everything else is nerfstudio's Trainer: rank 0 alone logs, evaluates, writes checkpoints (atomically)
 and serves the viewer.
 
@@ -29,7 +29,8 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from geer_ns import compat, resume
 from geer_ns.distributed.launch import install_launch_router
-from geer_ns.distributed.replicas import ImageParallel, ReplicaMismatchError
+from geer_ns.distributed.consistency import ReplicaMismatchError
+from geer_ns.distributed.image_parallel import ImageParallel
 from geer_ns.distributed.schedule import (
     EffectiveBatch,
     apply_optimizer_hyperparameters,
@@ -37,7 +38,7 @@ from geer_ns.distributed.schedule import (
     optimizer_hyperparameters,
     scaled_config,
 )
-from geer_ns.distributed.sharded import GaussianParallel, shard_checkpoint
+from geer_ns.distributed.gaussian_parallel import GaussianParallel, shard_checkpoint
 from geer_ns.distributed.world import current_world
 from geer_ns.errors import report_dataset_errors_in_one_line
 

@@ -33,14 +33,9 @@ from torch import Tensor
 from geer_ns import resume
 from geer_ns.densify.signal import lateral_basis
 from geer_ns.densify.strategy import PER_GAUSSIAN_STATE, GeerDefaultStrategy, local_budget, strongest_first
-from geer_ns.distributed.replicas import (
-    broadcast_replica,
-    check_consistent,
-    fingerprint,
-    optimised_parameters,
-    reduce_gradients,
-)
-from geer_ns.distributed.shards import render_sharded, shard_rows
+from geer_ns.distributed.consistency import broadcast_replica, check_consistent, fingerprint
+from geer_ns.distributed.reductions import optimised_parameters, reduce_gradients
+from geer_ns.distributed.sharded_render import render_sharded, shard_rows
 from geer_ns.distributed.streamed_checkpoint import leaves, replaced, save_rows_streamed
 from geer_ns.distributed.world import (
     World,
@@ -57,7 +52,7 @@ from geer_ns.render.transforms import camera_offsets
 
 REBALANCE_FRACTION = 0.1  # rebalance when the largest shard exceeds the smallest by more than this
 VIEWER_REFRESH_STEPS = 100
-GAUSS_PREFIX = "_model.gauss_params."
+PIPELINE_GAUSS_PREFIX = "_model." + resume.GAUSS_PREFIX  # a Gaussian parameter's key in the pipeline's state
 
 
 class GaussianParallel:
@@ -179,7 +174,7 @@ def per_gaussian(groups) -> Callable[[Tuple], bool]:
     names). The same answer on every process, whatever the shards' sizes."""
     def test(path: Tuple) -> bool:
         if path[:1] == ("pipeline",) and len(path) > 1:
-            if path[1].startswith(GAUSS_PREFIX):
+            if path[1].startswith(PIPELINE_GAUSS_PREFIX):
                 return True
             return path[1:3] == ("_model._extra_state", "strategy_state") and path[3:] in (
                 (k,) for k in PER_GAUSSIAN_STATE)
@@ -303,9 +298,9 @@ def shard_checkpoint(state: dict, rank: int, processes: int) -> Tuple[dict, int]
     """A checkpoint (loaded on the CPU, memory-mapped) cut to rank `rank`'s rows before anything reaches the
     model, so that resuming never holds the whole scene on a device; returns it and the scene's size."""
     pipeline = state["pipeline"]
-    total = int(pipeline[GAUSS_PREFIX + "means"].shape[0])
+    total = int(pipeline[PIPELINE_GAUSS_PREFIX + "means"].shape[0])
     rows = shard_rows(rank, processes)
-    is_rows = per_gaussian({k[len(GAUSS_PREFIX):] for k in pipeline if k.startswith(GAUSS_PREFIX)})
+    is_rows = per_gaussian({k[len(PIPELINE_GAUSS_PREFIX):] for k in pipeline if k.startswith(PIPELINE_GAUSS_PREFIX)})
     cut = {path: value[rows].clone() for path, value in leaves(state) if isinstance(value, Tensor) and is_rows(path)}
     return replaced(state, cut), total
 

@@ -1,0 +1,75 @@
+"""Image-parallel training: every process holds the whole model (a replica); they stay identical.
+
+At start-up rank 0's parameters, buffers and random-number states are broadcast (the replicas then draw the
+same random numbers: backgrounds, split samples, MCMC relocation) after a check that every process read the
+same dataset and configuration. Each step, after every process's backward over its own images, the gradients and the densification statistics
+are all-reduced (reductions.py), so every replica makes the same densification decisions.
+
+Nothing else is exchanged: the optimisers step identical replicas with identical gradients.
+"""
+
+from __future__ import annotations
+
+from geer_ns.distributed.consistency import (
+    broadcast_replica,
+    check_consistent,
+    check_replicas_identical,
+    fingerprint,
+)
+from geer_ns.distributed.reductions import optimised_parameters, reduce_gradients, reduce_statistics
+
+
+class ImageParallel:
+    """The engine of image-parallel training (module docstring), for geer_ns.distributed.trainer."""
+
+    name = "images"
+
+    def __init__(self, trainer) -> None:
+        self.trainer, self.world = trainer, trainer.world
+
+    def start(self) -> None:
+        if self.world.distributed:
+            check_consistent(self.world, fingerprint(self.trainer))
+            broadcast_replica(self.world, self.trainer.pipeline.model, self.trainer.optimizers)
+
+    def describe(self) -> List[str]:
+        return []
+
+    def views(self, step: int):
+        """This process's images of the step: its share of the next effective batch of the shared queue."""
+        dm, model = self.trainer.pipeline.datamanager, self.trainer.pipeline.model
+        per = self.trainer.batch.images_per_process
+        indices = dm.next_train_indices(self.trainer.batch.images)
+        for index in indices[self.world.rank * per : (self.world.rank + 1) * per]:
+            camera, batch = dm.train_view(index)
+            yield batch, (lambda camera=camera: model.get_outputs(camera))
+
+    def reduce_gradients(self) -> None:
+        reduce_gradients(self.world, optimised_parameters(self.trainer.optimizers), self.trainer.batch.images)
+
+    def reduce_statistics(self, model) -> None:
+        model.use_step_statistics(reduce_statistics(self.world, model.step_statistics()))
+
+    def callbacks(self):
+        from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+
+        every = getattr(self.trainer.config.machine, "check_replicas_every", 0)
+        if not (every and self.world.distributed):
+            return []
+        return [TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
+                                 lambda step: check_replicas_identical(self.world, self.trainer.pipeline.model, step),
+                                 update_every_num_iters=every)]
+
+    def checkpoint_state(self, step: int) -> Optional[dict]:
+        """Rank 0's replica, as nerfstudio saves it (None elsewhere)."""
+        trainer = self.trainer
+        if not self.world.is_main:
+            return None
+        return {"step": step, "pipeline": trainer.pipeline.state_dict(),
+                "optimizers": {k: v.state_dict() for k, v in trainer.optimizers.optimizers.items()},
+                "schedulers": {k: v.state_dict() for k, v in trainer.optimizers.schedulers.items()},
+                "scalers": trainer.grad_scaler.state_dict()}
+
+    def evaluate(self, step: int, run) -> None:
+        if self.world.is_main:
+            run()
