@@ -48,6 +48,7 @@ from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, na
 from geer_ns.densify.mcmc_cpu import install_mcmc_cpu_ops
 from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angular_signal, pbf_radii, pixel_signal
 from geer_ns.densify.strategy import GeerDefaultStrategy
+from geer_ns import depth_supervision
 from geer_ns import outputs as geer_outputs
 from geer_ns.render import render
 from geer_ns.render.backend import Backend, announce_backend
@@ -122,7 +123,7 @@ def _model_config_default(name: str):
 
 
 @dataclass
-class GeerModelConfig(SplatfactoModelConfig, GeerOwnOptions):
+class GeerModelConfig(SplatfactoModelConfig, GeerOwnOptions, depth_supervision.DepthSupervisionOptions):
     _target: Type = field(default_factory=lambda: GeerModel)
     # Ray-marching options of nerfstudio's ModelConfig that no Gaussian model reads: hidden from --help.
     enable_collider: tyro.conf.Suppress[bool] = _model_config_default("enable_collider")
@@ -570,7 +571,12 @@ class GeerModel(SplatfactoModel):
         pred = torch.where(valid, outputs["rgb"], gt)  # invalid pixels equal: no loss, no SSIM edge
         l1 = (pred - gt).abs().sum() / (valid.sum() * gt.shape[-1]).clamp_min(1)
         ssim = self.ssim(gt.permute(2, 0, 1)[None], pred.permute(2, 0, 1)[None])
-        return {"main_loss": (1 - self.config.ssim_lambda) * l1 + self.config.ssim_lambda * (1 - ssim)}
+        losses = {"main_loss": (1 - self.config.ssim_lambda) * l1 + self.config.ssim_lambda * (1 - ssim)}
+        target = depth_supervision.target_of(batch, self._get_downscale_factor(), self.device)
+        if target is not None and self.config.depth_loss_weight > 0:
+            losses["depth_loss"] = depth_supervision.depth_loss(outputs["distance"], outputs["accumulation"], target,
+                                                                valid, self.config)
+        return losses
 
     def get_step_loss_dict(self) -> Dict[str, Tensor]:
         """The losses of the parameters alone (regularisers), once per step whatever its images."""
@@ -616,7 +622,7 @@ class GeerModel(SplatfactoModel):
         metrics.update(self._region_psnr(pred, gt, valid[..., 0], outputs.get("central_region")))
         metrics["valid_fraction"] = float(valid.float().mean())
         metrics.update(geer_outputs.distance_statistics(outputs, valid[..., 0]))
-        metrics.update(depth_metrics(outputs, batch, valid[..., 0]))
+        metrics.update(depth_supervision.depth_metrics(outputs, batch, valid[..., 0]))
         images = {"img": torch.cat([gt, outputs["rgb"] * valid], dim=1), **geer_outputs.distance_images(outputs)}
         return metrics, images
 
