@@ -27,22 +27,22 @@ class DepthSupervisionOptions:
     depth_loss_weight: float = 0.2
     """Weight of the depth loss for frames with depth_file_path (0: off)."""
     depth_loss: RobustLoss = "huber"
-    """Robust loss on the relative distance error: l1, huber (quadratic below depth-loss-scale) or cauchy
-    (log(1 + (r / scale)^2): outliers such as LiDAR points through glass barely count)."""
+    """Robust loss on the relative distance error r: l1, huber (quadratic below depth-loss-scale, |r| above) or
+    cauchy (logarithmic beyond depth-loss-scale: outliers such as LiDAR points through glass barely count)."""
     depth_loss_scale: float = 0.05
     """Scale of the robust loss in relative error (0.05: 5% of the measured distance)."""
 
 
 def robust(residual: Tensor, kind: RobustLoss, scale: float) -> Tensor:
-    """rho(r) elementwise, in units of `scale`: l1 |r|/s, huber (r/s)^2/2 below 1 and |r|/s - 1/2 above,
-    cauchy log(1 + (r/s)^2)."""
-    x = residual / scale
+    """rho(r) elementwise, all with slope at most 1 (so that the weight alone sets the gradient's size): l1 |r|,
+    huber r^2 / (2 s) below s and |r| - s / 2 above, cauchy (s / 2) log(1 + (r / s)^2)."""
     if kind == "l1":
-        return x.abs()
+        return residual.abs()
     if kind == "huber":
-        return torch.where(x.abs() <= 1.0, 0.5 * x * x, x.abs() - 0.5)
+        a = residual.abs()
+        return torch.where(a <= scale, 0.5 * residual * residual / scale, a - 0.5 * scale)
     if kind == "cauchy":
-        return torch.log1p(x * x)
+        return 0.5 * scale * torch.log1p((residual / scale) ** 2)
     raise ValueError(f"depth_loss must be 'l1', 'huber' or 'cauchy', got {kind!r}")
 
 
