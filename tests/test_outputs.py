@@ -161,3 +161,27 @@ def test_pinhole_depth_is_splatfacto_z():
 def test_viewer_list_hides_internal_outputs():
     outputs = {name: torch.zeros(2, 2, 1) for name in ("rgb", "distance", "depth", "normal", *INTERNAL_OUTPUTS)}
     assert set(viewer_outputs(outputs)) == {"rgb", "distance", "depth", "normal"}
+
+
+def test_model_outputs_in_the_viewer_and_in_ns_eval():
+    """The viewer's list (its render thread) names distance, depth, median_distance and both normals and no
+    internal output; ns-eval's metrics name mean_distance and mean_depth apart, and its images include them."""
+    import threading
+
+    from test_nerfstudio_model import _viewer_cameras, make_model
+
+    model = make_model(n=60)
+    model.eval()
+    camera = _viewer_cameras()["fisheye"]
+    found = {}
+    thread = threading.Thread(target=lambda: found.update(model.get_outputs_for_camera(camera)))
+    thread.start()
+    thread.join()
+    assert {"rgb", "accumulation", "distance", "depth", "median_distance", "normal", "normal_camera"} <= set(found)
+    assert not set(found) & set(INTERNAL_OUTPUTS)
+    assert float(found["normal"].max()) > 0.5  # normals rendered where the Gaussians are seen
+    outputs = model.get_outputs_for_camera(camera)  # main thread (ns-eval): internal outputs kept
+    batch = {"image": torch.rand(int(camera.height), int(camera.width), 3)}
+    metrics, images = model.get_image_metrics_and_images(outputs, batch)
+    assert {"mean_distance", "mean_depth"} <= set(metrics) and metrics["mean_depth"] != metrics["mean_distance"]
+    assert {"distance", "depth", "normal"} <= set(images)
