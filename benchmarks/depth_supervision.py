@@ -47,7 +47,8 @@ def run(room: Path, out: Path, name: str, steps: int, weight: float) -> dict:
     _, pipeline, _, _ = eval_setup(config_path, test_mode="test")
     metrics = pipeline.get_average_eval_image_metrics()
     return {"name": name, "weight": weight, "seconds": seconds, "checkpoint": str(checkpoint.name),
-            **{k: metrics[k] for k in ("psnr", "distance_rmse", "depth_rmse", "gaussian_count") if k in metrics}}
+            "gaussians": pipeline.model.num_points,
+            **{k: metrics[k] for k in ("psnr", "distance_rmse", "depth_rmse") if k in metrics}}
 
 
 def main() -> None:
@@ -82,7 +83,7 @@ def main() -> None:
     ]
     for r in rows:
         lines.append(f"| {r['name']} | {r['weight']} | {r.get('distance_rmse', float('nan')):.4f} | "
-                     f"{r.get('depth_rmse', float('nan')):.4f} | {r['psnr']:.2f} | {int(r.get('gaussian_count', 0))} | "
+                     f"{r.get('depth_rmse', float('nan')):.4f} | {r['psnr']:.2f} | {r['gaussians']} | "
                      f"{r['seconds']:.0f} |")
     base, depth = rows
     lines += ["", f"Distance RMSE ratio (with / without): {depth['distance_rmse'] / base['distance_rmse']:.3f}; "
