@@ -29,9 +29,10 @@ INTERNAL_OUTPUTS = ("valid_rays", "central_region", "background", "depth_defined
 
 
 def filled(values: Tensor, defined: Tensor) -> Tensor:
-    """values where `defined`, the largest defined value (no gradient) elsewhere; 0 when nothing is defined."""
-    top = values.detach()[defined].max() if bool(defined.any()) else values.new_zeros(())
-    return torch.where(defined, values, top)
+    """values where `defined`, the largest defined value (no gradient) elsewhere; 0 when nothing is defined.
+    No host synchronisation (it runs every training step)."""
+    top = torch.where(defined, values.detach(), torch.full_like(values, -torch.inf)).amax()
+    return torch.where(defined, values, torch.where(torch.isfinite(top), top, torch.zeros_like(top)))
 
 
 def shaded(normal: Tensor, hit: Tensor) -> Tensor:
