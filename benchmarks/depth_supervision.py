@@ -76,7 +76,8 @@ def main() -> None:
         "",
         f"180-degree fisheye room, {args.views} views of {args.size}x{args.size} (every 8th held out for test), "
         f"{args.steps} steps each, same seed; distances are the room's analytic ray caster's (radial, dataparser "
-        "units). Depth loss: huber on the relative error, scale 0.05.",
+        "units). Depth loss: huber on the relative error, scale 0.05. The first run's time includes the process's "
+        "one-time start-up (extension load, caches).",
         "",
         "| run | depth-loss-weight | test distance RMSE | test depth (z) RMSE | test PSNR (dB) | Gaussians | train s |",
         "| --- | --- | --- | --- | --- | --- | --- |",
