@@ -49,7 +49,7 @@ def geometry_outputs(out: RenderOutput, dirs: Tensor, normals: Optional[NormalIm
     depth, defined = z_depth(out.distance, dirs, hit)
     found = {"distance": filled(out.distance, hit), "depth": filled(depth, defined), "depth_defined": defined}
     if median and out.median_distance is not None:
-        crossed = out.median_distance > 0
+        crossed = (out.median_distance > 0) | (out.accumulation > 0.5)  # 0 is a real value inside a Gaussian
         found["median_distance"] = filled(out.median_distance.detach(), crossed)
     if normals is not None:
         found["normal"] = shaded(normals.world, hit)
