@@ -216,7 +216,7 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     const int64_t r = height * width;
     auto opts = whiten.options();
     auto out_rgb = at::empty({r, 3}, opts), depth = at::empty({r}, opts), acc = at::empty({r}, opts);
-    auto t_final = at::empty({r}, opts);
+    auto t_final = at::empty({r}, opts), median = at::empty({r}, opts);
     auto n_contrib = at::empty({r}, opts.dtype(at::kInt));
     auto max_weight = at::zeros({whiten.size(0)}, opts);
     dispatch(whiten, [&](auto tag) {
@@ -224,12 +224,12 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
         auto a = render_args<T>(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
                                 ranges, height, width, tile_size);
         geer::RenderOutputs<T> out{mptr<T>(out_rgb), mptr<T>(depth), mptr<T>(acc), mptr<T>(t_final),
-                                   mptr<int32_t>(n_contrib), mptr<T>(max_weight)};
+                                   mptr<int32_t>(n_contrib), mptr<T>(max_weight), mptr<T>(median)};
         geer::launch_render_forward<T>(a, out, stream());
     });
     // The CPU build also records which lanes blended each entry for its backward; the kernels do not (a
     // 32-bit word per entry and warp), and their backward re-derives them: an empty record.
-    return {out_rgb, depth, acc, t_final, n_contrib, at::empty({0}, opts.dtype(at::kInt)), max_weight};
+    return {out_rgb, depth, acc, t_final, n_contrib, at::empty({0}, opts.dtype(at::kInt)), max_weight, median};
 }
 
 // -> ([N,16] gradient rows (geer_launchers.h RenderGradArgs::grads), absgrad [N,2], empty when absgrad_rows is).

@@ -26,7 +26,7 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     const int64_t r = height * width;
     auto opts = whiten.options();
     auto out_rgb = at::zeros({r, 3}, opts), depth = at::zeros({r}, opts), acc = at::zeros({r}, opts);
-    auto t_final = at::ones({r}, opts);
+    auto t_final = at::ones({r}, opts), median = at::zeros({r}, opts);
     auto n_contrib = at::zeros({r}, at::kInt);
     // Which lanes blended each list entry, per warp: what the CPU backward visits (render_backward). Only
     // when a backward will run (record): 32 bytes per list entry with 16-pixel tiles.
@@ -78,12 +78,13 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
             mptr<T>(acc)[ray] = geer::lane_get(st[pk].acc, i);
             mptr<T>(t_final)[ray] = geer::lane_get(st[pk].trans, i);
             n_contrib.data_ptr<int32_t>()[ray] = geer::lane_get(st[pk].n_contrib, i);
+            mptr<T>(median)[ray] = geer::lane_get(st[pk].median, i);
         }
     });
     auto max_weight = at::zeros({whiten.size(0)}, opts);
     fold_entries(entries_of_gaussians(id, m, whiten.size(0)), 1, entry_weight.data(), mptr<T>(max_weight),
                  [](T a, T b) { return geer::g_max(a, b); });
-    return {out_rgb, depth, acc, t_final, n_contrib, blended_lanes, max_weight};
+    return {out_rgb, depth, acc, t_final, n_contrib, blended_lanes, max_weight, median};
 }
 
 // render_forward for either dtype: kPacks, the CPU's path; otherwise one ray per thread, the kernels' path.

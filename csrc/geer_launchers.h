@@ -117,6 +117,7 @@ template <typename T> struct RenderOutputs {
     int32_t* n_contrib;  // [R] 1 + list position (within the tile) of the last blended Gaussian
     T* max_weight;       // [N] largest blend weight T_before alpha over the rays, zeroed by the caller: the
                          // weights are >= 0, so a max of their bits (one atomicMax per warp and entry) is theirs
+    T* median;           // [R] max(t*, 0) where the transmittance crosses 0.5 (0: it never does)
 };
 template <typename T> void launch_render_forward(const RenderArgs<T>& a, const RenderOutputs<T>& out, cudaStream_t stream);
 

@@ -115,6 +115,7 @@ template <typename L> struct RayForward {
     L depth;      // sum of w_i max(t*_i, 0)
     L acc;        // sum of w_i
     L trans;      // transmittance after the last blended Gaussian
+    L median;     // max(t*, 0) of the Gaussian whose blend takes the transmittance below 0.5 (0: never)
     typename Lane<L>::Int n_contrib;  // 1 + list position of the last blended Gaussian (0: none)
     typename Lane<L>::Mask done;      // stopped (T would fall below T_MIN) or the ray is invalid
 };
@@ -124,6 +125,7 @@ template <typename L> GEER_HD void ray_forward_init(RayForward<L>& s, typename L
     s.rgb[0] = s.rgb[1] = s.rgb[2] = splat<L>(T(0));
     s.depth = s.acc = splat<L>(T(0));
     s.trans = splat<L>(T(1));
+    s.median = splat<L>(T(0));
     s.n_contrib = Lane<L>::splat_int(0);
     s.done = lane_not(valid);
 }
@@ -148,8 +150,11 @@ GEER_HD L ray_forward_step(RayForward<L>& s, const GaussFrame<T>& g, const Vec3<
     const L w = e.alpha * s.trans;
     for (int c = 0; c < 3; ++c) s.rgb[c] = lane_select(blend, s.rgb[c] + w * g.rgb[c], s.rgb[c]);
     // depth at the same clamped t as the response
-    s.depth = lane_select(blend, s.depth + w * lane_select(e.front, e.t_star, splat<L>(T(0))), s.depth);
+    const L t_hit = lane_select(e.front, e.t_star, zero);
+    s.depth = lane_select(blend, s.depth + w * t_hit, s.depth);
     s.acc = lane_select(blend, s.acc + w, s.acc);
+    const L half = splat<L>(T(0.5));
+    s.median = lane_select(blend & lane_not(s.trans < half) & (t_after < half), t_hit, s.median);
     s.trans = lane_select(blend, t_after, s.trans);
     s.n_contrib = lane_select(blend, Lane<L>::splat_int(pos + 1), s.n_contrib);
     return lane_select(blend, w, zero);

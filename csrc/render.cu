@@ -80,6 +80,7 @@ __global__ void __launch_bounds__(kMaxThreads) render_forward_kernel(const Rende
     out.acc[r] = st.acc;
     out.t_final[r] = st.trans;
     out.n_contrib[r] = st.n_contrib;
+    out.median[r] = st.median;
 }
 
 // The warp's totals of the lanes' values (geer_blocks.h): lane ends with value scatter_value(lane)'s in v[0].

@@ -40,7 +40,8 @@ from nerfstudio.models.splatfacto import (
 from nerfstudio.utils.colors import get_color
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from geer_ns import compat, resume
+from geer_ns import compat, depth_supervision, resume
+from geer_ns import outputs as geer_outputs
 from geer_ns.cameras import CameraModel
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, host_camera_model, native_view
@@ -50,6 +51,7 @@ from geer_ns.densify.strategy import GeerDefaultStrategy
 from geer_ns.perceptual import build_lpips_if_cached
 from geer_ns.render import render
 from geer_ns.render.backend import Backend, announce_backend
+from geer_ns.render.normals import render_normals
 from geer_ns.render.pbf import LambdaMode, pbf_lambda_sq
 from geer_ns.render.transforms import view_transform
 from geer_ns.render_guard import RenderGuard, camera_problem, in_viewer_thread, is_viewer_interrupt
@@ -110,7 +112,7 @@ def _model_config_default(name: str):
 
 
 @dataclass
-class GeerModelConfig(SplatfactoModelConfig, GeerOwnOptions):
+class GeerModelConfig(SplatfactoModelConfig, GeerOwnOptions, depth_supervision.DepthSupervisionOptions):
     _target: Type = field(default_factory=lambda: GeerModel)
     # Ray-marching options of nerfstudio's ModelConfig that no Gaussian model reads: hidden from --help.
     enable_collider: tyro.conf.Suppress[bool] = _model_config_default("enable_collider")
@@ -406,17 +408,22 @@ class GeerModel(SplatfactoModel):
                 pixels = pbf_radii(out.pbf, out.visible, view.steps)
                 radius = pixels / float(max(height, width))
             self.views.append(probe.record(out.visible.detach(), out.max_weight, radius, pixels))
-        return self.view_outputs(out, view, background, camera)
+        normals = None
+        if not self.training:  # forward only: no loss reads normals
+            normals = render_normals(means, params["quats"], scales, opacities, viewmat, view.rays.to(means.device),
+                                     lambda_mode=self.config.lambda_mode, backend=self.config.renderer_backend,
+                                     max_pairs=self.config.max_pairs)
+        return self.view_outputs(out, view, background, camera, normals)
 
     @staticmethod
     def viewmat(camera_to_world: Tensor, device) -> Tensor:
         """The world-to-camera matrix (OpenCV axes) of a nerfstudio pose, in float64 (see view_transform)."""
         return world_to_camera_opencv(camera_to_world.to(device, torch.float64))
 
-    def view_outputs(self, out, view: View, background: Tensor, camera: Cameras) -> Dict[str, Tensor]:
+    def view_outputs(self, out, view: View, background: Tensor, camera: Cameras, normals=None) -> Dict[str, Tensor]:
         """nerfstudio's outputs of a render of `camera` (and its bilateral grid while training)."""
         height, width = view.size
-        outputs = self._outputs(out, view, background)
+        outputs = self._outputs(out, view, background, normals)
         cam_idx = (camera.metadata or {}).get("cam_idx")
         if self.config.use_bilateral_grid and self.training and cam_idx is not None:
             outputs["rgb"] = self._apply_bilateral_grid(outputs["rgb"][None], cam_idx, height, width)[0]
@@ -443,13 +450,12 @@ class GeerModel(SplatfactoModel):
             return self._step_background
         return super()._get_background_color()
 
-    def _outputs(self, out, view: View, background: Tensor) -> Dict[str, Tensor]:
+    def _outputs(self, out, view: View, background: Tensor, normals=None) -> Dict[str, Tensor]:
         height, width = view.size
         acc = out.accumulation
-        depth = torch.where(acc > 0, out.depth, out.depth.detach().max())
         outputs = {
             "rgb": out.rgb.clamp(0.0, 1.0),
-            "depth": depth,
+            **geer_outputs.geometry_outputs(out, view.rays.dirs.to(acc.device), normals, median=not self.training),
             "accumulation": acc,
             "background": background if self.training else background.expand(height, width, 3),
             "valid_rays": view.rays.to(out.rgb.device).valid.reshape(height, width, 1),  # cached per device
@@ -474,7 +480,10 @@ class GeerModel(SplatfactoModel):
         problem = camera_problem(camera)
         if problem is None:
             try:
-                return self.render_guard.remember(self.get_outputs(camera.to(self.device)))
+                outputs = self.get_outputs(camera.to(self.device))
+                if in_viewer_thread():
+                    outputs = geer_outputs.viewer_outputs(outputs)
+                return self.render_guard.remember(outputs)
             except Exception as error:  # noqa: BLE001 - the viewer thread must survive any of them
                 if is_viewer_interrupt(error) or not in_viewer_thread():
                     raise
@@ -550,7 +559,12 @@ class GeerModel(SplatfactoModel):
         pred = torch.where(valid, outputs["rgb"], gt)  # invalid pixels equal: no loss, no SSIM edge
         l1 = (pred - gt).abs().sum() / (valid.sum() * gt.shape[-1]).clamp_min(1)
         ssim = self.ssim(gt.permute(2, 0, 1)[None], pred.permute(2, 0, 1)[None])
-        return {"main_loss": (1 - self.config.ssim_lambda) * l1 + self.config.ssim_lambda * (1 - ssim)}
+        losses = {"main_loss": (1 - self.config.ssim_lambda) * l1 + self.config.ssim_lambda * (1 - ssim)}
+        target = depth_supervision.target_of(batch, self._get_downscale_factor(), self.device)
+        if target is not None and self.config.depth_loss_weight > 0:
+            losses["depth_loss"] = depth_supervision.depth_loss(outputs["distance"], outputs["accumulation"], target,
+                                                                valid, self.config)
+        return losses
 
     def get_step_loss_dict(self) -> Dict[str, Tensor]:
         """The losses of the parameters alone (regularisers), once per step whatever its images."""
@@ -595,7 +609,10 @@ class GeerModel(SplatfactoModel):
             metrics["lpips"] = float(lpips(gt_b.clamp(0, 1), pred_b.clamp(0, 1)))
         metrics.update(self._region_psnr(pred, gt, valid[..., 0], outputs.get("central_region")))
         metrics["valid_fraction"] = float(valid.float().mean())
-        return metrics, {"img": torch.cat([gt, outputs["rgb"] * valid], dim=1)}
+        metrics.update(geer_outputs.distance_statistics(outputs, valid[..., 0]))
+        metrics.update(depth_supervision.depth_metrics(outputs, batch, valid[..., 0]))
+        images = {"img": torch.cat([gt, outputs["rgb"] * valid], dim=1), **geer_outputs.distance_images(outputs)}
+        return metrics, images
 
     def _region_psnr(self, pred: Tensor, gt: Tensor, valid: Tensor, central: Optional[Tensor]) -> Dict[str, float]:
         """central_psnr / peripheral_psnr, each omitted when its region has no valid pixel in this view."""

@@ -425,7 +425,7 @@ def test_early_termination_and_alpha_clamp(ops):
         w, o_u, _rgb, bounds, alive, _inside = ops.preprocess_forward(
             pre.means_c, scene[1], scene[2], scene[3], scene[4][:, None], scene[0], vm[:3, :3].contiguous(), -1, False)
         ids, ranges, _, _ = cuda_backend.associate_pairs(ops, bounds, alive, pre.depth, grid)
-        _, _, _acc, t_final, n_contrib, _blended, _max_weight = ops.render_forward(
+        _, _, _acc, t_final, n_contrib, _blended, _max_weight, _median = ops.render_forward(
             w, o_u, scene[4], scene[3], pbf_cull_pieces(bounds), grid.dirs, grid.ray_cull_bounds(F64),
             grid.warp_cull_bounds(F64),
             grid.valid, ids, ranges, grid.height, grid.width, grid.tile_size, False)

@@ -36,6 +36,7 @@ from geer_ns import resume
 from geer_ns.cameras import CameraModel
 from geer_ns.data.beap import resample_to_beap
 from geer_ns.data.dataset_checks import check_transforms_json
+from geer_ns.data.depth import TARGET_KEY, sensor_distance
 from geer_ns.data.image_circle import detect_image_circle_from_files
 from geer_ns.data.nerfstudio_parser import CROP_RADIUS_KEY, GeerNerfstudio, GeerNerfstudioDataParserConfig
 from geer_ns.data.supervision import Supervision, SupervisionReport, beap_covered, choose_view
@@ -274,6 +275,10 @@ class GeerDataManager(FullImageDatamanager):
         self._report[split].add(name, camera, view, seen, supervised)
         data["image"] = as_cache_type(image, self.config.cache_images_type)
         data["mask"] = valid[..., None]
+        if dataset.metadata.get("depth_filenames"):  # depth supervision (geer_ns/data/depth.py)
+            scale = float(dataset._dataparser_outputs.dataparser_scale)
+            data[TARGET_KEY] = sensor_distance(dataset.cameras, idx, camera, dataset.metadata, scale,
+                                               self._ply_transform(), view)
         if split == "train":
             data[VIEW_KEY] = view  # moved onto the batch's camera by next_train
         return data
@@ -288,7 +293,7 @@ class GeerDataManager(FullImageDatamanager):
             CONSOLE.log(f"geer: {split} images, {line}")
         on_gpu = cache_images_device == "gpu" and torch.device(self.device).type == "cuda"
         for view in views:
-            for key in ("image", "mask", "depth_image"):
+            for key in ("image", "mask", "depth_image", TARGET_KEY):
                 if key in view:
                     view[key] = view[key].to(self.device) if on_gpu else pin_if_possible(view[key])
         self.train_cameras = self.train_dataset.cameras.to(self.device) if on_gpu else self.train_dataset.cameras

@@ -29,7 +29,7 @@ import torch
 from torch import Tensor
 
 from .absgrad import pair_absgrad, pair_o_u_grad
-from .composite import composite
+from .composite import composite, median_crossing
 from .transmittance import canonical_ray_response, half_line_sq, pair_alpha
 
 
@@ -51,20 +51,24 @@ def _plan(counts: Tensor, rays_per_group: int, max_pairs: int) -> list[tuple[Ten
     return plan
 
 
-def _blend_piece(o_u, whiten, opacities, colors, dirs, r_ok, g_ok, t_start):
+def _blend_piece(o_u, whiten, opacities, colors, dirs, r_ok, g_ok, t_start, median=False):
     """One piece: o_u [G,K,3], whiten [G,K,3,3], opacities [G,K], colors [G,K,3] of the listed Gaussians,
     dirs [G,P,3]; r_ok [G,P] / g_ok [G,K] mask padding and invalid rays. Returns (rgb, depth sum, accumulation,
-    t_end) per ray and the pairs' q, depth and blend weight [G,P,K]."""
+    t_end) per ray and the pairs' q, depth and blend weight [G,P,K]; with `median`, the per-ray depth where the
+    piece takes the transmittance below 0.5 (composite.median_crossing) after them."""
     dist_sq, t_star = canonical_ray_response(o_u, whiten, dirs)
     q, depth, _ = half_line_sq(dist_sq, t_star, o_u)
     alpha = pair_alpha(q, opacities[:, None, :], r_ok[:, :, None] & g_ok[:, None, :])
     *sums, weights = composite(alpha, colors, depth, t_start)
+    if median:
+        return sums, q, depth, weights, median_crossing(alpha, depth, weights, t_start)
     return sums, q, depth, weights
 
 
 class _BlendLists(torch.autograd.Function):
-    """(o_u, W, opacity, colour per Gaussian) -> (rgb [R,3], depth sum [R], accumulation [R]) per ray and
-    max_weight [N] (no gradient); with absgrad's (rows, sink), the sink's gradient is the absgrad sums."""
+    """(o_u, W, opacity, colour per Gaussian) -> (rgb [R,3], depth sum [R], accumulation [R]) per ray,
+    max_weight [N] and the median distance [R] (neither with a gradient); with absgrad's (rows, sink), the
+    sink's gradient is the absgrad sums."""
 
     @staticmethod
     def forward(ctx, o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs, rows,
@@ -72,6 +76,7 @@ class _BlendLists(torch.autograd.Function):
         n_rays, p = dirs.shape[0], ray_index.shape[1]
         out = (o_u.new_zeros(n_rays, 3), o_u.new_zeros(n_rays), o_u.new_zeros(n_rays))
         max_weight = o_u.new_zeros(o_u.shape[0])
+        median = o_u.new_zeros(n_rays)
         plan = _plan(counts, p, max_pairs)
         starts = []
         for sel, pieces in plan:
@@ -79,28 +84,28 @@ class _BlendLists(torch.autograd.Function):
             r_ok = (r_idx >= 0) & ray_valid[r_idx.clamp_min(0)]
             d = dirs[r_idx.clamp_min(0)]
             t = o_u.new_ones(r_idx.shape)
-            sums = [0.0, 0.0, 0.0]
+            sums = [0.0, 0.0, 0.0, 0.0]
             for k0, k1 in pieces:
                 starts.append(t)
                 g_idx = lists[sel, k0:k1]
                 g, listed = g_idx.clamp_min(0), g_idx >= 0
-                (*piece, t), _, _, weights = _blend_piece(o_u[g], whiten[g], opacities[g], colors[g], d, r_ok,
-                                                          listed, t)
-                sums = [s + x for s, x in zip(sums, piece)]
+                (*piece, t), _, _, weights, crossed = _blend_piece(o_u[g], whiten[g], opacities[g], colors[g], d,
+                                                                   r_ok, listed, t, median=True)
+                sums = [s + x for s, x in zip(sums, (*piece, crossed))]
                 max_weight.scatter_reduce_(0, g[listed], weights.amax(dim=-2)[listed], reduce="amax")
             keep = r_idx >= 0
-            for o, s in zip(out, sums):
+            for o, s in zip((*out, median), sums):
                 o[r_idx[keep]] = s[keep]
         t_starts = torch.cat([s.reshape(-1) for s in starts]) if starts else o_u.new_zeros(0)
         ctx.save_for_backward(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, t_starts,
                               rows)
         ctx.max_pairs = max_pairs
-        ctx.mark_non_differentiable(max_weight)
-        return (*out, max_weight)
+        ctx.mark_non_differentiable(max_weight, median)
+        return (*out, max_weight, median)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, g_rgb, g_depth, g_acc, _g_max_weight):
+    def backward(ctx, g_rgb, g_depth, g_acc, _g_max_weight, _g_median):
         o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, t_starts, rows = ctx.saved_tensors
         params = (o_u, whiten, opacities, colors)
         grads = [x.new_zeros(x.shape) for x in params]  # contiguous, whatever the inputs' strides
@@ -149,7 +154,8 @@ def blend_lists(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, list
     padded, counts [G] entries), at most max_pairs pairs at a time (see the module's memory model).
 
     Returns per-ray rgb [R, 3] (no background), depth sum [R] and accumulation [R], rays in no group (empty or
-    inactive tiles) 0, and max_weight [N], each Gaussian's largest blend weight (0: never blended; no gradient).
+    inactive tiles) 0, max_weight [N], each Gaussian's largest blend weight (0: never blended; no gradient), and
+    the median distance [R], where the transmittance crosses 0.5 (0: it never does; no gradient).
     Differentiable w.r.t. o_u, whiten, opacities and colors; absgrad: (offset rows [N, 2, 3], sink [N, 2])
     (absgrad.py), whose sink gets the absgrad sums as its gradient.
     """

@@ -31,3 +31,15 @@ def composite(
     rgb = torch.einsum("...pk,...kc->...pc", weights, colors)
     # The last transmittance as its own tensor: a view would keep the piece's whole product alive.
     return rgb, (weights * depths).sum(-1), weights.sum(-1), t_after[..., -1].clone(), weights
+
+
+def median_crossing(alpha: Tensor, depths: Tensor, weights: Tensor, t_start: Tensor | None = None) -> Tensor:
+    """[..., P] the depth of the blended pair that takes a ray's transmittance from >= 0.5 to < 0.5 (0 where no
+    pair of this piece does), from composite's inputs and its weights (no gradient: an arg-threshold)."""
+    one_minus = 1.0 - alpha
+    if t_start is None:
+        t_start = torch.ones_like(one_minus[..., 0])
+    t_after = torch.cumprod(torch.cat([t_start[..., None], one_minus], dim=-1), dim=-1)
+    t_before, t_after = t_after[..., :-1], t_after[..., 1:]
+    crossing = (weights > 0) & (t_before >= 0.5) & (t_after < 0.5)
+    return torch.where(crossing, depths, torch.zeros_like(depths)).sum(-1)

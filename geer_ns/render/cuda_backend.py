@@ -77,8 +77,8 @@ class _Preprocess(torch.autograd.Function):
 
 
 class _Rasterize(torch.autograd.Function):
-    """Per tile / ray: (W, o_u, colour, opacity) -> (rgb sum, depth sum, accumulation) per ray and max_weight [N]
-    (no gradient); with absgrad's offset rows [N,6] and sink [N,2], the sink's gradient is the absgrad sums."""
+    """Per tile / ray: (W, o_u, colour, opacity) -> (rgb sum, depth sum, accumulation) per ray, max_weight [N]
+    and the median distance [R] (neither with a gradient); with absgrad's offset rows [N,6] and sink [N,2], the sink's gradient is the absgrad sums."""
 
     @staticmethod
     def forward(ctx, whiten, o_u, rgb, opacities, pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height,
@@ -89,7 +89,7 @@ class _Rasterize(torch.autograd.Function):
         # blended_lanes: the CPU build's record of the lanes that blended each list entry, which its backward
         # visits; made only when a backward will run (empty from the kernels, whose backward re-derives them).
         record = any(ctx.needs_input_grad[:4]) or ctx.needs_input_grad[16]
-        out_rgb, depth, acc, t_final, n_contrib, blended_lanes, max_weight = ops.render_forward(
+        out_rgb, depth, acc, t_final, n_contrib, blended_lanes, max_weight, median = ops.render_forward(
             whiten, o_u, rgb, opacities, *geometry, height, width, tile_size, record
         )
         # Off, the backward gets an empty tensor for the rows (csrc: the build without absgrad runs).
@@ -97,12 +97,12 @@ class _Rasterize(torch.autograd.Function):
         ctx.save_for_backward(whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib, blended_lanes, rows)
         ctx.layout = (height, width, tile_size)
         ctx.ops = ops
-        ctx.mark_non_differentiable(max_weight)
-        return out_rgb, depth, acc, max_weight
+        ctx.mark_non_differentiable(max_weight, median)
+        return out_rgb, depth, acc, max_weight, median
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, g_rgb, g_depth, g_acc, _g_max_weight):
+    def backward(ctx, g_rgb, g_depth, g_acc, _g_max_weight, _g_median):
         *saved, rows = ctx.saved_tensors
         *grads, absgrad = render_grads(ctx.ops, saved, ctx.layout, g_rgb, g_depth, g_acc, rows)
         return tuple(grads) + (None,) * 12 + (absgrad,)
@@ -197,7 +197,7 @@ def render_cuda(
     # that the kernels only take dot products with them (no W x lateral product in their registers).
     rows, sink = (None, None) if absgrad is None else (offset_rows(absgrad[0], whiten).reshape(n, 6).contiguous(),
                                                         absgrad[1])
-    rgb_sum, depth_sum, acc, max_weight = _Rasterize.apply(
+    rgb_sum, depth_sum, acc, max_weight, median = _Rasterize.apply(
         whiten, o_u, rgb, opacities.contiguous(), pbf_cull_pieces(bounds), dirs, grid.ray_cull_bounds(dtype),
         grid.warp_cull_bounds(dtype), grid.valid.contiguous(), ids, ranges, grid.height, grid.width, grid.tile_size, ops,
         rows, sink,
@@ -207,4 +207,5 @@ def render_cuda(
     visible = counts > 0
     tile_counts = (ranges[:, 1] - ranges[:, 0]).long()
     pbf = PBF(bounds[:, 0], bounds[:, 1], bounds[:, 2], bounds[:, 3], alive, inside)
-    return RenderOutput(out_rgb, out_depth, out_acc, visible, tile_counts, means_c, pbf, None, max_weight)
+    return RenderOutput(out_rgb, out_depth, out_acc, visible, tile_counts, means_c, pbf, None, max_weight,
+                        median.reshape(grid.height, grid.width, 1))

@@ -32,7 +32,7 @@ T2 = Tuple[Tensor, Tensor]
 T4 = Tuple[Tensor, Tensor, Tensor, Tensor]
 T5 = Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]
 T6 = Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]
-T7 = Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]
+T8 = Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]
 GRAD_VALUES, ABSGRAD_VALUES = 16, 2  # csrc/geer_blocks.h kGradValues, kAbsgradValues
 
 
@@ -135,10 +135,10 @@ def _(bounds, alive, order, node_bounds, node_active, tiles_x, tiles_y):
 @torch.library.custom_op("geer::render_forward", mutates_args=())
 def render_forward(whiten: Tensor, o_u: Tensor, rgb: Tensor, opacities: Tensor, pbf_pieces: Tensor, dirs: Tensor,
                    ray_bounds: Tensor, warp_bounds: Tensor, valid: Tensor, ids: Tensor, ranges: Tensor, height: int,
-                   width: int, tile_size: int, record: bool) -> T7:
+                   width: int, tile_size: int, record: bool) -> T8:
     """Per ray -> (rgb [R,3], depth [R], acc [R], T_final [R], n_contrib [R] int32, blended lanes int32 (the CPU
-    build's record for its backward, when `record`; empty from the kernels), max_weight [N]). Pass record=True
-    when a backward will run."""
+    build's record for its backward, when `record`; empty from the kernels), max_weight [N], median distance [R]).
+    Pass record=True when a backward will run."""
     _one_device("render_forward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
                 ranges)
     return tuple(_build(whiten).render_forward(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds,
@@ -154,7 +154,7 @@ def _(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, va
     on_cpu = whiten.device.type == "cpu" and record
     lanes = new(ids.shape[0], warp_bounds.shape[0] // ranges.shape[0], dtype=torch.int32) if on_cpu else \
         new(0, dtype=torch.int32)
-    return new(r, 3), new(r), new(r), new(r), new(r, dtype=torch.int32), lanes, new(whiten.shape[0])
+    return new(r, 3), new(r), new(r), new(r), new(r, dtype=torch.int32), lanes, new(whiten.shape[0]), new(r)
 
 
 @torch.library.custom_op("geer::render_backward", mutates_args=())

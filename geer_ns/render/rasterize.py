@@ -117,13 +117,15 @@ def render(
     pre = preprocess(means, quats, scales, opacities, colors, viewmat, sh_degree, lambda_mode)
     tiles = associate(pre.pbf, grid, pre.depth)
     rows = (offset_rows(absgrad[0], pre.whiten), absgrad[1]) if absgrad is not None else None
-    rgb, depth, acc, max_weight = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs, grid.valid,
-                                              grid.tile_rays, tiles.gaussians, tiles.counts, max_pairs, rows)
+    rgb, depth, acc, max_weight, median = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs,
+                                                      grid.valid, grid.tile_rays, tiles.gaussians, tiles.counts,
+                                                      max_pairs, rows)
     out_rgb, out_depth, out_acc = images(grid.height, grid.width, rgb, depth, acc, background)
     visible = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
     listed = tiles.gaussians[grid.tile_active]
     visible[listed[listed >= 0]] = True
-    return RenderOutput(out_rgb, out_depth, out_acc, visible, tiles.counts, pre.means_c, pre.pbf, tiles, max_weight)
+    return RenderOutput(out_rgb, out_depth, out_acc, visible, tiles.counts, pre.means_c, pre.pbf, tiles, max_weight,
+                        median.reshape(grid.height, grid.width, 1))
 
 
 def render_batch(
@@ -190,9 +192,9 @@ def render_brute_force(
     ray_index = ray_index.reshape(-1, rays_per_group)
     lists = order[None].expand(ray_index.shape[0], -1)
     counts = torch.full((ray_index.shape[0],), order.numel(), dtype=torch.long, device=means.device)
-    rgb, depth, acc, max_weight = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs, grid.valid,
-                                              ray_index, lists, counts, max_pairs)
+    rgb, depth, acc, max_weight, median = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs,
+                                                      grid.valid, ray_index, lists, counts, max_pairs)
     out_rgb, out_depth, out_acc = images(grid.height, grid.width, rgb, depth, acc, background)
     visible = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
     return RenderOutput(out_rgb, out_depth, out_acc, visible, means.new_zeros(0).long(), pre.means_c, pre.pbf, None,
-                        max_weight)
+                        max_weight, median.reshape(grid.height, grid.width, 1))

@@ -1,0 +1,3 @@
+from geer_ns.export.cli import entrypoint
+
+entrypoint()
