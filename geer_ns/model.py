@@ -93,7 +93,8 @@ class GeerOwnOptions:
     every camera is rendered from the shards' Gaussians it sees (geer_ns/distributed/shards.py)."""
     renderer_backend: Backend = "auto"
     """geer_ns.render backend: auto (CPU tensors: the kernels' math compiled for the CPU, JIT-built once, else
-    the PyTorch renderer, said once; CUDA tensors: the PyTorch renderer until the kernels are verified on a GPU),
+    the PyTorch renderer, said once; CUDA tensors: the kernels once they passed their self-test on this GPU,
+    docs/cuda.md),
     torch, cuda (opt in to the kernels) or cpu (the compiled CPU build; benchmarks/cpu_training.md)."""
     lambda_mode: LambdaMode = "opacity"
     """PBF extent rule of the renderer (geer_ns.render.pbf)."""

@@ -471,8 +471,7 @@ def test_zero_gaussians_and_empty_lists(ops):
 
 # ------------------------------------------------------------------------------------------ module
 def test_cuda_backend_is_inert_without_a_gpu():
-    """Importable anywhere; auto must not pick it before a GPU session verified the kernels."""
-    assert cuda_backend.CUDA_VERIFIED is False
+    """Importable anywhere, building nothing without a GPU."""
     if not torch.cuda.is_available():
         assert cuda_backend.extension_available() is False  # returns at once, builds nothing
 

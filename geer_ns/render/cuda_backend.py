@@ -48,12 +48,6 @@ from .pbf import PBF, LambdaMode
 from .raygrid import RayGrid
 from .transforms import camera_offsets, view_transform
 
-# The kernels compile and their math is checked on the CPU (tests/test_csrc_math.py), but they have not yet
-# run on a GPU against the twin. backend="auto" must keep choosing the PyTorch twin while this is False; a
-# GPU session sets it to True once tests/test_cuda_gpu.py passes there.
-CUDA_VERIFIED = False
-
-
 # ----------------------------------------------------------------------------------------- autograd
 class _Preprocess(torch.autograd.Function):
     """Per Gaussian: (means_c, quats, scales, SH, SH view directions) -> (W, o_u, colour) + PBF (no grad)."""

@@ -79,6 +79,20 @@ def build_key(sources: Sequence[Path], include_dir: Path, cflags: Sequence[str],
     return digest.hexdigest()[:16]
 
 
+def _cuda_cflags(cuda: bool) -> list[str]:
+    return ["-O3", "-lineinfo"] if cuda else []  # no --use_fast_math: round like the twin
+
+
+def configuration_key(name: str) -> str:
+    """The build key of extension `name` ("geer_cuda" or "geer_cpu_ops") as this process would build it,
+    without building anything: what a self-test verdict is recorded for (verdict.py)."""
+    cuda = name == "geer_cuda"
+    if cuda:
+        os.environ.setdefault("TORCH_CUDA_ARCH_LIST", "9.0")
+    sources = [CSRC / s for s in (_CUDA_SOURCES if cuda else _CPU_SOURCES)]
+    return build_key(sources, CSRC, cpu_cflags(), _cuda_cflags(cuda), cuda)
+
+
 def _say(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
@@ -115,7 +129,7 @@ def build_and_load(name: str, sources: Sequence[Path], *, cuda: bool, cflags: Se
     folder holds no build yet (said before and after). Not memoised: see _load."""
     sources = [Path(s) for s in sources]
     include_dir = sources[0].parent if include_dir is None else include_dir
-    cuda_cflags = ["-O3", "-lineinfo"] if cuda else []  # no --use_fast_math: round like the twin
+    cuda_cflags = _cuda_cflags(cuda)
     module_name = f"{name}_{build_key(sources, include_dir, cflags, cuda_cflags, cuda)}"
     folder = build_root() / module_name
     folder.mkdir(parents=True, exist_ok=True)
