@@ -6,7 +6,9 @@
     backward                    csrc/render.cu (per ray), csrc/preprocess_backward.cu (per Gaussian)
 
 Two autograd Functions carry the paper's two-stage backward (App. C.2): `_Rasterize` (RenderCUDA: per-pair
-gradients of W, o_u, colour and opacity) and `_Preprocess` (PreprocessCUDA: to means, quats, scales, SH).
+gradients of o_u, colour and opacity, and of W as the canonical moment K = dL/dW W^T, which stays accurate for
+thin Gaussians in float32: csrc/geer_ray.h pair_canonical_moment) and `_Preprocess` (PreprocessCUDA: to means,
+quats, scales, SH; it takes K in `whiten`'s gradient slot, the only consumer of that slot).
 The view transform means_c = R_c mu + t stays in PyTorch so that `means_c.grad` is the same densification
 signal as the twin's. Background and expected depth are PyTorch ops on the kernel outputs.
 
@@ -113,7 +115,7 @@ class _Rasterize(torch.autograd.Function):
         grads, absgrad = ctx.ops.render_backward(
             whiten, o_u, rgb, opacities, *geometry, *ctx.layout, t_final, n_contrib, blended_lanes, g_rgb, g_depth, g_acc,
             rows,
-        )  # [N, 16] rows (csrc/geer_blocks.h kGradValues): W row-major, o_u, colour, opacity; absgrad [N, 2] or empty
+        )  # [N, 16] rows (csrc/geer_blocks.h kGradValues): K row-major, o_u, colour, opacity; absgrad [N, 2] or empty
         gw, go, gc, gs = grads.split([9, 3, 3, 1], dim=1)
         return (gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1)) + (None,) * 12 + (absgrad if rows.numel() else None,)
 

@@ -59,25 +59,30 @@ def stress_scene(seed: int = 3) -> Scene:
     ], seed)
 
 
-def gap_scene(seed: int, n_random: int = 24) -> Scene:
-    """Issue 33's float32 case, randomized: a Gaussian behind the camera, the camera inside a huge opaque
-    Gaussian, a quaternion of tiny norm, scales of 1e-8, opacities of exactly 1 and 1/255, among random ones
-    (positions, sizes and orientations drawn from `seed`)."""
+def gap_scene(seed: int) -> Scene:
+    """Issue 33's float32 case, randomized (docs/cuda.md, "the float32 gap"): from `seed`, maybe a Gaussian
+    behind the camera, maybe the camera inside a huge (10-1000 m) opaque Gaussian, up to three Gaussians with
+    scales of 1e-8 on random axes and opacities of exactly 1, 1/255 or 0.5, maybe one quaternion of norm
+    ~1e-20, then 4-20 random Gaussians, some with opacities of exactly 1 and 1/255."""
     gen = torch.Generator().manual_seed(seed)
-    u = lambda *shape: torch.rand(*shape, generator=gen, dtype=F64)  # noqa: E731
-    special = [
-        ((u(1).item() - 0.5, u(1).item() - 0.5, -1.0 - 2 * u(1).item()), (0.3, 0.2, 0.4), 0.8),       # behind
-        ((0.2 * (u(1).item() - 0.5), 0.2 * (u(1).item() - 0.5), 0.5 * u(1).item()),                   # camera in a
-         (20.0 + 30 * u(1).item(), 20.0 + 30 * u(1).item(), 20.0 + 30 * u(1).item()), 1.0),          # huge opaque
-        ((u(1).item() - 0.5, u(1).item() - 0.5, 1.5 + 2 * u(1).item()), (1e-8, 0.3, 0.2), 1.0),       # disk, 1
-        ((u(1).item() - 0.5, u(1).item() - 0.5, 1.5 + 2 * u(1).item()), (0.4, 1e-8, 1e-8), 1 / 255),  # needle
-        ((u(1).item() - 0.5, u(1).item() - 0.5, 1.0 + 3 * u(1).item()), (0.2, 0.1, 1e-8), 0.6),
-    ]
-    means, quats, scales, opac, colors = _rows(special, seed + 1000)
-    quats[2] = quats[2] * 1e-20  # a quaternion of tiny norm
-    rnd = random_gaussians(n_random, seed + 2000, around=False, scale_range=(0.05, 0.6))
-    rnd[3][: n_random // 4] = 1.0
-    rnd[3][n_random // 4: n_random // 2] = 1.0 / 255.0
+    u = lambda: float(torch.rand(1, generator=gen))  # noqa: E731
+    rows = []
+    if u() < 0.7:
+        rows.append(((u() - 0.5, u() - 0.5, -1 - 2 * u()), (0.3, 0.2, 0.4), 0.8))
+    if u() < 0.7:
+        rows.append(((0.1 * (u() - 0.5), 0.1 * (u() - 0.5), 0.3 * u()), tuple(10 ** (1 + 2 * u()) for _ in range(3)), 1.0))
+    for _ in range(int(u() * 4)):
+        scales = [0.05 + 0.4 * u() for _ in range(3)]
+        scales = [1e-8 if u() < 0.4 else v for v in scales]
+        rows.append(((u() - 0.5, u() - 0.5, 1 + 3 * u()), tuple(scales), (1.0, 1 / 255, 0.5)[int(u() * 3)]))
+    if not rows:
+        rows.append(((0.0, 0.0, 2.0), (0.3, 0.3, 0.3), 1.0))
+    means, quats, scales, opac, colors = _rows(rows, seed)
+    if u() < 0.5:
+        quats[int(u() * len(rows))] *= 1e-20
+    rnd = random_gaussians(int(4 + u() * 16), seed + 99, around=u() < 0.3, scale_range=(0.05, 0.6))
+    rnd[3][:3] = 1.0
+    rnd[3][3:6] = 1 / 255
     return tuple(torch.cat([a, b]) for a, b in zip((means, quats, scales, opac, colors), rnd))  # type: ignore
 
 
