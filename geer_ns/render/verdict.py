@@ -123,7 +123,14 @@ def verify(backend: str, device: torch.device, *, rerun: bool = False) -> Verdic
             return _memo[memo_key]
         found = None if rerun else cached_verdict(backend, device)
         if found is None:
-            found = run_child(backend, device)
+            from filelock import FileLock  # a torch dependency (extensions.py builds under it too)
+
+            verdict_dir().mkdir(parents=True, exist_ok=True)
+            # One child per verdict at a time: the ranks of a multi-GPU run start together, and the first one's
+            # verdict serves the others (same GPU model, driver, torch and build).
+            with FileLock(str(_paths(device_facts(backend, device))[0]) + ".lock"):
+                found = None if rerun else cached_verdict(backend, device)
+                found = found or run_child(backend, device)
         _memo[memo_key] = found
         return found
 
