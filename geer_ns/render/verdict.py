@@ -214,5 +214,5 @@ def _outcome(code: int, hung: str, report: Path, log: Path) -> str:
     if failed or code != 0:
         first = failed[0] if failed else None
         what = f"{first['case']}: {', '.join(first['failed'])}" if first else f"exit status {code}"
-        return f"{len(failed)} of {len(cases)} self-test cases disagree with the PyTorch renderer ({what})"
+        return f"{len(failed)} of {len(cases)} self-test cases failed against the PyTorch renderer ({what})"
     return f"all {len(cases)} self-test cases agree with the PyTorch renderer"

@@ -5,7 +5,8 @@ Run by geer_ns/render/verdict.py in a process of its own. Writes the phase it is
 crash leaves the cases before it and the one it died in. Exit status 0 when every case passed.
 
 Planted faults for tests ($GEER_SELFTEST_FAULT): "crash" aborts the child once the extension is loaded,
-"hang" sleeps past any timeout, "wrong" perturbs the compiled renderer's image in the first case.
+"hang" sleeps past any timeout, "raise" makes the first case raise, "wrong" perturbs the compiled renderer's
+image in the first case.
 """
 
 from __future__ import annotations
@@ -64,7 +65,14 @@ def main(argv: list[str] | None = None) -> int:
     for k, case in enumerate(suite(device.type)):
         report["running"] = case.name
         _write(args.report, report)
-        result = run_case(case, args.backend, device, perturb=1e-3 if fault == "wrong" and k == 0 else 0.0)
+        try:
+            if fault == "raise" and k == 0:
+                raise RuntimeError("planted fault")
+            result = run_case(case, args.backend, device, perturb=1e-3 if fault == "wrong" and k == 0 else 0.0)
+        except Exception as exc:  # noqa: BLE001 - a launch error, no kernel image for this GPU, ...: a failed case
+            line = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ""
+            result = {"case": case.name, "passed": False, "checks": {}, "failed": [f"raised {type(exc).__name__}: {line}"],
+                      "seconds": 0.0}
         report["cases"].append(result)
         print(f"{'ok  ' if result['passed'] else 'FAIL'} {case.name} ({result['seconds']} s)"
               + ("" if result["passed"] else f": {', '.join(result['failed'])}"), flush=True)
