@@ -162,8 +162,9 @@ def rel(a: Tensor, b: Tensor) -> float:
 
 
 def grad_error(ours: Tensor, twin: Tensor, truth: Tensor | None, dtype, degenerate: bool) -> tuple[bool, str]:
-    """float64: relative to the twin; float32: relative to the float64 truth, against 10x the twin's (and an
-    absolute 1e-5 floor); without a truth (capacity), 1e-3 relative to the twin's float32 gradient."""
+    """float64: relative to the twin; float32: relative to the float64 truth, at most 10x the twin's plus 1e-5
+    (relative errors: the floor keeps a twin whose rounding errors happened to cancel from failing the kernels);
+    without a truth (capacity, the sentinel), 1e-3 relative to the twin's float32 gradient."""
     if not bool(torch.isfinite(ours).all()):
         return False, "not finite"
     if dtype == F64:
