@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The GPU session (issue 11; issue 8 item 7): two device calls, back to back on one warm machine, inside the 15
 # device-minutes a session has (the machine's start, 1-2 min, included). Nothing here has run on a GPU yet.
+# A GPU at hand runs this first: its first stage after the build is the self-test verdict (docs/cuda.md).
 #
 # 1. Here, on the CPU side, once per commit (fetching the wheels needs the network; later runs reuse them):
 #        bash benchmarks/gpu_session.sh prep
@@ -16,12 +17,14 @@
 #
 # call1 (~5 min)  the wheels into /tmp/site; gsplat 1.4.0's JIT build started DETACHED (setsid: it outlives this
 #                 call and is ready for call 2; ~195 s with 16 jobs); geer's CUDA extension built at the same time;
-#                 then, in parallel: tests/test_cuda_gpu.py (kernels vs the PyTorch twin, every tile build, a
+#                 then FIRST the self-test verdict (geer-doctor --selftest: the suite of docs/cuda.md in a child
+#                 process, the kernels against the PyTorch renderer, capacity case included; SELFTEST_S, default
+#                 100 s), then, in parallel: tests/test_cuda_gpu.py (kernels vs the PyTorch twin, every tile build, a
 #                 refused launch raising at its call, float64 backward repeatability) and compute-sanitizer
 #                 memcheck, racecheck and synccheck on benchmarks/gpu_sanitize.py with
 #                 PYTORCH_NO_CUDA_MEMORY_CACHING=1 ("Device not supported" is recorded, not fatal).
-#                 $OUT: summary.txt setup.log build_geer.log pytest_cuda.log memcheck.log racecheck.log
-#                 synccheck.log gsplat_build.log (so far).
+#                 $OUT: summary.txt setup.log build_geer.log doctor.log selftest/ (verdict, report, child log)
+#                 pytest_cuda.log memcheck.log racecheck.log synccheck.log gsplat_build.log (so far).
 # call2 (~5 min)  waits for the gsplat build (builds it again on a fresh machine), then benchmarks/bench_gpu.py
 #                 with the time left: headline rows first (1M Gaussians, pinhole 1920x1080 and 180 degree fisheye,
 #                 geer-cuda vs gsplat `rasterization`; configs/bench_gpu.yaml `first`), each row written as it ends.
@@ -111,6 +114,15 @@ print(f'geer_cuda built/loaded in {time.time() - t:.0f} s')" >"$OUT/build_geer.l
   return $rc
 }
 
+selftest() {  # the verdict backend="auto" will use: geer-doctor runs the self-test now, in its child process
+  note "self-test (geer-doctor --selftest, suite limit ${SELFTEST_S:-100} s)"
+  GEER_SELFTEST_TIMEOUT_S=${SELFTEST_S:-100} timeout $(( ${SELFTEST_S:-100} + 60 )) "$PY" -m geer_ns.doctor --selftest \
+    >"$OUT/doctor.log" 2>&1
+  note "doctor rc=$? ($(grep -m1 'auto -> cuda\|auto -> torch' "$OUT/doctor.log" | cut -c1-300 || echo 'no CUDA line'))"
+  mkdir -p "$OUT/selftest" && cp "$GEER_EXT_DIR"/selftest/cuda_* "$OUT/selftest/" 2>/dev/null
+  grep -h '^FAIL\|^ok' "$OUT"/selftest/*.log 2>/dev/null | head -n 20 >>"$SUMMARY"
+}
+
 sanitize() {  # $1 tool, $2 seconds
   (
     export PYTORCH_NO_CUDA_MEMORY_CACHING=1
@@ -135,6 +147,7 @@ call1() {
   local setup_pid=$! built=1
   if have_cuda; then build_geer $(( $(left) - 150 )) || built=0; fi
   wait "$setup_pid"
+  if have_cuda && [ "$built" = 1 ]; then selftest; fi
   note "pytest tests/test_cuda_gpu.py and the sanitizers, in parallel"
   timeout $(( $(left) - 15 )) "$PY" -m pytest tests/test_cuda_gpu.py -s -q -rfEs -p no:cacheprovider \
     >"$OUT/pytest_cuda.log" 2>&1 &

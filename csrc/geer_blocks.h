@@ -79,7 +79,7 @@ GEER_HD int batch_entry(const ListBatch& bt, int k) { return bt.first + bt.step 
 // k (both add the same two numbers), and the even lanes issue one atomic each, in parallel, to 16
 // adjacent words. The GPU exchanges with __shfl_xor_sync (render.cu); the CPU build runs all 32 lanes in
 // lock-step and reads the partner's sent values (cpu_render_backward.cpp): both sum in this order.
-constexpr int kGradValues = 16;  // one gradient row: W row-major (9), o_u (3), colour (3), opacity
+constexpr int kGradValues = 16;  // one gradient row: K = dL/dW W^T row-major (9), o_u (3), colour (3), opacity
 
 // A lane's values: its pair gradient, or zeros where its ray does not blend the pair (p is then not read).
 template <typename T> GEER_HD void lane_grad_values(const PairGrad<T>& p, bool contrib, T* v /* kGradValues */) {

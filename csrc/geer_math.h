@@ -460,33 +460,33 @@ GEER_HD Vec3<T> sh_to_color(const T* coeffs, int degree, const Vec3<T>& dir, Vec
 }
 
 // ================================================================================ backward: Gaussian
-// dL/dW (render part, C.9) and dL/d(o_u) -> dL/d(mean_c), dL/dquat, dL/dscale (PreprocessCUDA,
-// C.4-C.6). o_u = -W mean_c adds dL/do_u (-mean_c)^T to dL/dW (C.4, PC part) and gives
-// dL/dmean_c = -W^T dL/do_u (C.15). W[i][j] = R_v[j][i] / s_i with R_v = R_c R(q / |q|).
+// The render backward's canonical moment K = dL/dW W^T, of the total dL/dW (through W d and o_u = -W mean_c:
+// geer_ray.h pair_canonical_moment, summed over the pairs) and dL/d(o_u) -> dL/d(mean_c), dL/dquat, dL/dscale
+// (PreprocessCUDA, C.4-C.6). dL/dmean_c = -W^T dL/do_u (C.15). W[i][j] = R_v[j][i] / s_i with R_v = R_c R(q / |q|),
+// so dL/dW = K W^-T = K S R_v^T; scaling s_i by (1 + eps) scales W's row i by 1 / (1 + eps): dL/ds_i = -K[i][i] / s_i.
+// From K no term cancels for thin Gaussians (the former dL/dW - dL/do_u mean_c^T lost float32's digits there).
+// mean_c: unused (kept for the callers' layout).
 template <typename T>
 GEER_HD void preprocess_backward_gaussian(const Vec3<T>& mean_c, const T* quat, const T* scales, const Mat3<T>& rot_c,
-                                          const T* g_w_render, const Vec3<T>& g_o, Vec3<T>& g_mean_c, T* g_quat,
+                                          const T* k_render, const Vec3<T>& g_o, Vec3<T>& g_mean_c, T* g_quat,
                                           T* g_scale) {
+    (void)mean_c;
     const Mat3<T> rot = quat_to_rotmat(quat);
     const Mat3<T> rot_v = matmul(rot_c, rot);
     const Mat3<T> w = whitening(rot_v, scales);
-    // Total dL/dW.
-    Mat3<T> gw;
-    const T go[3] = {g_o.x, g_o.y, g_o.z}, mu[3] = {mean_c.x, mean_c.y, mean_c.z};
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) gw.m[3 * i + j] = g_w_render[3 * i + j] - go[i] * mu[j];
     const Vec3<T> gm = matTvec(w, g_o);
     g_mean_c = Vec3<T>{-gm.x, -gm.y, -gm.z};
-    // Scales (C.10): dW[i][j]/ds_i = -R_v[j][i] / s_i^2 = -W[i][j] / s_i (no gradient at or below MIN_SCALE).
+    // dL/dR_v[j][i] = dL/dW[i][j] / s_i = sum_k K[i][k] s_k R_v[j][k] / s_i (C.11); scales (C.10), no gradient at
+    // or below MIN_SCALE.
     Mat3<T> g_rot_v;
     for (int i = 0; i < 3; ++i) {
         const T inv_s = T(1) / clamp_scale(scales[i]);
-        T acc = T(0);
         for (int j = 0; j < 3; ++j) {
-            acc += gw.m[3 * i + j] * rot_v.m[3 * j + i];
-            g_rot_v.m[3 * j + i] = gw.m[3 * i + j] * inv_s;
+            T acc = T(0);
+            for (int k = 0; k < 3; ++k) acc += k_render[3 * i + k] * clamp_scale(scales[k]) * rot_v.m[3 * j + k];
+            g_rot_v.m[3 * j + i] = acc * inv_s;
         }
-        g_scale[i] = scales[i] > T(kMinScale) ? -acc * inv_s * inv_s : T(0);
+        g_scale[i] = scales[i] > T(kMinScale) ? -k_render[3 * i + i] * inv_s : T(0);
     }
     // Rotation (C.11-C.14, written for R(q) of a unit quaternion, then projected for |q| != 1).
     const Mat3<T> g = matTmul(rot_c, g_rot_v);  // dL/dR

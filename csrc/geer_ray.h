@@ -169,40 +169,80 @@ GEER_HD L ray_forward_step(RayForward<L>& s, const GaussFrame<T>& g, const Vec3<
 // so dL/do_u = 2 gD (d_hat x m_hat) - gt n d_hat and dL/dd_u = n [2 gD (m_hat x o_u) - gt n o_u
 // - 2 (gD D^2 + gt t*) d_hat], dL/dW = dL/dd_u d^T (C.9). Everything stays O(|o_u|), never |m|^2.
 template <typename T, typename L>
-GEER_HD void pair_response_backward(const PairEval<L>& e, const Vec3<L>& o_u, const Vec3<L>& d, L g_dist_sq,
-                                    L g_t_star, Vec3<L>& g_o, L* g_w /* 9, accumulated */) {
+GEER_HD void pair_response_grads(const PairEval<L>& e, const Vec3<L>& o_u, L g_dist_sq, L g_t_star, Vec3<L>& g_o,
+                                 Vec3<L>& g_du) {
     const L n = e.inv_norm;
     const Vec3<L> d_hat = n * e.d_u;
     g_o = (T(2) * g_dist_sq) * cross(d_hat, e.m_hat) - (g_t_star * n) * d_hat;
-    Vec3<L> g_du = (T(2) * g_dist_sq) * cross(e.m_hat, o_u) - (g_t_star * n) * o_u;
+    g_du = (T(2) * g_dist_sq) * cross(e.m_hat, o_u) - (g_t_star * n) * o_u;
     const typename Lane<L>::Mask unclamped = lane_not(e.clamped);
     if (lane_any(unclamped))
         g_du = lane_select3<L>(unclamped, g_du - (T(2) * (g_dist_sq * e.dist_sq + g_t_star * e.t_star)) * d_hat, g_du);
     g_du = n * g_du;
+}
+
+// The same, with dL/dW = dL/dd_u d^T accumulated into g_w (the per-pair test op, cpu_render.cpp pair_backward).
+template <typename T, typename L>
+GEER_HD void pair_response_backward(const PairEval<L>& e, const Vec3<L>& o_u, const Vec3<L>& d, L g_dist_sq,
+                                    L g_t_star, Vec3<L>& g_o, L* g_w /* 9, accumulated */) {
+    Vec3<L> g_du;
+    pair_response_grads<T>(e, o_u, g_dist_sq, g_t_star, g_o, g_du);
     const L gd[3] = {g_du.x, g_du.y, g_du.z};
     const L dv[3] = {d.x, d.y, d.z};
     for (int i = 0; i < 3; ++i)
         for (int j = 0; j < 3; ++j) g_w[3 * i + j] += gd[i] * dv[j];
 }
 
-// dL/dq, dL/d(depth position) of one kept pair -> dL/d(o_u), dL/dW through the half-line rule.
-// One gradient at every clamp, the rule of subgradients.py (a tie takes the clamped side), as the twin's masks
-// (transmittance.py):
+// The pair's canonical moment K = dL/dA at A = I, A a linear map of the Gaussian's canonical frame (W -> A W):
+// K = dL/dW W^T = dL/dd_u d_u^T + dL/do_u o_u^T, what the preprocess backward turns into the scale and
+// rotation gradients (geer_math.h preprocess_backward_gaussian; docs/cuda.md, "the float32 gap"). Written as
+// the sum above it cancels catastrophically for thin Gaussians (1e-8 scales: both terms ~1e8 |g|, K ~ |g|),
+// so it is evaluated in closed form from the closest point p = d_hat x m_hat of the line (= o_u + t* d_u,
+// no cancellation): q = |p|^2 is a minimum over t, so dq/dA = 2 p p^T (envelope theorem), and
+// dt*/dA = -n (d_hat p^T + p d_hat^T). The camera-centre branch (q = |o_u|^2): 2 o_u o_u^T, no depth term.
+// Lanes with |d_u|^2 clamped at tiny (scales > 1e19) keep the plain sum (no W dependence through n there).
+template <typename T, typename L>
+GEER_HD void pair_canonical_moment(const PairEval<L>& e, const Vec3<L>& o_u, L g_q, L g_depth_t, const Vec3<L>& g_o,
+                                   L* k /* 9, row-major, overwritten */) {
+    const Vec3<L> d_hat = e.inv_norm * e.d_u;
+    const Vec3<L> p = cross(d_hat, e.m_hat);
+    const L two_g = T(2) * g_q, g_t = g_depth_t * e.inv_norm;
+    const L pv[3] = {p.x, p.y, p.z}, dv[3] = {d_hat.x, d_hat.y, d_hat.z}, ov[3] = {o_u.x, o_u.y, o_u.z};
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+            const L front = two_g * pv[i] * pv[j] - g_t * (dv[i] * pv[j] + pv[i] * dv[j]);
+            k[3 * i + j] = lane_select(e.front, front, two_g * ov[i] * ov[j]);
+        }
+    if (lane_any(e.clamped & e.front)) {
+        Vec3<L> g_o_line, g_du;
+        pair_response_grads<T>(e, o_u, g_q, g_depth_t, g_o_line, g_du);
+        const L gd[3] = {g_du.x, g_du.y, g_du.z}, du[3] = {e.d_u.x, e.d_u.y, e.d_u.z};
+        const L go[3] = {g_o.x, g_o.y, g_o.z};
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                k[3 * i + j] = lane_select(e.clamped & e.front, gd[i] * du[j] + go[i] * ov[j], k[3 * i + j]);
+    }
+}
+
+// dL/dq, dL/d(depth position) of one kept pair -> dL/d(o_u) and the canonical moment K through the half-line
+// rule. One gradient at every clamp, the rule of subgradients.py (a tie takes the clamped side), as the twin's
+// masks (transmittance.py):
 //   max(t*, 0)   the t* branch where t* > 0, the camera-centre branch q = |o_u|^2 (no W, no depth
 //                gradient) where t* <= 0. q is C^1 across t* = 0 (both branches: value |o_u|^2,
 //                gradient 2 o_u), so only depth has a kink there, and at the tie it takes the derivative 0.
 //   min(raw, 0.99), the 1/255 skip, the 1e-4 stop: see ray_backward_step.
 template <typename T, typename L>
-GEER_HD void half_line_backward(const PairEval<L>& e, const Vec3<L>& o_u, const Vec3<L>& d, L g_q, L g_depth_t,
-                                Vec3<L>& g_o, L* g_w /* 9, zero on entry */) {
+GEER_HD void half_line_backward(const PairEval<L>& e, const Vec3<L>& o_u, L g_q, L g_depth_t, Vec3<L>& g_o,
+                                L* k /* 9 */) {
     const Vec3<L> g_o_centre = (T(2) * g_q) * o_u;
     if (lane_any(e.front)) {
-        pair_response_backward<T>(e, o_u, d, g_q, g_depth_t, g_o, g_w);
+        Vec3<L> g_du;
+        pair_response_grads<T>(e, o_u, g_q, g_depth_t, g_o, g_du);
         g_o = lane_select3<L>(e.front, g_o, g_o_centre);
-        for (int k = 0; k < 9; ++k) g_w[k] = lane_select(e.front, g_w[k], splat<L>(T(0)));
     } else {
         g_o = g_o_centre;
     }
+    pair_canonical_moment<T>(e, o_u, g_q, g_depth_t, g_o, k);
 }
 
 // ================================================================================ backward: ray
@@ -219,7 +259,7 @@ template <typename L> struct RayBackward {
 
 // Per-pair gradient contributions, to be summed into the Gaussian's buffers.
 template <typename L> struct PairGrad {
-    L w[9];
+    L w[9];  // the canonical moment K = dL/dW W^T (pair_canonical_moment), row-major
     L o[3];
     L rgb[3];
     L opacity;
@@ -266,7 +306,7 @@ GEER_HD typename Lane<L>::Mask ray_backward_step(RayBackward<L>& s, const GaussF
     p.opacity = lane_select(unclamped, g_alpha * e.gauss, zero);
     const L g_q = lane_select(unclamped, T(-0.5) * g_alpha * e.raw, zero);
     Vec3<L> g_o;
-    half_line_backward<T>(e, splat3<L>(g.o), d, g_q, lane_select(e.front, w * s.g_depth, zero), g_o, p.w);
+    half_line_backward<T>(e, splat3<L>(g.o), g_q, lane_select(e.front, w * s.g_depth, zero), g_o, p.w);
     p.o[0] = g_o.x; p.o[1] = g_o.y; p.o[2] = g_o.z;
     return live;
 }

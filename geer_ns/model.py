@@ -55,6 +55,7 @@ from geer_ns.render.normals import render_normals
 from geer_ns.render.pbf import LambdaMode, pbf_lambda_sq
 from geer_ns.render.transforms import view_transform
 from geer_ns.render_guard import RenderGuard, camera_problem, in_viewer_thread, is_viewer_interrupt
+from geer_ns.selftest.sentinel import DEFAULT_EVERY, KernelSentinel, ViewInputs
 
 View = Union[BeapView, NativeView]
 
@@ -85,8 +86,12 @@ class GeerOwnOptions:
     every camera is rendered from the shards' Gaussians it sees (geer_ns/distributed/sharded_render.py)."""
     renderer_backend: Backend = "auto"
     """geer_ns.render backend: auto (CPU tensors: the kernels' math compiled for the CPU, JIT-built once, else
-    the PyTorch renderer, said once; CUDA tensors: the PyTorch renderer until the kernels are verified on a GPU),
+    the PyTorch renderer, said once; CUDA tensors: the kernels once they passed their self-test on this GPU,
+    docs/cuda.md),
     torch, cuda (opt in to the kernels) or cpu (the compiled CPU build; benchmarks/cpu_training.md)."""
+    kernel_check_every: int = DEFAULT_EVERY
+    """Every this many steps one training view is also rendered by the PyTorch renderer and compared with the
+    compiled renderer; a disagreement switches the run to the PyTorch renderer (0: never; docs/cuda.md)."""
     lambda_mode: LambdaMode = "opacity"
     """PBF extent rule of the renderer (geer_ns.render.pbf)."""
     max_pairs: int = 1 << 22
@@ -149,7 +154,7 @@ OWN_OPTIONS_HELP = (
     "geer's own options: --pipeline.model.renderer-backend {auto,torch,cuda,cpu}, --pipeline.model.lambda-mode "
     "{opacity,paper}, --pipeline.model.strategy {default,mcmc}, --pipeline.model.densify-signal {angular,pixels}, "
     "--pipeline.model.max-gaussians, --pipeline.model.densify-min-pixels, --pipeline.model.prune-unseen, --pipeline.model.distributed {images,gaussians}, "
-    "--pipeline.model.max-pairs, "
+    "--pipeline.model.max-pairs, --pipeline.model.kernel-check-every, "
     "--pipeline.model.central-half-angles-deg, --pipeline.datamanager.supervision, "
     "--pipeline.datamanager.mask-edge-fill, --pipeline.datamanager.images-per-step, --machine.timeout-s; resume "
     "with --load-dir <run>/nerfstudio_models. Splatfacto options "
@@ -252,6 +257,7 @@ class GeerModel(SplatfactoModel):
         self.display_gaussians: Optional[Dict[str, Tensor]] = None  # what eval / the viewer render, if not these
         self.loaded_images_per_step = self.config.images_per_step_total  # of the checkpoint loaded, if any
         self.render_guard = RenderGuard()
+        self.sentinel = KernelSentinel(self.config.kernel_check_every, say=lambda line: CONSOLE.print(line, markup=False))
 
     def _initial_means(self) -> torch.nn.Parameter:
         if self.seed_points is not None and not self.config.random_init:
@@ -396,12 +402,17 @@ class GeerModel(SplatfactoModel):
             means = probe.displace(means, viewmat)
         colors, sh_degree = self._colors(params)
         announce_backend(self.config.renderer_backend, means.device, say=CONSOLE.log)
+        grid = view.rays.to(means.device)
         out = render(
-            means, params["quats"], scales, opacities, colors, viewmat, view.rays.to(means.device),
+            means, params["quats"], scales, opacities, colors, viewmat, grid,
             sh_degree=sh_degree, background=background, lambda_mode=self.config.lambda_mode,
             max_pairs=self.config.max_pairs, backend=self.config.renderer_backend,
             **({} if probe is None or probe.absgrad is None else {"absgrad": (probe.signal.lateral, probe.absgrad)}),
         )
+        if probe is not None and self.sentinel.check(self.step, self.config.renderer_backend, ViewInputs(
+                means, params["quats"], scales, opacities, colors, viewmat, grid, sh_degree, background,
+                self.config.lambda_mode)):
+            self.config.renderer_backend = "torch"  # every later render of this run, sharded engines' too
         if probe is not None:
             radius = pixels = None
             if probe.signal.radius is None:  # pixel_signal: the PBF's extent in pixels (of the image's larger side)

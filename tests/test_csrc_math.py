@@ -252,8 +252,10 @@ def test_preprocess_backward_matches_autograd(ops, degree):
         assert bool((rgb == 0).any()), "the clamp at 0 is not exercised"
         loss = loss + (g_rgb * rgb).sum()
     ref = torch.autograd.grad(loss, leaves, allow_unused=True)
+    # The kernels take the render's canonical moment K = (total dL/dW) W^T (csrc/geer_ray.h pair_canonical_moment).
+    k = torch.einsum("nij,nkj->nik", g_w - g_o[:, :, None] * means_c.detach()[:, None, :], w.detach())
     ours = ops.preprocess_backward(means_c.detach(), quats, scales, sh if degree >= 0 else sh[:, :0], means - cam,
-                                   rot_c.contiguous(), degree, g_w, g_o, g_rgb)
+                                   rot_c.contiguous(), degree, k.contiguous(), g_o, g_rgb)
     for name, a, b in zip(("means_c", "quats", "scales", "sh", "sh_dirs"), ours, ref):
         if b is None:
             assert degree < 1 or name != "sh_dirs"
@@ -471,8 +473,7 @@ def test_zero_gaussians_and_empty_lists(ops):
 
 # ------------------------------------------------------------------------------------------ module
 def test_cuda_backend_is_inert_without_a_gpu():
-    """Importable anywhere; auto must not pick it before a GPU session verified the kernels."""
-    assert cuda_backend.CUDA_VERIFIED is False
+    """Importable anywhere, building nothing without a GPU."""
     if not torch.cuda.is_available():
         assert cuda_backend.extension_available() is False  # returns at once, builds nothing
 

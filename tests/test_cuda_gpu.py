@@ -4,8 +4,8 @@ tests/test_csrc_math.py already checks the kernels' math on the CPU; this adds w
 the JIT build, shared-memory batches (lists longer than one batch), warp padding (tile sizes that are not
 a multiple of 32 rays), both render builds (blocks up to 256 and up to 1024 threads, in both precisions),
 warp-reduced atomics (max_weight's and absgrad's too), the radix sort and tile ranges, launch errors raised at
-their own call, and float64 backward repeatability. When all of it passes on a GPU, set cuda_backend.CUDA_VERIFIED = True so that
-backend="auto" may choose the kernels.
+their own call, and float64 backward repeatability. backend="auto" chooses the kernels on a GPU where their
+self-test passed (geer_ns/render/verdict.py, docs/cuda.md).
 """
 
 from __future__ import annotations

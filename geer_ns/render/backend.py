@@ -2,20 +2,24 @@
 
 `auto` never fails. CPU tensors: `cpu`, the kernels' code compiled for the CPU (csrc/cpu_ops.cpp, JIT-built
 on first use, multi-threaded, analytic backward, checked against the twin by tests/test_csrc_math.py;
-benchmarks/cpu_training.md). CUDA tensors: `cuda` once the kernels have been verified on a GPU
-(`cuda_backend.CUDA_VERIFIED`) and the extension builds. When auto cannot use them (a failed build, camera
-pose gradients, which only the twin computes) it renders with the PyTorch twin and says so, once. An explicit
-`cpu` or `cuda` request that cannot be honoured is an error, never a silent fallback.
+benchmarks/cpu_training.md). CUDA tensors: `cuda` when the kernels passed their self-test on this GPU
+(verdict.py: run once per GPU, driver, torch and build, in a child process, recorded beside the extension
+cache). When auto cannot use them (a failed self-test or build, camera pose gradients, which only the twin
+computes) it renders with the PyTorch twin and says so in one line, once. GEER_VERIFY_CPU_BUILD=1 makes auto
+ask the same of the CPU build. An explicit `cpu` or `cuda` request that cannot be honoured is an error, never
+a silent fallback; an explicit request runs no self-test.
 """
 
 from __future__ import annotations
 
+import os
+import sys
 import warnings
 from typing import Literal
 
 import torch
 
-from . import cuda_backend, extensions
+from . import extensions, verdict
 
 Backend = Literal["auto", "torch", "cuda", "cpu"]
 
@@ -33,6 +37,24 @@ def _warn_once(message: str) -> None:
     if message not in _warned:
         _warned.add(message)
         warnings.warn(message, RuntimeWarning, stacklevel=3)
+
+
+def _say_once(message: str) -> None:
+    """One line on stderr, once per process (the self-test fallback: why, and where the report is)."""
+    if message not in _warned:
+        _warned.add(message)
+        print(message, file=sys.stderr, flush=True)
+
+
+def kernels_verified(backend: Literal["cuda", "cpu"], device: torch.device) -> bool:
+    """Whether auto may render on `device` with `backend`: its self-test verdict passed (run now, in a child
+    process, when none is recorded). Otherwise says once why, and where the report is."""
+    found = verdict.verify(backend, device)
+    if not found.passed:
+        what = "CUDA kernels" if backend == "cuda" else "compiled CPU renderer"
+        _say_once(f"geer: not using the {what} on {device}: {found.reason}; rendering with the PyTorch renderer "
+                  f"(report: {found.report})")
+    return found.passed
 
 
 def cpu_ops_available() -> bool:
@@ -70,17 +92,18 @@ def resolve_backend(backend: Backend, device: torch.device, pose_grad: bool = Fa
             return "torch"
         if device.type == "cpu":
             if cpu_ops_available():
-                return "cpu"
+                verify = os.environ.get("GEER_VERIFY_CPU_BUILD", "") not in ("", "0")
+                return "cpu" if not verify or kernels_verified("cpu", device) else "torch"
             why = extensions.build_error("geer_cpu_ops")
             _warn_once(f"geer: csrc/cpu_ops.cpp could not be built or loaded ({why}); "
                        "rendering with the much slower PyTorch renderer")
             return "torch"
-        # Kernels not yet verified on a GPU are opt-in (backend="cuda"); auto never triggers a build for them.
         if device.type != "cuda":
             return "torch"
-        if not cuda_backend.CUDA_VERIFIED:
-            _warn_once("geer: CUDA tensors are rendered by the PyTorch renderer: the CUDA kernels are not yet "
-                       "verified on a GPU (pass backend='cuda' to use them anyway)")
+        if not torch.cuda.is_available():
+            _warn_once("geer: CUDA tensors but no usable CUDA device; rendering with the PyTorch renderer")
+            return "torch"
+        if not kernels_verified("cuda", device):
             return "torch"
         if not cuda_extension_available():
             _warn_once("geer: the CUDA extension could not be built or loaded; rendering with the PyTorch renderer")

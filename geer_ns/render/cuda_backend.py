@@ -6,7 +6,9 @@
     backward                    csrc/render.cu (per ray), csrc/preprocess_backward.cu (per Gaussian)
 
 Two autograd Functions carry the paper's two-stage backward (App. C.2): `_Rasterize` (RenderCUDA: per-pair
-gradients of W, o_u, colour and opacity) and `_Preprocess` (PreprocessCUDA: to means, quats, scales, SH).
+gradients of o_u, colour and opacity, and of W as the canonical moment K = dL/dW W^T, which stays accurate for
+thin Gaussians in float32: csrc/geer_ray.h pair_canonical_moment) and `_Preprocess` (PreprocessCUDA: to means,
+quats, scales, SH; it takes K in `whiten`'s gradient slot, the only consumer of that slot).
 The view transform means_c = R_c mu + t stays in PyTorch so that `means_c.grad` is the same densification
 signal as the twin's. Background and expected depth are PyTorch ops on the kernel outputs.
 
@@ -48,12 +50,6 @@ from .outputs import RenderOutput, images
 from .pbf import PBF, LambdaMode
 from .raygrid import RayGrid
 from .transforms import camera_offsets, view_transform
-
-# The kernels compile and their math is checked on the CPU (tests/test_csrc_math.py), but they have not yet
-# run on a GPU against the twin. backend="auto" must keep choosing the PyTorch twin while this is False; a
-# GPU session sets it to True once tests/test_cuda_gpu.py passes there.
-CUDA_VERIFIED = False
-
 
 # ----------------------------------------------------------------------------------------- autograd
 class _Preprocess(torch.autograd.Function):

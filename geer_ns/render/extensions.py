@@ -12,7 +12,8 @@ a finished build takes the same lock, so it never imports a module being written
 starts (it takes a minute or more) and when it ends, with its time.
 
 Folders: $GEER_EXT_DIR, else <repo>/.cache/geer_ext (git-ignored), one `<name>_<key>` per configuration; old
-ones can be deleted at any time. TORCH_CUDA_ARCH_LIST defaults to "9.0". Importing this module builds nothing.
+ones can be deleted at any time. TORCH_CUDA_ARCH_LIST defaults to the first GPU's compute capability ("9.0"
+without one). Importing this module builds nothing.
 """
 
 from __future__ import annotations
@@ -79,6 +80,29 @@ def build_key(sources: Sequence[Path], include_dir: Path, cflags: Sequence[str],
     return digest.hexdigest()[:16]
 
 
+def default_cuda_arch() -> str:
+    """The compute capability to build for when TORCH_CUDA_ARCH_LIST is unset: the first GPU's, so that the
+    kernels load on the GPU at hand (an sm_90 build has no kernel image for an sm_89 card); "9.0" without one."""
+    if torch.cuda.is_available():
+        major, minor = torch.cuda.get_device_capability(0)
+        return f"{major}.{minor}"
+    return "9.0"
+
+
+def _cuda_cflags(cuda: bool) -> list[str]:
+    return ["-O3", "-lineinfo"] if cuda else []  # no --use_fast_math: round like the twin
+
+
+def configuration_key(name: str) -> str:
+    """The build key of extension `name` ("geer_cuda" or "geer_cpu_ops") as this process would build it,
+    without building anything: what a self-test verdict is recorded for (verdict.py)."""
+    cuda = name == "geer_cuda"
+    if cuda:
+        os.environ.setdefault("TORCH_CUDA_ARCH_LIST", default_cuda_arch())
+    sources = [CSRC / s for s in (_CUDA_SOURCES if cuda else _CPU_SOURCES)]
+    return build_key(sources, CSRC, cpu_cflags(), _cuda_cflags(cuda), cuda)
+
+
 def _say(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
@@ -115,7 +139,7 @@ def build_and_load(name: str, sources: Sequence[Path], *, cuda: bool, cflags: Se
     folder holds no build yet (said before and after). Not memoised: see _load."""
     sources = [Path(s) for s in sources]
     include_dir = sources[0].parent if include_dir is None else include_dir
-    cuda_cflags = ["-O3", "-lineinfo"] if cuda else []  # no --use_fast_math: round like the twin
+    cuda_cflags = _cuda_cflags(cuda)
     module_name = f"{name}_{build_key(sources, include_dir, cflags, cuda_cflags, cuda)}"
     folder = build_root() / module_name
     folder.mkdir(parents=True, exist_ok=True)
@@ -148,7 +172,7 @@ def _load(name: str, sources: tuple[str, ...], cuda: bool, verbose: bool) -> Mod
         if name in _errors:
             raise RuntimeError(f"building {name} failed earlier in this process") from _errors[name]
         if cuda:
-            os.environ.setdefault("TORCH_CUDA_ARCH_LIST", "9.0")
+            os.environ.setdefault("TORCH_CUDA_ARCH_LIST", default_cuda_arch())
         try:
             module = build_and_load(name, [CSRC / s for s in sources], cuda=cuda, cflags=cpu_cflags(),
                                     include_dir=CSRC, verbose=verbose)

@@ -162,7 +162,8 @@ def render_backward(whiten: Tensor, o_u: Tensor, rgb: Tensor, opacities: Tensor,
                     ray_bounds: Tensor, warp_bounds: Tensor, valid: Tensor, ids: Tensor, ranges: Tensor, height: int,
                     width: int, tile_size: int, t_final: Tensor, n_contrib: Tensor, blended_lanes: Tensor,
                     g_rgb: Tensor, g_depth: Tensor, g_acc: Tensor, absgrad_rows: Tensor) -> T2:
-    """-> (gradient rows [N,16]: W row-major, o_u, colour, opacity; absgrad [N,2], empty when absgrad_rows is)."""
+    """-> (gradient rows [N,16]: the canonical moment K = dL/dW W^T row-major (what the preprocess backward takes in
+    W's slot), o_u, colour, opacity; absgrad [N,2], empty when absgrad_rows is)."""
     _one_device("render_backward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
                 ranges, t_final, n_contrib, g_rgb, g_depth, g_acc, absgrad_rows)
     return tuple(_build(whiten).render_backward(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds,
