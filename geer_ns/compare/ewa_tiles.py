@@ -19,6 +19,7 @@ stays bounded by one chunk.
 
 from __future__ import annotations
 
+import functools
 from typing import Optional, Tuple
 
 import torch
@@ -148,11 +149,13 @@ def rasterize_to_pixels(means2d: Tensor, conics: Tensor, colors: Tensor, opaciti
         t_in_cam = tiles % (th * tw)
         origin = torch.stack([t_in_cam % tw, t_in_cam // tw], dim=-1).to(dtype) * tile_size  # [B, 2]
         pixels = origin[:, None, :] + local[None]
-        args = (*flat, ids, valid, pixels, abs_sum)
+        # abs_sum is bound, not an argument: the checkpoint would refuse it once an earlier chunk's backward
+        # has added into it
+        blend = functools.partial(_blend_tiles, abs_sum=abs_sum)
         if torch.is_grad_enabled() and any(t.requires_grad for t in flat):
-            rgb, t_final = checkpoint(_blend_tiles, *args, use_reentrant=False)
+            rgb, t_final = checkpoint(blend, *flat, ids, valid, pixels, use_reentrant=False)
         else:
-            rgb, t_final = _blend_tiles(*args)
+            rgb, t_final = blend(*flat, ids, valid, pixels)
         sums.append(rgb)
         transmittance.append(t_final)
         done.append(tiles)
