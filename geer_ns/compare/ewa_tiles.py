@@ -108,12 +108,14 @@ def _blend_tiles(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Ten
 def rasterize_to_pixels(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, radii: Tensor,
                         depths: Tensor, width: int, height: int, tile_size: int = 16,
                         backgrounds: Optional[Tensor] = None, absgrad: bool = False,
-                        max_pairs: int = 1 << 21) -> Tuple[Tensor, Tensor]:
+                        max_pairs: int = 1 << 21, recompute_above: int = 1 << 22) -> Tuple[Tensor, Tensor]:
     """gsplat's classic rasterization of projected Gaussians (see the module docstring).
 
     Args:
         means2d [C, N, 2], conics [C, N, 3], colors [C, N, D], opacities [C, N], radii [C, N], depths [C, N];
-        backgrounds [C, D] or None; absgrad: fill `means2d.absgrad` [C, N, 2] in the backward pass.
+        backgrounds [C, D] or None; absgrad: fill `means2d.absgrad` [C, N, 2] in the backward pass;
+        max_pairs: (pixel, Gaussian) pairs blended at once; recompute_above: with more pairs than this in all,
+        each chunk is recomputed in the backward pass instead of kept (memory against time).
     Returns:
         (render_colors [C, H, W, D], render_alphas [C, H, W, 1]).
     """
@@ -135,6 +137,8 @@ def rasterize_to_pixels(means2d: Tensor, conics: Tensor, colors: Tensor, opaciti
     local = torch.stack([ix.reshape(-1), iy.reshape(-1)], dim=-1).to(dtype) + 0.5
     P = tile_size * tile_size
     tile_order = torch.argsort(counts, descending=True, stable=True)
+    recompute = torch.is_grad_enabled() and any(t.requires_grad for t in flat) and \
+        P * int(counts.sum()) > recompute_above
     sums, transmittance, done = [], [], []
     i = 0
     while i < n_tiles:
@@ -152,7 +156,7 @@ def rasterize_to_pixels(means2d: Tensor, conics: Tensor, colors: Tensor, opaciti
         # abs_sum is bound, not an argument: the checkpoint would refuse it once an earlier chunk's backward
         # has added into it
         blend = functools.partial(_blend_tiles, abs_sum=abs_sum)
-        if torch.is_grad_enabled() and any(t.requires_grad for t in flat):
+        if recompute:
             rgb, t_final = checkpoint(blend, *flat, ids, valid, pixels, use_reentrant=False)
         else:
             rgb, t_final = blend(*flat, ids, valid, pixels)
