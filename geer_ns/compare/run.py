@@ -46,7 +46,7 @@ def train(method: Method, steps: int, out_dir: Path):
     config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = 0
     config.steps_per_save = 10**9
     config.viewer.quit_on_train_completion = True
-    for key, value in schedule(steps).items():
+    for key, value in schedule(steps, method.train_images).items():
         setattr(config.pipeline.model, key, value)
     for optimizer in config.optimizers.values():  # the schedulers' horizon is the run's
         scheduler = optimizer.get("scheduler")
