@@ -1,0 +1,95 @@
+"""The methods geer-compare trains: each one's nerfstudio config, the capture it trains on and the camera its
+test renders are in (to be brought back to the capture's own pixels)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+from geer_ns.compare.capture import Capture, write_resampled
+from geer_ns.compare.resample import equidistant_like, widest_pinhole
+
+METHODS = ("geer", "geer-mcmc", "splatfacto", "splatfacto-pinhole", "splatfacto-fisheye")
+DEFAULT_METHODS = ("geer", "splatfacto", "splatfacto-pinhole", "splatfacto-fisheye")
+
+
+@dataclass
+class Method:
+    name: str
+    description: str
+    data: Path  # the transforms.json it trains on
+    config: object  # nerfstudio TrainerConfig
+    render_camera: Optional[str]  # None: its test renders are the capture's own pixels; "pinhole" / "equidistant"
+    train_images: int = 1  # for the schedule: DefaultStrategy pauses refinement for one pass after a reset
+
+
+def schedule(steps: int, train_images: int) -> Dict[str, object]:
+    """The model options every method gets (splatfacto's names; geer's config has the same ones).
+
+    From 30000 steps on: splatfacto's own schedule. Shorter runs: full resolution from the start, refinement
+    every steps/30 (10 to 100) steps, from three refinements in but not before the strategies' pause after the
+    start (one pass over the training images and one refinement interval: splatfacto's and geer's
+    `pause_refine_after_reset`), splitting until half way or three refinements after the first."""
+    if steps >= 30000:
+        return {}
+    every = max(10, min(100, steps // 30))
+    warmup = max(3 * every, train_images + every)
+    return {"num_downscales": 0, "refine_every": every, "warmup_length": warmup,
+            "stop_split_at": max(steps // 2, warmup + 3 * every + 1), "reset_alpha_every": 30}
+
+
+def train_images(capture: Capture) -> int:
+    """The capture's training images: its train_filenames, else nerfstudio's default 90% of the frames."""
+    listed = capture.meta.get("train_filenames")
+    return len(listed) if listed else max(1, round(0.9 * len(capture.meta.get("frames", []))))
+
+
+def plan(capture: Capture, names: Tuple[str, ...], work: Path, pinhole_fov_deg: float) -> Tuple[List[Method], Dict[str, str]]:
+    """The methods to train on this capture, and the ones that do not apply with the reason."""
+    import torch
+
+    from geer_ns.compare.splatfacto import splatfacto_trainer_config
+    from geer_ns.config import geer_trainer_config
+    from geer_ns.model import GeerModelConfig
+
+    unknown = [n for n in names if n not in METHODS]
+    if unknown:
+        raise ValueError(f"geer-compare: unknown method(s) {unknown}; choose from {list(METHODS)}")
+    gpu = torch.cuda.is_available()
+    raster = "gsplat's CUDA kernels" if gpu else "gsplat's EWA rasterization on the CPU (geer_ns.compare.ewa_cpu)"
+    distorted = any(float(capture.meta.get(k, 0.0)) != 0.0 for k in ("k1", "k2", "k3", "k4", "p1", "p2"))
+    methods, skipped = [], {}
+    for name in names:
+        if name == "geer":
+            methods.append(Method(name, "3DGEER, exact rendering of the capture's own camera", capture.transforms,
+                                  geer_trainer_config("geer", GeerModelConfig()), None))
+        elif name == "geer-mcmc":
+            methods.append(Method(name, "3DGEER with gsplat's MCMCStrategy", capture.transforms,
+                                  geer_trainer_config("geer-mcmc", GeerModelConfig(strategy="mcmc")), None))
+        elif name == "splatfacto":
+            what = ("nerfstudio undistorts the images to a cropped pinhole (cv2, balance 0)" if distorted else
+                    "nerfstudio passes the images through and splatfacto renders them as a pinhole"
+                    if capture.is_fisheye else "pinhole images")
+            methods.append(Method(name, f"splatfacto as shipped: {what}; {raster}", capture.transforms,
+                                  splatfacto_trainer_config("pinhole"), "pinhole" if distorted else None))
+        elif not capture.is_fisheye:
+            skipped[name] = "the capture is not a fisheye"
+        elif name == "splatfacto-pinhole":
+            target = widest_pinhole(capture.camera, pinhole_fov_deg)
+            data = write_resampled(capture, target, "OPENCV", work / "data" / f"pinhole_{pinhole_fov_deg:g}deg")
+            methods.append(Method(name, f"splatfacto on the capture undistorted to a {pinhole_fov_deg:g}-degree pinhole "
+                                  f"(same poses and splits); {raster}", data, splatfacto_trainer_config("pinhole"),
+                                  "pinhole"))
+        elif name == "splatfacto-fisheye":
+            data, render = capture.transforms, None
+            if not capture.is_equidistant:
+                data = write_resampled(capture, equidistant_like(capture.camera), "OPENCV_FISHEYE",
+                                       work / "data" / "equidistant")
+                render = "equidistant"
+            methods.append(Method(name, "splatfacto with gsplat's fisheye EWA projection (camera_model=\"fisheye\", "
+                                  f"equidistant; FisheyeGS-like); {raster}", data,
+                                  splatfacto_trainer_config("fisheye"), render))
+    for method in methods:
+        method.train_images = train_images(capture)
+    return methods, skipped

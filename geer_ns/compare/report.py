@@ -1,0 +1,123 @@
+"""geer-compare's outputs: one table (markdown and JSON, with the protocol) and one picture (PNG)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Dict, List
+
+import cv2
+import numpy as np
+import torch
+
+from geer_ns.compare.capture import Capture
+from geer_ns.compare.resample import to_uint8
+from geer_ns.compare.run import Result
+
+COLUMNS = (  # (header, key in Result.metrics or attribute, format)
+    ("PSNR (full FoV)", "psnr", "{:.2f}"),
+    ("SSIM", "ssim", "{:.3f}"),
+    ("LPIPS", "lpips", "{:.3f}"),
+    ("central PSNR", "central_psnr", "{:.2f}"),
+    ("peripheral PSNR", "peripheral_psnr", "{:.2f}"),
+    ("covered", "covered", "{:.1%}"),
+    ("PSNR (covered px)", "covered_psnr", "{:.2f}"),
+)
+
+
+def protocol(capture: Capture, central_half_angle_deg: float, steps: int, lpips_reason: str) -> List[str]:
+    cam = capture.camera
+    return [
+        f"Capture: `{capture.transforms}`, {capture.meta.get('camera_model', 'OPENCV')} {cam.width}x{cam.height}, "
+        f"{len(capture.views)} test views (the file's test split).",
+        f"Every method trains {steps} steps with nerfstudio's trainer on the same training images, poses and seed, "
+        "with the same schedule options (docs/compare.md), and is scored on the same test images at the capture's "
+        "own camera and pixels.",
+        "Scored pixels: the capture's valid pixels (inside the camera model's domain, the image mask and the fisheye "
+        "crop circle), the same set for every method. Full-FoV PSNR / SSIM / LPIPS use all of them (SSIM / LPIPS "
+        "with the pixels outside set to the ground truth).",
+        "A method that renders another camera (the undistorted pinhole) has its render resampled by rays to the "
+        "capture's pixels; the valid pixels it cannot see (lost periphery) keep its background colour and count "
+        "in the full-FoV metrics; `covered` is the share of valid pixels it sees, `PSNR (covered px)` its PSNR on "
+        "those alone.",
+        f"Central region: rays within +-{central_half_angle_deg:g} degrees of the optical axis horizontally and "
+        "vertically (paper App. G rectangle); peripheral: the other valid pixels.",
+        "Training time: wall time of nerfstudio's training loop; render time: median wall time of one test view "
+        "(including, for splatfacto without CUDA, the PyTorch EWA rasterizer: not a GPU speed).",
+        f"LPIPS: {lpips_reason}.",
+    ]
+
+
+def _cell(value, fmt: str) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "n/a"
+    return fmt.format(value)
+
+
+def markdown(results: List[Result], skipped: Dict[str, str], lines: List[str]) -> str:
+    header = ["method", *[c[0] for c in COLUMNS], "train s", "Gaussians", "render ms/view", "rasterizer"]
+    rows = ["| " + " | ".join(header) + " |", "| --- |" + " ---: |" * (len(header) - 2) + " --- |"]
+    for r in results:
+        cells = [_cell(r.metrics.get(key), fmt) for _, key, fmt in COLUMNS]
+        rows.append(f"| {r.name} | " + " | ".join(cells) + f" | {r.train_seconds:.1f} | {r.gaussians:,} | "
+                    f"{r.render_ms:.1f} | {r.rasterizer} |")
+    out = ["## geer-compare", "", *rows, "", "Methods:", ""]
+    out += [f"- **{r.name}**: {r.description}" for r in results]
+    out += [f"- {name}: not run ({why})" for name, why in skipped.items()]
+    out += ["", "Protocol:", ""] + [f"- {line}" for line in lines]
+    return "\n".join(out) + "\n"
+
+
+def as_json(results: List[Result], skipped: Dict[str, str], lines: List[str]) -> dict:
+    return {
+        "protocol": lines,
+        "skipped": skipped,
+        "results": [{"method": r.name, "description": r.description, "rasterizer": r.rasterizer, "steps": r.steps,
+                     "train_seconds": r.train_seconds, "gaussians": r.gaussians, "render_ms": r.render_ms,
+                     **{k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in r.metrics.items()}}
+                    for r in results],
+    }
+
+
+def _label(image: np.ndarray, text: str, scale: int) -> np.ndarray:
+    """The image enlarged `scale` times (nearest), under a white strip with `text`."""
+    if scale > 1:
+        image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    strip = np.full((16, image.shape[1], 3), 255, np.uint8)
+    cv2.putText(strip, text[: max(4, image.shape[1] // 7)], (2, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1,
+                cv2.LINE_AA)
+    return np.concatenate([strip, image], axis=0)
+
+
+def _error_map(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor) -> np.ndarray:
+    """Mean absolute error per pixel, x4, as a colour map (black outside the valid pixels)."""
+    err = ((pred - gt).abs().mean(-1) * 4.0).clamp(0, 1)
+    coloured = cv2.applyColorMap(to_uint8(err), cv2.COLORMAP_INFERNO)[..., ::-1]
+    return np.where(valid.numpy()[..., None], coloured, 0).astype(np.uint8)
+
+
+def picture(capture: Capture, results: List[Result], path: Path, views: int = 3) -> Path:
+    """Per test view: ground truth then each method's render (top), each method's error map (below)."""
+    blocks = []
+    scale = max(1, 200 // capture.camera.height)
+    for i, view in enumerate(capture.views[:views]):
+        gt = to_uint8(view.image)
+        top = [_label(gt, f"GT {view.name}", scale)] + [_label(to_uint8(r.renders[i]), r.name, scale)
+                                                        for r in results]
+        bottom = [_label(np.zeros_like(gt), "|error| x4", scale)] + [
+            _label(_error_map(r.renders[i], view.image, view.valid), f"{r.name} error", scale) for r in results]
+        blocks.append(np.concatenate([np.concatenate(top, axis=1), np.concatenate(bottom, axis=1)], axis=0))
+    image = np.concatenate(blocks, axis=0)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    return path
+
+
+def write(out_dir: Path, capture: Capture, results: List[Result], skipped: Dict[str, str], lines: List[str]) -> str:
+    """compare.md, compare.json and compare.png in out_dir; returns the markdown."""
+    text = markdown(results, skipped, lines)
+    (out_dir / "compare.md").write_text(text)
+    (out_dir / "compare.json").write_text(json.dumps(as_json(results, skipped, lines), indent=1) + "\n")
+    picture(capture, results, out_dir / "compare.png")
+    return text
