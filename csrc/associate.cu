@@ -15,7 +15,11 @@
 namespace geer {
 
 template <typename T> __device__ __forceinline__ PyramidNodes<T> pyramid_nodes(const AssociateArgs<T>& a) {
-    return PyramidNodes<T>{a.node_bounds, a.node_active};
+    return PyramidNodes<T>{a.node_bounds, a.node_active, a.tile_cones};
+}
+
+template <typename T> __device__ __forceinline__ const T* gauss_cone(const AssociateArgs<T>& a, int i) {
+    return a.gauss_cones ? a.gauss_cones + kGaussConeValues * i : nullptr;
 }
 
 template <typename T>
@@ -25,7 +29,7 @@ __global__ void __launch_bounds__(kThreads) count_tiles_kernel(const AssociateAr
     const TilePyramid pyr = make_tile_pyramid(a.tiles_x, a.tiles_y);
     TileBox box;
     int n_tests;
-    counts[i] = count_overlapping_tiles(a.bounds + 4 * i, a.alive[i] != 0, pyr, pyramid_nodes(a), &n_tests, &box);
+    counts[i] = count_overlapping_tiles(a.bounds + 4 * i, gauss_cone(a, i), a.alive[i] != 0, pyr, pyramid_nodes(a), &n_tests, &box);
     boxes[i] = pack_box(box);
     tests[i] = n_tests;
 }
@@ -37,7 +41,7 @@ __global__ void __launch_bounds__(kThreads) emit_pairs_kernel(const AssociateArg
     if (i >= a.n) return;
     int64_t out = offsets[i];
     const uint32_t order = uint32_t(a.order[i]);
-    tests[i] += emit_overlapping_tiles(a.bounds + 4 * i, unpack_box(boxes[i]), a.tiles_x, pyramid_nodes(a),
+    tests[i] += emit_overlapping_tiles(a.bounds + 4 * i, gauss_cone(a, i), unpack_box(boxes[i]), a.tiles_x, pyramid_nodes(a),
                                        [&](int tile) {
                                            keys[out] = pair_key(tile, order);
                                            ids[out] = i;

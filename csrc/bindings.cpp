@@ -108,7 +108,8 @@ std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats,
 // ------------------------------------------------------------------------------------ stage 2
 // -> (ids sorted by (tile, depth order), ranges [T,2], counts [N] tiles per Gaussian, tests [N] tile tests).
 std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tensor order, at::Tensor node_bounds,
-                                  at::Tensor node_active, int64_t tiles_x, int64_t tiles_y) {
+                                  at::Tensor node_active, int64_t tiles_x, int64_t tiles_y, at::Tensor gauss_cones,
+                                  at::Tensor tile_cones) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(bounds));
     check_float(bounds, bounds, "bounds");
     check_kind(alive, at::kBool, "alive");
@@ -117,6 +118,14 @@ std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tenso
     check_kind(node_active, at::kBool, "node_active");
     TORCH_CHECK(tiles_x < (1 << 16) && tiles_y < (1 << 16), "geer: at most 65535 tiles along an axis");
     const int64_t n = bounds.size(0), n_tiles = tiles_x * tiles_y;
+    // Empty cones: the box test alone (the association before the cone test).
+    const bool cones = gauss_cones.numel() > 0 && tile_cones.numel() > 0;
+    if (cones) {
+        check_float(gauss_cones, bounds, "gauss_cones");
+        check_float(tile_cones, bounds, "tile_cones");
+        TORCH_CHECK(gauss_cones.numel() == geer::kGaussConeValues * n && tile_cones.numel() == geer::kTileConeValues * n_tiles,
+                    "geer: gauss_cones must be [N,9] and tile_cones [tiles,10]");
+    }
     TORCH_CHECK(node_bounds.size(0) == geer::make_tile_pyramid(int(tiles_x), int(tiles_y)).n_nodes &&
                     node_active.size(0) == node_bounds.size(0),
                 "geer: node_bounds / node_active must hold the tile pyramid of a ", tiles_x, " x ", tiles_y, " grid");
@@ -133,6 +142,8 @@ std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tenso
         a.order = cptr<int32_t>(order);
         a.node_bounds = cptr<T>(node_bounds);
         a.node_active = bptr(node_active);
+        a.gauss_cones = cones ? cptr<T>(gauss_cones) : nullptr;
+        a.tile_cones = cones ? cptr<T>(tile_cones) : nullptr;
         a.tiles_x = int(tiles_x);
         a.tiles_y = int(tiles_y);
         auto boxes = at::empty({n}, bounds.options().dtype(at::kLong));

@@ -74,9 +74,17 @@ std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats,
 // then the pairs in key order (the radix sort's result, reached by bucketing: see below) and the ranges.
 // -> (ids, ranges [T,2], counts [N] tiles per Gaussian, tests [N] tile tests of both passes).
 std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tensor order, at::Tensor node_bounds,
-                                  at::Tensor node_active, int64_t tiles_x, int64_t tiles_y) {
+                                  at::Tensor node_active, int64_t tiles_x, int64_t tiles_y, at::Tensor gauss_cones,
+                                  at::Tensor tile_cones) {
     bounds = cpu(bounds); alive = cpu(alive); order = cpu(order).to(at::kInt); node_bounds = cpu(node_bounds);
-    node_active = cpu(node_active);
+    node_active = cpu(node_active); gauss_cones = cpu(gauss_cones); tile_cones = cpu(tile_cones);
+    // Empty cones: the box test alone (the association before the cone test).
+    const bool cones = gauss_cones.numel() > 0 && tile_cones.numel() > 0;
+    TORCH_CHECK(!cones || (gauss_cones.numel() == geer::kGaussConeValues * bounds.size(0) &&
+                           tile_cones.numel() == geer::kTileConeValues * tiles_x * tiles_y &&
+                           gauss_cones.scalar_type() == bounds.scalar_type() &&
+                           tile_cones.scalar_type() == bounds.scalar_type()),
+                "geer cpu_ops: gauss_cones must be [N,9] and tile_cones [tiles,10], in the bounds' dtype");
     TORCH_CHECK(tiles_x < (1 << 16) && tiles_y < (1 << 16), "geer cpu_ops: at most 65535 tiles along an axis");
     const geer::TilePyramid pyr = geer::make_tile_pyramid(int(tiles_x), int(tiles_y));
     TORCH_CHECK(node_bounds.size(0) == pyr.n_nodes && node_active.size(0) == pyr.n_nodes,
@@ -91,11 +99,12 @@ std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tenso
     std::vector<int32_t> pair_tile, pair_gid;
     dispatch<int>(bounds, [&](auto tag) {
         using T = decltype(tag);
-        const geer::PyramidNodes<T> nodes{ptr<T>(node_bounds), bptr(node_active)};
+        const geer::PyramidNodes<T> nodes{ptr<T>(node_bounds), bptr(node_active), cones ? ptr<T>(tile_cones) : nullptr};
+        auto gauss_cone = [&](int64_t i) { return cones ? ptr<T>(gauss_cones) + geer::kGaussConeValues * i : nullptr; };
         parallel(n, kGaussGrain, [&](int64_t i) {
             geer::TileBox box;
             int t;
-            cnt[i] = geer::count_overlapping_tiles(ptr<T>(bounds) + 4 * i, bptr(alive)[i] != 0, pyr, nodes, &t, &box);
+            cnt[i] = geer::count_overlapping_tiles(ptr<T>(bounds) + 4 * i, gauss_cone(i), bptr(alive)[i] != 0, pyr, nodes, &t, &box);
             boxes[i] = geer::pack_box(box);
             tst[i] = t;
         });
@@ -105,7 +114,7 @@ std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tenso
         pair_gid.resize(offsets[n]);
         parallel(n, kGaussGrain, [&](int64_t i) {
             int64_t out = offsets[i];
-            tst[i] += geer::emit_overlapping_tiles(ptr<T>(bounds) + 4 * i, geer::unpack_box(boxes[i]), int(tiles_x),
+            tst[i] += geer::emit_overlapping_tiles(ptr<T>(bounds) + 4 * i, gauss_cone(i), geer::unpack_box(boxes[i]), int(tiles_x),
                                                    nodes, [&](int tile) {
                                                        pair_tile[out] = tile;
                                                        pair_gid[out] = int32_t(i);

@@ -2,7 +2,8 @@
 // found in O(log T + hits) per Gaussian on every ray grid, and the (tile, depth) sort key.
 //
 // The twin (geer_ns/render/associate.py) is the specification: a tile is hit when it is active and its
-// mirror-tangent theta and phi bounds both overlap the PBF's interval pieces (split at the +-pi seam).
+// mirror-tangent theta and phi bounds both overlap the PBF's interval pieces (split at the +-pi seam) and, where
+// cones are given, its cone meets the Gaussian's (cone_meets_tile, tested on the box test's survivors only).
 // The search runs over a pyramid of tile blocks (raygrid.RayGrid.tile_pyramid): level 0 holds the tiles,
 // each level above holds 2x2 blocks of the one below with the union of their active tiles' bounds, the
 // top level one node with the grid's overall bounds (the O(1) reject of Gaussians outside the view, e.g.
@@ -47,16 +48,96 @@ GEER_HD TilePyramid make_tile_pyramid(int tiles_x, int tiles_y) {
     return p;
 }
 
+// ---------------------------------------------------------------------------------- the cone test
+// A test whose tightness does not depend on where the tile sits (derivation: docs/association.md). A Gaussian's
+// alpha >= 1/255 directions lie in the elliptic cone F(d) = (a.d)^2 - (b1.d)^2 - (b2.d)^2 >= 0 (cones.py
+// gaussian_cone_form: a = lambda W^T o_hat, b_i = sqrt(|o_u|^2 - lambda^2) W^T p_i, all zero where the camera is
+// inside); a tile's rays lie within angle beta of its centre ray c (cones.py tile_cones). On the plane c.d = 1,
+// d = c + x1 e1 + x2 e2, the tile's rays fill the disk |x| <= tan(beta) and F is x^T H x + 2 g.x + f0; the tile
+// can see the Gaussian only if max over the disk of F >= 0. That maximum is a trust-region problem whose
+// Lagrangian dual is exact: U(mu) = f0 + mu tan^2(beta) + g^T (mu I - H)^-1 g bounds it from above for every
+// mu >= max(0, h1) (h1: H's larger eigenvalue), so any mu gives a conservative reject (U < 0); a few Newton
+// steps on the secular equation |x(mu)| = tan(beta) bring mu near the minimiser, where the test is exact.
+constexpr int kGaussConeValues = 9;   // a, b1, b2
+constexpr int kTileConeValues = 10;   // e1, e2, c (orthonormal, c the centre ray), tan(beta) (inf: no test)
+constexpr int kConeNewtonSteps = 3;
+// Reject only below -tol x the magnitude of F's terms on the disk: far above the rounding of either precision.
+template <typename T> struct ConeTol { static constexpr double value = sizeof(T) == 4 ? 1e-5 : 1e-12; };
+
+// F's coefficient (i, j) on the tile plane: p[v] = (v.e1, v.e2, v.c) for the rows v = a, b1, b2.
+template <typename T> GEER_HD T cone_coef(const T (*p)[3], int i, int j) {
+    return x_sub(x_sub(x_mul(p[0][i], p[0][j]), x_mul(p[1][i], p[1][j])), x_mul(p[2][i], p[2][j]));
+}
+
+// Whether a Gaussian's cone (gauss [9]) may meet a tile's cone (tile [10]); false only where no ray of the tile
+// has alpha >= 1/255. Every product and sum uncontracted (x_*): cones.cone_meets_tile takes the same decisions.
+template <typename T> GEER_HD bool cone_meets_tile(const T* gauss, const T* tile) {
+    const T rho = tile[9];
+    if (!(rho < Limits<T>::inf())) return true;
+    T p[3][3];
+    for (int v = 0; v < 3; ++v) {
+        const Vec3<T> r = load3(gauss + 3 * v);
+        for (int j = 0; j < 3; ++j) p[v][j] = x_dot(r, load3(tile + 3 * j));
+    }
+    const T f0 = cone_coef<T>(p, 2, 2);
+    if (f0 >= T(0)) return true;  // the centre ray itself
+    const T h11 = cone_coef<T>(p, 0, 0), h12 = cone_coef<T>(p, 0, 1), h22 = cone_coef<T>(p, 1, 1);
+    const T g1 = cone_coef<T>(p, 0, 2), g2 = cone_coef<T>(p, 1, 2);
+    const T rho2 = x_mul(rho, rho);
+    T mag = T(0);  // sum of the squared projections: bounds each term of F on the disk, / (1 + rho^2)
+    for (int v = 0; v < 3; ++v)
+        for (int j = 0; j < 3; ++j) mag = x_add(mag, x_mul(p[v][j], p[v][j]));
+    // H's eigenvalues h1 >= h2 and g's squared components along their eigenvectors.
+    const T hm = x_mul(T(0.5), x_add(h11, h22)), hd = x_mul(T(0.5), x_sub(h11, h22));
+    const T dd = g_sqrt(x_add(x_mul(hd, hd), x_mul(h12, h12)));
+    const T h1 = x_add(hm, dd), h2 = x_sub(hm, dd);
+    const T v0 = hd >= T(0) ? x_add(hd, dd) : h12, v1 = hd >= T(0) ? h12 : x_sub(dd, hd);
+    const T vn = g_sqrt(x_add(x_mul(v0, v0), x_mul(v1, v1)));
+    const T gp = vn > T(0) ? x_add(x_mul(v0, g1), x_mul(v1, g2)) / vn : g1;
+    const T gg = x_add(x_mul(g1, g1), x_mul(g2, g2));
+    const T q1 = x_mul(gp, gp), q2 = g_max(x_sub(gg, q1), T(0));
+    // The minimiser of U lies in [mu_a, mu_b]: |x(mu)| >= tan(beta) at mu_a, <= at mu_b.
+    const T mu_lo = g_max(h1, T(0));
+    const T mu_a = g_max(mu_lo, x_add(h1, g_abs(gp) / rho)), mu_b = g_max(mu_lo, x_add(h1, g_sqrt(gg) / rho));
+    T mu = mu_a;
+    for (int it = 0; it < kConeNewtonSteps; ++it) {  // Newton on 1 / |x(mu)| - 1 / tan(beta), from the left
+        const T t1 = x_sub(mu, h1), t2 = x_sub(mu, h2);
+        const T s1 = q1 / x_mul(t1, t1), s2 = q2 / x_mul(t2, t2);
+        const T n2 = x_add(s1, s2);
+        if (!(t1 > T(0)) || !(n2 > rho2) || !(n2 < Limits<T>::inf())) break;
+        const T n1 = g_sqrt(n2);
+        const T slope = x_add(s1 / t1, s2 / t2) / x_mul(n2, n1);
+        const T phi = x_sub(T(1) / n1, T(1) / rho);
+        mu = g_min(x_sub(mu, phi / slope), mu_b);
+    }
+    const T t1 = x_sub(mu, h1), t2 = x_sub(mu, h2);
+    if (!(t1 > T(0)) && q1 > T(0)) return true;  // mu on the pole with weight there: no finite bound
+    const T u1 = t1 > T(0) ? q1 / t1 : T(0), u2 = t2 > T(0) ? q2 / t2 : T(0);
+    const T bound = x_add(x_add(x_add(f0, x_mul(mu, rho2)), u1), u2);
+    return bound >= -x_mul(T(ConeTol<T>::value), x_mul(mag, x_add(T(1), rho2)));
+}
+
 // The pyramid's per-node data: bounds [n_nodes][4] (theta lo, hi, phi lo, hi, mirror domain; level 0 =
-// the tiles' own bounds) and whether any tile below the node is active.
+// the tiles' own bounds), whether any tile below the node is active, and the tiles' cones [n_tiles][10]
+// (null: the box test alone).
 template <typename T> struct PyramidNodes {
     const T* bounds;
     const uint8_t* active;
+    const T* tile_cones;
 };
 
 template <typename T> GEER_HD bool node_hit(const PbfPieces<T>& p, const PyramidNodes<T>& nodes, int node) {
     if (!nodes.active[node]) return false;
     return pbf_overlaps(p, nodes.bounds + 4 * node);
+}
+
+// A tile (level 0: node = tile) is hit when its box overlaps the PBF and its cone meets the Gaussian's (gauss_cone
+// [9], null: the box test alone).
+template <typename T>
+GEER_HD bool tile_hit(const PbfPieces<T>& p, const T* gauss_cone, const PyramidNodes<T>& nodes, int tile) {
+    if (!node_hit(p, nodes, tile)) return false;
+    if (gauss_cone == nullptr || nodes.tile_cones == nullptr) return true;
+    return cone_meets_tile(gauss_cone, nodes.tile_cones + kTileConeValues * tile);
 }
 
 // Inclusive tile-coordinate box of a Gaussian's hits, packed in 64 bits (16 bits per coordinate).
@@ -74,7 +155,7 @@ GEER_HD TileBox unpack_box(uint64_t v) {
 // Count pass for one Gaussian: the number of tiles hit, their bounding box and the tile tests spent
 // (every node tested, the top node included). Depth-first with an explicit stack (no recursion on the GPU).
 template <typename T>
-GEER_HD int count_overlapping_tiles(const T* pbf_bounds, bool alive, const TilePyramid& pyr,
+GEER_HD int count_overlapping_tiles(const T* pbf_bounds, const T* gauss_cone, bool alive, const TilePyramid& pyr,
                                     const PyramidNodes<T>& nodes, int* tests, TileBox* box) {
     *tests = 0;
     *box = TileBox{1, 1, 0, 0};
@@ -82,7 +163,8 @@ GEER_HD int count_overlapping_tiles(const T* pbf_bounds, bool alive, const TileP
     const PbfPieces<T> p = pbf_pieces(pbf_bounds);
     const int top = pyr.levels - 1;
     *tests = 1;
-    if (!node_hit(p, nodes, pyr.offset[top])) return 0;  // outside the grid's overall bounds
+    const bool hit_top = top == 0 ? tile_hit(p, gauss_cone, nodes, 0) : node_hit(p, nodes, pyr.offset[top]);
+    if (!hit_top) return 0;  // outside the grid's overall bounds
     int stack_level[4 * kMaxPyramidLevels], stack_idx[4 * kMaxPyramidLevels];
     int sp = 0, count = 0, n_tests = 1;
     stack_level[sp] = top;
@@ -104,7 +186,7 @@ GEER_HD int count_overlapping_tiles(const T* pbf_bounds, bool alive, const TileP
             if (cx >= cnx || cy >= cny) continue;
             const int cidx = cy * cnx + cx;
             ++n_tests;
-            if (!node_hit(p, nodes, pyr.offset[cl] + cidx)) continue;
+            if (!(cl == 0 ? tile_hit(p, gauss_cone, nodes, cidx) : node_hit(p, nodes, pyr.offset[cl] + cidx))) continue;
             stack_level[sp] = cl;
             stack_idx[sp++] = cidx;
         }
@@ -116,14 +198,14 @@ GEER_HD int count_overlapping_tiles(const T* pbf_bounds, bool alive, const TileP
 // Emit pass for one Gaussian: f(tile) for every tile hit, in increasing tile order, visiting only the box
 // the count pass found. Returns the tile tests spent.
 template <typename T, typename F>
-GEER_HD int emit_overlapping_tiles(const T* pbf_bounds, const TileBox& box, int tiles_x, const PyramidNodes<T>& nodes,
-                                   F&& f) {
+GEER_HD int emit_overlapping_tiles(const T* pbf_bounds, const T* gauss_cone, const TileBox& box, int tiles_x,
+                                   const PyramidNodes<T>& nodes, F&& f) {
     if (box.x0 > box.x1) return 0;
     const PbfPieces<T> p = pbf_pieces(pbf_bounds);
     for (int y = box.y0; y <= box.y1; ++y)
         for (int x = box.x0; x <= box.x1; ++x) {
             const int tile = y * tiles_x + x;  // level 0 of the pyramid: node = tile
-            if (node_hit(p, nodes, tile)) f(tile);
+            if (tile_hit(p, gauss_cone, nodes, tile)) f(tile);
         }
     return (box.x1 - box.x0 + 1) * (box.y1 - box.y0 + 1);
 }

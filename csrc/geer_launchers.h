@@ -75,6 +75,8 @@ template <typename T> struct AssociateArgs {
     const int32_t* order;     // [N] depth order key: float32 depth bits, or rank for float64 (geer_associate.h)
     const T* node_bounds;     // [nodes,4] tile pyramid (raygrid.RayGrid.tile_pyramid), level 0 = the tiles
     const uint8_t* node_active;  // [nodes]
+    const T* gauss_cones;     // [N,9] cones.gaussian_cone_form, or null: the box test alone
+    const T* tile_cones;      // [tiles,10] cones.tile_cones, or null
     int tiles_x, tiles_y;
 };
 // Pass 1: tiles each Gaussian overlaps -> counts [N], their tile box boxes [N] (packed), tile tests [N].

@@ -293,14 +293,19 @@ def _grids(dtype=F64):
     }
 
 
+@pytest.mark.parametrize("cone", [True, False], ids=["box+cone", "box"])
 @pytest.mark.parametrize("dtype", [F32, F64])
 @pytest.mark.parametrize("grid_name", ["fisheye180", "equirect360", "beap_masked", "beap"])
-def test_association_matches_twin(ops, grid_name, dtype):
-    """Same lists (pairs and order) and the same count-pass search as the twin."""
+def test_association_matches_twin(ops, grid_name, dtype, cone):
+    """Same lists (pairs and order) and the same count-pass search as the twin, with the cone test (the default)
+    and with the box test alone."""
     grid = _grids(dtype)[grid_name]
     pre, bounds = _assoc_inputs(grid, dtype)
+    if not cone:
+        pre.pbf.cone = None
     ref = associate(pre.pbf, grid, pre.depth)
-    ids, ranges, counts, tests = cuda_backend.associate_pairs(ops, bounds, pre.pbf.alive, pre.depth, grid)
+    ids, ranges, counts, tests = cuda_backend.associate_pairs(ops, bounds, pre.pbf.alive, pre.depth, grid,
+                                                              pre.pbf.cone)
     ref_lists = [row[:c].tolist() for row, c in zip(ref.gaussians, ref.counts)]
     assert _lists(ids, ranges) == ref_lists
     assert sum(map(len, ref_lists)) > 250
@@ -319,7 +324,7 @@ def test_association_depth_ties_keep_index_order(ops, dtype):
     pre = preprocess(*scene, torch.eye(4, dtype=dtype))
     bounds = torch.stack([pre.pbf.theta_lo, pre.pbf.theta_hi, pre.pbf.phi_lo, pre.pbf.phi_hi], -1)
     ref = associate(pre.pbf, grid, pre.depth)
-    ids, ranges, _, _ = cuda_backend.associate_pairs(ops, bounds, pre.pbf.alive, pre.depth, grid)
+    ids, ranges, _, _ = cuda_backend.associate_pairs(ops, bounds, pre.pbf.alive, pre.depth, grid, pre.pbf.cone)
     assert _lists(ids, ranges) == [row[:c].tolist() for row, c in zip(ref.gaussians, ref.counts)]
     assert int(ref.counts.sum()) > 100
 

@@ -6,6 +6,9 @@ happen in the mirror-tangent domain tan(angle / 2) (Eq. D.7 with xi = 1), which 
 is split into its two pieces. Within a tile, Gaussians are ordered front to back by the Euclidean
 distance of their mean (ties: lower index first), as the renderer composites them.
 
+Where the PBF carries its cone (pbf.PBF.cone), a tile that passes the box test must also pass the cone test
+(cones.py, docs/association.md), whose tightness does not depend on where the tile sits.
+
 The overlapping tiles are found by descending the grid's tile pyramid (raygrid.TilePyramid) level by
 level, testing a node's four children only where the node itself overlaps: O(N log T + pairs) tile
 tests on any grid instead of N x T, and the same search, test for test, as csrc/geer_associate.h.
@@ -19,6 +22,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .cones import cone_meets_tile, tile_cones
 from .pbf import PBF, mirror_tangent
 from .raygrid import RayGrid
 
@@ -97,7 +101,8 @@ def seen_by(pbf: PBF, grid: RayGrid, xi: float = 1.0) -> Tensor:
 
 
 def _tile_pairs(pbf: PBF, grid: RayGrid, xi: float) -> tuple[Tensor, Tensor, int]:
-    """(Gaussian ids, tile ids, tests): every (Gaussian, active tile) whose ranges overlap, by the pyramid search."""
+    """(Gaussian ids, tile ids, tests): every (Gaussian, active tile) whose ranges overlap (and cones meet, where the
+    PBF has its cone), by the pyramid search."""
     device = pbf.alive.device
     theta_pieces = _interval_pieces(pbf.theta_lo, pbf.theta_hi, xi)
     phi_pieces = _interval_pieces(pbf.phi_lo, pbf.phi_hi, xi)
@@ -114,6 +119,9 @@ def _tile_pairs(pbf: PBF, grid: RayGrid, xi: float) -> tuple[Tensor, Tensor, int
         tests += g.numel()
         g, idx = g[hit], idx[hit]
         if level == 0:
+            if pbf.cone is not None:  # the box test's survivors, tile by tile
+                keep = cone_meets_tile(pbf.cone[g], tile_cones(grid, pbf.cone.dtype)[idx])
+                g, idx = g[keep], idx[keep]
             break
         nx = pyr.levels[level][0]
         cnx, cny = pyr.levels[level - 1]

@@ -37,6 +37,7 @@ from torch import Tensor
 
 from .absgrad import offset_rows
 from .associate import pbf_cull_pieces
+from .cones import gaussian_cone_form, tile_cones
 from .extensions import (  # noqa: F401 - the loaders, re-exported where callers have always found them
     _errors,
     _modules,
@@ -47,7 +48,7 @@ from .extensions import (  # noqa: F401 - the loaders, re-exported where callers
 )
 from .ops import KERNELS, preprocess_grads, render_grads
 from .outputs import RenderOutput, images
-from .pbf import PBF, LambdaMode
+from .pbf import PBF, LambdaMode, pbf_lambda_sq
 from .raygrid import RayGrid
 from .transforms import camera_offsets, view_transform
 
@@ -129,13 +130,19 @@ def depth_order_key(depth: Tensor) -> Tensor:
     return rank
 
 
-def associate_pairs(ops: ModuleType, bounds: Tensor, alive: Tensor, depth: Tensor, grid: RayGrid):
+def associate_pairs(ops: ModuleType, bounds: Tensor, alive: Tensor, depth: Tensor, grid: RayGrid,
+                    cone: Tensor | None = None):
     """Stage 2 on the kernels: (ids [M] int32 sorted by (tile, depth), ranges [T, 2], counts [N] tiles per
     Gaussian, tests [N] tile tests of the count and emit passes). bounds [N, 4] PBF (theta_lo, theta_hi,
-    phi_lo, phi_hi), alive [N], depth [N] the Euclidean distances the twin sorts by."""
+    phi_lo, phi_hi), alive [N], depth [N] the Euclidean distances the twin sorts by, cone [N, 9] the Gaussians'
+    cone forms (cones.gaussian_cone_form; None: the box test alone, the association before the cone test)."""
     pyr = grid.tile_pyramid(bounds.dtype)
+    if cone is None:
+        gauss_cones = tiles = bounds.new_zeros(0)
+    else:
+        gauss_cones, tiles = cone.to(bounds.dtype).contiguous(), tile_cones(grid, bounds.dtype).to(bounds.device)
     return ops.associate(bounds.contiguous(), alive.contiguous(), depth_order_key(depth), pyr.bounds.to(bounds.device),
-                         pyr.active.to(bounds.device), grid.tiles_x, grid.tiles_y)
+                         pyr.active.to(bounds.device), grid.tiles_x, grid.tiles_y, gauss_cones, tiles)
 
 
 # ----------------------------------------------------------------------------------------- pipeline
@@ -187,7 +194,8 @@ def render_cuda(
     rgb = colors.contiguous() if degree < 0 else rgb_sh
 
     # Stage 2. Lists in the twin's front-to-back order (depth as the twin computes it).
-    ids, ranges, counts, _tests = associate_pairs(ops, bounds, alive, means_c.detach().norm(dim=-1), grid)
+    cone = gaussian_cone_form(whiten, o_u, pbf_lambda_sq(opacities.detach(), lambda_mode)[0], inside)
+    ids, ranges, counts, _tests = associate_pairs(ops, bounds, alive, means_c.detach().norm(dim=-1), grid, cone)
 
     # Stage 3. Per tile / ray. absgrad's offset rows per Gaussian here (absgrad.offset_rows, an [N] einsum), so
     # that the kernels only take dot products with them (no W x lateral product in their registers).
@@ -202,6 +210,6 @@ def render_cuda(
 
     visible = counts > 0
     tile_counts = (ranges[:, 1] - ranges[:, 0]).long()
-    pbf = PBF(bounds[:, 0], bounds[:, 1], bounds[:, 2], bounds[:, 3], alive, inside)
+    pbf = PBF(bounds[:, 0], bounds[:, 1], bounds[:, 2], bounds[:, 3], alive, inside, cone)
     return RenderOutput(out_rgb, out_depth, out_acc, visible, tile_counts, means_c, pbf, None, max_weight,
                         median.reshape(grid.height, grid.width, 1))

@@ -116,15 +116,17 @@ torch.library.register_autograd("geer::preprocess_forward", _preprocess_backward
 # ------------------------------------------------------------------------------------------ stage 2
 @torch.library.custom_op("geer::associate", mutates_args=())
 def associate(bounds: Tensor, alive: Tensor, order: Tensor, node_bounds: Tensor, node_active: Tensor, tiles_x: int,
-              tiles_y: int) -> T4:
-    """-> (ids [M] int32 by (tile, depth order), ranges [T,2] int32, counts [N] int32, tests [N] int32)."""
-    _one_device("associate", bounds, alive, order, node_bounds, node_active)
-    return tuple(_build(bounds).associate(bounds, alive, order, node_bounds, node_active, tiles_x, tiles_y))
+              tiles_y: int, gauss_cones: Tensor, tile_cones: Tensor) -> T4:
+    """-> (ids [M] int32 by (tile, depth order), ranges [T,2] int32, counts [N] int32, tests [N] int32).
+    gauss_cones [N,9] / tile_cones [T,10] (render/cones.py), both empty for the box test alone."""
+    _one_device("associate", bounds, alive, order, node_bounds, node_active, gauss_cones, tile_cones)
+    return tuple(_build(bounds).associate(bounds, alive, order, node_bounds, node_active, tiles_x, tiles_y,
+                                          gauss_cones, tile_cones))
 
 
 @associate.register_fake
-def _(bounds, alive, order, node_bounds, node_active, tiles_x, tiles_y):
-    _one_device("associate", bounds, alive, order, node_bounds, node_active)
+def _(bounds, alive, order, node_bounds, node_active, tiles_x, tiles_y, gauss_cones, tile_cones):
+    _one_device("associate", bounds, alive, order, node_bounds, node_active, gauss_cones, tile_cones)
     pairs = torch.library.get_ctx().new_dynamic_size()  # the number of (Gaussian, tile) pairs: data
     n, new = bounds.shape[0], bounds.new_empty
     return (new(pairs, dtype=torch.int32), new(tiles_x * tiles_y, 2, dtype=torch.int32), new(n, dtype=torch.int32),

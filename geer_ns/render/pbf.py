@@ -83,6 +83,7 @@ class PBF:
     phi_hi: Tensor
     alive: Tensor  # [N] alpha can reach 1/255 at all
     camera_inside: Tensor  # [N] camera centre inside the lambda-ellipsoid
+    cone: Tensor | None = None  # [N, 9] the cone test's form (cones.gaussian_cone_form); None: the box test alone
 
     @property
     def num_gaussians(self) -> int:

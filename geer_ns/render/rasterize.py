@@ -19,6 +19,7 @@ from torch import Tensor
 
 from .absgrad import check_absgrad, offset_rows
 from .associate import associate
+from .cones import gaussian_cone_form
 from .backend import Backend, resolve_backend
 from .blend import blend_lists
 from .cuda_backend import render_cuda
@@ -61,6 +62,7 @@ def preprocess(
     o_u = -torch.einsum("nij,nj->ni", w, means_c)
     lam2, alive = pbf_lambda_sq(opacities.detach(), lambda_mode)
     pbf = compute_pbf(means_c.detach(), covariance_factor(rot_v, scales).detach(), lam2, alive, o_u.detach())
+    pbf.cone = gaussian_cone_form(w.detach(), o_u.detach(), lam2, pbf.camera_inside)
     if colors.ndim == 2:
         rgb = colors
     else:
