@@ -1,15 +1,15 @@
-"""geer: splatfacto's Gaussians, schedule and densification, rendered exactly with 3DGEER.
+"""The `geer` model: splatfacto's Gaussians, schedule and densification, rendered exactly with 3DGEER.
 
-The model keeps splatfacto's `gauss_params` (means, scales, quats, features_dc, features_rest,
-opacities), so ns-export gaussian-splat and the viewer work unchanged. What differs:
+It keeps splatfacto's `gauss_params` (means, scales, quats, features_dc, features_rest, opacities). Training
+batches are rendered in the view the datamanager cached them in (BEAP or the camera's own rays), evaluation and
+viewer cameras on their own pixel rays; losses and metrics count valid pixels only; densification is gsplat's
+strategy fed geer's statistics (geer_ns/densify). Nothing assumes CUDA.
 
-* get_outputs renders through geer_ns.render for any camera: training batches in the BEAP view the
-  datamanager cached them in (or native pixels), eval/viewer cameras from their own pixel rays;
-* losses and metrics use the validity mask (BEAP cells / pixels the camera really saw);
-* densification: gsplat's DefaultStrategy is fed a `means2d` whose gradient is the loss gradient
-  w.r.t. each Gaussian's image position in BEAP pixels (see `lateral_displacement`), and `radii`
-  from the Particle Bounding Frustum; `strategy="mcmc"` uses gsplat's MCMCStrategy instead;
-* no hard-coded CUDA device: it trains on the CPU as well.
+Why a subclass of SplatfactoModel rather than a model composing what it reuses: nerfstudio decides by
+`isinstance(model, SplatfactoModel)` whether the viewer shows a Gaussian scene (its render state machine, export
+panel, crop box) and whether `ns-export gaussian-splat` accepts a run (scripts/exporter.py asserts it). geer
+overrides what it renders and scores, and reuses splatfacto's parameter layout, initialisation helpers, camera
+optimizer, bilateral grid and SH schedule.
 """
 
 from __future__ import annotations
