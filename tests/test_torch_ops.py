@@ -110,7 +110,7 @@ def test_the_fake_implementations_give_the_real_shapes(cpu_ops):
                 ranges, grid.height, grid.width, grid.tile_size)
     fwd = (whiten, o_u, colors, opacities, *geometry, True)
     calls.append(("render_forward", fwd))
-    _, _, _, t_final, n_contrib, lanes, _ = torch.ops.geer.render_forward(*fwd)
+    _, _, _, t_final, n_contrib, lanes, _, _ = torch.ops.geer.render_forward(*fwd)
     r = grid.num_rays
     g_out = (torch.ones(r, 3), torch.ones(r), torch.ones(r))
     calls.append(("render_backward", (whiten, o_u, colors, opacities, *geometry, t_final, n_contrib, lanes, *g_out,
