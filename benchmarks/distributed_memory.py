@@ -160,6 +160,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=3, help="0: no training step (its state made without rendering)")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "distributed_memory.md")
     ap.add_argument("--work", type=Path, default=Path("/tmp/geer_distributed_memory"))
+    ap.add_argument("--report-only", action="store_true", help="rewrite the report from the last run's memory.json")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--processes", type=int, default=1, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -167,6 +168,9 @@ def main() -> None:
 
     if args.worker:
         run_worker(args, worker_main)
+        return
+    if args.report_only:
+        write(args, json.loads((args.work / "memory.json").read_text()))
         return
 
     from geer_ns.render.cuda_backend import load_cpu_ops
@@ -193,7 +197,14 @@ def write(args, results) -> None:
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=ROOT).stdout.strip()
-    one = results["1 process"]["0"] if "0" in results["1 process"] else results["1 process"][0]
+    results = {name: {str(rank): r for rank, r in ranks.items()} for name, ranks in results.items()}
+    one, zero = results["1 process"]["0"], results["2 processes, Gaussian-parallel"]["0"]
+    summary = []
+    for phase in ("save", "eval"):
+        above = (zero[phase] - zero["libraries"]) / (one[phase] - one["libraries"])
+        summary.append(f"- {phase}: rank 0 {zero[phase] / 1024:,.0f} MiB against {one[phase] / 1024:,.0f} MiB, "
+                       f"{zero[phase] / one[phase]:.2f}x in RSS, {zero[phase + '_anon'] / one[phase + '_anon']:.2f}x "
+                       f"in anonymous RSS, {above:.2f}x above the libraries (peak - the RSS before the model)")
     rows = []
     for name, ranks in results.items():
         for rank, r in ranks.items():
@@ -222,6 +233,10 @@ def write(args, results) -> None:
 | run | rank | Gaussians | held | training state MiB | libraries MiB | set-up RSS | anon | train RSS | anon | eval RSS | anon | save RSS | anon | save s | eval s |
 | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |
 {chr(10).join(rows)}
+
+Rank 0 against the one process:
+
+{chr(10).join(summary)}
 
 The model of these figures (rank 0 of R processes, N Gaussians, p = 236 parameter bytes a Gaussian at SH
 degree 3, its training state 4 p): docs/distributed.md, "Memory".

@@ -3,6 +3,7 @@
     world       the process group and the few collectives used (bucketed all-reduce, gathers, broadcasts)
     schedule    the effective batch (processes x images per step) and its rule for steps and Adam
     replicas    image-parallel training: identical replicas, reduced gradients and densification statistics
+    sharded     Gaussian-parallel training (shards: the sharded render; streamed_checkpoint: its checkpoints)
     trainer     the training step (nerfstudio's Trainer with images per step, the reductions, rank-0 duties)
 
 The processes are started by nerfstudio's launcher (`ns-train geer --machine.num-devices N`, with

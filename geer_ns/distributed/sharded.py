@@ -10,11 +10,13 @@ Gaussians, its parameters and optimiser state; scenes are limited by the sum of 
 * Densification per shard on its own Gaussians' statistics, which are complete too (every camera's gradient of
   a Gaussian reaches its owner); splits draw from each Gaussian's identity, so they equal one process's.
   After a refinement the shards are rebalanced when their sizes differ by more than REBALANCE_FRACTION.
-* Checkpoints are gathered: rank 0 writes one ordinary checkpoint (the shards' rows in rank order) that one
-  process, ns-eval, ns-export and the viewer read; resuming keeps every N-th row of it, for any N.
-* Evaluation and the viewer on rank 0 render the gathered model (gathered at each evaluation, and every
-  VIEWER_REFRESH_STEPS steps while a viewer runs): the scene must fit rank 0's memory for that, not its
-  training state.
+  --pipeline.model.max-gaussians is the scene's (scene_budget: the strongest candidates over every shard).
+* Checkpoints are streamed, not gathered (streamed_checkpoint): rank 0 writes one ordinary checkpoint (the
+  shards' rows in rank order) that one process, ns-eval, ns-export and the viewer read, receiving the other
+  shards' rows in bounded messages; resuming keeps every N-th row of it, for any N.
+* Evaluation on rank 0 renders each camera from the rows every shard sends it (collective_renders); the
+  viewer's copy is gathered to host memory every VIEWER_REFRESH_STEPS steps while a viewer runs.
+  docs/distributed.md has the memory of each.
 """
 
 from __future__ import annotations
