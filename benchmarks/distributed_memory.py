@@ -67,7 +67,7 @@ def grow_to(trainer, n: int) -> None:
     import torch
 
     from geer_ns.data.synthetic_room import default_scene_dir
-    from geer_ns.host_fixes import read_ply_points
+    from geer_ns.data.ply import read_ply_points
 
     model, world = trainer.pipeline.model, trainer.world
     src = default_scene_dir()
