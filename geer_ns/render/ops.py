@@ -45,7 +45,7 @@ def _one_device(op: str, *tensors: Tensor) -> torch.device:
     """The inputs' one device; a tensor elsewhere is an error (the kernels would read a host pointer)."""
     device = tensors[0].device
     for t in tensors[1:]:
-        if t.device != device and t.numel() > 0:
+        if t.device != device and not (isinstance(t.numel(), int) and t.numel() == 0):  # numel: maybe symbolic
             raise RuntimeError(f"geer::{op}: expected all tensors on {device}, got one on {t.device} "
                                f"{tuple(t.shape)}")
     return device
