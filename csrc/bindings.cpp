@@ -270,13 +270,14 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
 // ------------------------------------------------------------------------------------ stage 4
 std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats, at::Tensor scales, at::Tensor sh,
                                             at::Tensor sh_dirs, at::Tensor rot_c, int64_t sh_degree,
-                                            at::Tensor g_whiten, at::Tensor g_o_u, at::Tensor g_rgb) {
+                                            at::Tensor g_whiten, at::Tensor g_o_u, at::Tensor g_rgb, bool pose_grad) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(means_c));
     const int64_t n = means_c.size(0);
     auto opts = means_c.options();
     auto g_mc = at::empty({n, 3}, opts), g_q = at::empty({n, 4}, opts), g_s = at::empty({n, 3}, opts);
     auto g_sh = sh_degree >= 0 ? at::empty_like(sh) : at::empty({0}, opts);
     auto g_dirs = at::zeros({n, 3}, opts);
+    auto g_rot_c = pose_grad ? at::empty({n, 3, 3}, opts) : at::empty({0}, opts);
     dispatch(means_c, [&](auto tag) {
         using T = decltype(tag);
         auto a = preprocess_args<T>(means_c, quats, scales, at::Tensor(), sh, sh_dirs, rot_c, sh_degree, false);
@@ -285,10 +286,11 @@ std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats
         if (sh_degree >= 0) check_float(g_rgb, means_c, "g_rgb");
         geer::PreprocessGradArgs<T> g{cptr<T>(g_whiten), cptr<T>(g_o_u), sh_degree >= 0 ? cptr<T>(g_rgb) : nullptr,
                                       mptr<T>(g_mc),     mptr<T>(g_q),   mptr<T>(g_s),
-                                      sh_degree >= 0 ? mptr<T>(g_sh) : nullptr, mptr<T>(g_dirs)};
+                                      sh_degree >= 0 ? mptr<T>(g_sh) : nullptr, mptr<T>(g_dirs),
+                                      pose_grad ? mptr<T>(g_rot_c) : nullptr};
         geer::launch_preprocess_backward<T>(a, g, stream());
     });
-    return {g_mc, g_q, g_s, g_sh, g_dirs};
+    return {g_mc, g_q, g_s, g_sh, g_dirs, g_rot_c};
 }
 
 // ------------------------------------------------------------------------------------ checks

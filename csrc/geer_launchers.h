@@ -148,6 +148,7 @@ template <typename T> struct PreprocessGradArgs {
     T* g_scales;         // [N,3]
     T* g_sh;             // [N,K,3] (bands above sh_degree written as 0; null when sh_degree < 0)
     T* g_sh_dirs;        // [N,3] w.r.t. the SH view directions (0 when sh_degree < 1)
+    T* g_rot_c;          // [N,9] each Gaussian's share of dL/d(camera rotation R_c) (null: not wanted)
 };
 template <typename T>
 void launch_preprocess_backward(const PreprocessArgs<T>& a, const PreprocessGradArgs<T>& g, cudaStream_t stream);

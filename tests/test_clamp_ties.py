@@ -133,6 +133,6 @@ def test_scale_exactly_at_min_scale(ops):
     means_c = torch.tensor([[0.1, 0.2, 3.0]], dtype=F64)
     zeros = torch.zeros(1, 3, dtype=F64)
     kernels = ops.preprocess_backward(means_c, quats, scales, torch.zeros(1, 0, 3, dtype=F64), zeros,
-                                      torch.eye(3, dtype=F64), -1, g_w, zeros, zeros)[2]
+                                      torch.eye(3, dtype=F64), -1, g_w, zeros, zeros, False)[2]
     for name, grad in (("torch", leaf.grad[0, 1]), ("cpu", kernels[0, 1])):
         _assert_clamped_side(float(grad), below, above, "below", name)

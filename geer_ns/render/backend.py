@@ -3,9 +3,9 @@
 `auto` never fails. CPU tensors: `cpu`, the kernels' code compiled for the CPU (csrc/cpu_ops.cpp, JIT-built
 on first use, multi-threaded, analytic backward, checked against the twin by tests/test_csrc_math.py;
 benchmarks/cpu_training.md). CUDA tensors: `cuda` once the kernels have been verified on a GPU
-(`cuda_backend.CUDA_VERIFIED`) and the extension builds. When auto cannot use them (a failed build, camera
-pose gradients, which only the twin computes) it renders with the PyTorch twin and says so, once. An explicit
-`cpu` or `cuda` request that cannot be honoured is an error, never a silent fallback.
+(`cuda_backend.CUDA_VERIFIED`) and the extension builds. When auto cannot use them (a failed build) it renders
+with the PyTorch twin and says so, once. Every backend gives camera pose gradients (docs/refinement.md). An
+explicit `cpu` or `cuda` request that cannot be honoured is an error, never a silent fallback.
 """
 
 from __future__ import annotations
@@ -44,9 +44,8 @@ def cpu_ops_available() -> bool:
     return True
 
 
-def resolve_backend(backend: Backend, device: torch.device, pose_grad: bool = False) -> Literal["torch", "cuda", "cpu"]:
-    """The backend that renders tensors on `device`; `pose_grad`: gradients w.r.t. the camera pose are
-    needed (only the PyTorch twin computes them)."""
+def resolve_backend(backend: Backend, device: torch.device) -> Literal["torch", "cuda", "cpu"]:
+    """The backend that renders tensors on `device`."""
     if backend == "torch":
         return "torch"
     if backend == "cpu":
@@ -64,10 +63,6 @@ def resolve_backend(backend: Backend, device: torch.device, pose_grad: bool = Fa
             raise RuntimeError("backend='cuda' requested but the geer CUDA extension could not be built or loaded")
         return "cuda"
     if backend == "auto":
-        if pose_grad:
-            _warn_once("geer: camera pose gradients are requested; rendering with the PyTorch renderer (the "
-                       "compiled backends do not compute them)")
-            return "torch"
         if device.type == "cpu":
             if cpu_ops_available():
                 return "cpu"

@@ -18,8 +18,7 @@ Every operation also exists on the CPU (csrc/cpu_ops.cpp, same names and signatu
 threads: `render_cuda(..., ops=load_cpu_ops())` drives
 this whole module on the CPU, which is how tests/test_csrc_math.py checks it against the twin.
 
-Differences from the twin, all by design: the kernels return `tiles=None` (lists live as sorted pairs);
-viewmat gradients are not computed (an error if viewmat requires grad). The lists themselves are the twin's,
+Differences from the twin, all by design: the kernels return `tiles=None` (lists live as sorted pairs). The lists themselves are the twin's,
 pair for pair and in the same order: both search the same tile pyramid (raygrid.TilePyramid) with the same
 tests, and the sort key's depth order is the twin's stable depth order (float32: the depth's bits with ties
 kept in index order by the stable sort; float64: the rank from a stable sort).
@@ -56,7 +55,8 @@ CUDA_VERIFIED = False
 
 # ----------------------------------------------------------------------------------------- autograd
 class _Preprocess(torch.autograd.Function):
-    """Per Gaussian: (means_c, quats, scales, SH, SH view directions) -> (W, o_u, colour) + PBF (no grad)."""
+    """Per Gaussian: (means_c, quats, scales, SH, SH view directions, camera rotation R_c) -> (W, o_u, colour)
+    + PBF (no grad). R_c gets a gradient when it requires one (camera pose refinement)."""
 
     @staticmethod
     def forward(ctx, means_c, quats, scales, sh, sh_dirs, opacities, rot_c, sh_degree, paper, ops):
@@ -77,11 +77,13 @@ class _Preprocess(torch.autograd.Function):
         g_whiten = _zeros_if_none(g_whiten, (n, 3, 3), means_c)
         g_o_u = _zeros_if_none(g_o_u, (n, 3), means_c)
         g_rgb = _zeros_if_none(g_rgb, (n, 3), means_c)
-        g_mc, g_q, g_s, g_sh, g_dirs = ctx.ops.preprocess_backward(
-            means_c, quats, scales, sh, sh_dirs, rot_c, ctx.sh_degree, g_whiten, g_o_u, g_rgb
+        pose_grad = ctx.needs_input_grad[6]
+        g_mc, g_q, g_s, g_sh, g_dirs, g_rot = ctx.ops.preprocess_backward(
+            means_c, quats, scales, sh, sh_dirs, rot_c, ctx.sh_degree, g_whiten, g_o_u, g_rgb, pose_grad
         )
         has_sh = ctx.sh_degree >= 0
-        return (g_mc, g_q, g_s, g_sh if has_sh else None, g_dirs if has_sh else None) + (None,) * 5
+        g_rot_c = g_rot.sum(0) if pose_grad else None  # the Gaussians' shares of dL/dR_c
+        return (g_mc, g_q, g_s, g_sh if has_sh else None, g_dirs if has_sh else None, None, g_rot_c) + (None,) * 3
 
 
 class _Rasterize(torch.autograd.Function):
@@ -184,8 +186,6 @@ def render_cuda(
         ops = load_extension()
     if lambda_mode not in ("opacity", "paper"):
         raise ValueError(f"lambda_mode must be 'opacity' or 'paper', got {lambda_mode!r}")
-    if viewmat.requires_grad and torch.is_grad_enabled():
-        raise ValueError("viewmat: gradients w.r.t. the camera pose are not supported by the CUDA backend")
     if not 1 <= grid.tile_size <= 32 and ops is not _modules.get("geer_cpu_ops"):
         raise ValueError(f"the CUDA backend needs tile_size in 1..32 (one thread per ray), got {grid.tile_size}")
     dtype, device = means.dtype, means.device
@@ -194,8 +194,9 @@ def render_cuda(
     dirs = grid.dirs.to(dtype).contiguous()
     # The pose goes to the Gaussians' device (no host round trip); the kernels read rot_c there.
     # Stage 1. View transform and SH view directions in PyTorch (transforms.view_transform and camera_offsets,
-    # float64 inside, as the twin), the rest per Gaussian in the kernel.
-    viewmat = viewmat.detach().to(device=device)
+    # float64 inside, as the twin), the rest per Gaussian in the kernel. A pose that requires grad gets its
+    # gradient through all three: means_c and sh_dirs by autograd, rot_c from the preprocess backward.
+    viewmat = viewmat.to(device=device)
     means_c = view_transform(means, viewmat)
     degree = _sh_setup(colors, sh_degree)
     sh_dirs = camera_offsets(means, viewmat) if degree >= 0 else means.new_zeros(n, 3)
