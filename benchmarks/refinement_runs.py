@@ -23,8 +23,9 @@ def small_dev_room(work: Path, size: int, room: Path = DEV_ROOM) -> Path:
     return densification.resized_room(work, size) / "transforms_fisheye.json"
 
 
-def train_and_score(name: str, data: Path, steps: int, overrides: dict, out: Path):
-    """(ns-eval's averaged metrics of the eval split, seconds of training, the trained pipeline)."""
+def train_and_score(name: str, data: Path, steps: int, overrides: dict, out: Path, optimizers: dict | None = None):
+    """(ns-eval's averaged metrics of the eval split, seconds of training, the trained pipeline). overrides: model
+    options (dotted: camera_optimizer.mode); optimizers: parameter group -> optimizer entry replacing geer's."""
     from nerfstudio.scripts.train import _set_random_seed
     from nerfstudio.utils import writer
 
@@ -45,6 +46,7 @@ def train_and_score(name: str, data: Path, steps: int, overrides: dict, out: Pat
         for part in path:
             target = getattr(target, part)
         setattr(target, leaf, value)
+    config.optimizers.update(optimizers or {})
     writer.EVENT_WRITERS.clear()
     _set_random_seed(config.machine.seed)
     trainer = config.setup(local_rank=0, world_size=1)
