@@ -11,25 +11,15 @@ compensation and with --pipeline.model.appearance exposure; both scored on the t
 
 from __future__ import annotations
 
-import argparse
-import shutil
-from pathlib import Path
-
-from refinement_runs import ROOT, dump, git_commit, load_average, small_dev_room, train_and_score
+from refinement_runs import ROOT, bench_args, dump, fresh, git_commit, load_average, small_dev_room, train_and_score
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--size", type=int, default=80)
-    parser.add_argument("--steps", type=int, default=1000)
-    parser.add_argument("--work", type=Path, default=Path("/tmp/geer_appearance"))
-    args = parser.parse_args()
+    args = bench_args(__doc__, 1000, "/tmp/geer_appearance")
     from geer_ns.data.appearance_variant import make_variant
 
     clean = small_dev_room(args.work, args.size)
-    variant = args.work / f"exposure_{args.size}"
-    if variant.exists():
-        shutil.rmtree(variant)
+    variant = fresh(args.work / f"exposure_{args.size}")
     make_variant(clean.parent, variant, transforms=clean.name)
     schedule = {"warmup_length": 300, "refine_every": 100, "stop_split_at": 1000, "num_downscales": 0,
                 "use_scale_regularization": False}

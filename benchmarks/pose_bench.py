@@ -12,15 +12,12 @@ dataparser's frame), as the perturbed ones are. Writes benchmarks/pose_refinemen
 
 from __future__ import annotations
 
-import argparse
-import json
-import shutil
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from refinement_runs import ROOT, dump, git_commit, load_average, small_dev_room, train_and_score
+from refinement_runs import ROOT, bench_args, dump, fresh, git_commit, load_average, small_dev_room, train_and_score
 
 
 def camera_errors(pipeline, truth: dict, refined: bool) -> dict:
@@ -48,45 +45,9 @@ def camera_errors(pipeline, truth: dict, refined: bool) -> dict:
             "position_pct_mean": float(pos.mean()), "position_pct_max": float(pos.max())}
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--size", type=int, default=80)
-    parser.add_argument("--steps", type=int, default=1200)
-    parser.add_argument("--work", type=Path, default=Path("/tmp/geer_poses"))
-    args = parser.parse_args()
-    from nerfstudio.engine.optimizers import AdamOptimizerConfig
-    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
-
-    from geer_ns.data.camera_perturbation import perturb_cameras
-
-    clean = small_dev_room(args.work, args.size)
-    noisy = args.work / f"poses_{args.size}"
-    if noisy.exists():
-        shutil.rmtree(noisy)
-    truth = perturb_cameras(clean.parent, noisy, transforms=clean.name, rotation_deg=1.0, position_fraction=0.01)
-    schedule = {"warmup_length": 300, "refine_every": 100, "stop_split_at": 1000, "num_downscales": 0}
-    camera_opt = {"camera_opt": {
-        "optimizer": AdamOptimizerConfig(lr=5e-4, eps=1e-15),
-        "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=args.steps, warmup_steps=200,
-                                                     lr_pre_warmup=0.0)}}
-    runs = {"true poses": (clean, {}), "perturbed, no refinement": (noisy / clean.name, {}),
-            "perturbed, SO3xR3": (noisy / clean.name, {"camera_optimizer.mode": "SO3xR3"})}
-    record = {"commit": git_commit(), "size": args.size, "steps": args.steps, "runs": {}}
-    rows = []
-    for name, (data, overrides) in runs.items():
-        metrics, seconds, pipeline = train_and_score(name.replace(" ", "_").replace(",", ""), data, args.steps,
-                                                     {**schedule, **overrides}, args.work, camera_opt)
-        entry = {"seconds": seconds, "psnr": metrics["psnr"], "ssim": metrics["ssim"]}
-        if data != clean:
-            entry["cameras"] = camera_errors(pipeline, truth, refined="camera_optimizer.mode" in overrides)
-        record["runs"][name] = entry
-        cam = entry.get("cameras")
-        errors = (f"{cam['rotation_deg_mean']:.3f} / {cam['rotation_deg_max']:.3f} | "
-                  f"{cam['position_pct_mean']:.3f} / {cam['position_pct_max']:.3f}") if cam else "0 | 0"
-        rows.append(f"| {name} | {metrics['psnr']:.2f} | {metrics['ssim']:.3f} | {errors} | {seconds:.0f} |")
-        print(rows[-1], flush=True)
-    dump(ROOT / "benchmarks" / "pose_refinement_runs.json", record)
-    report = f"""# Pose refinement with perturbed training cameras
+def _report(args, record: dict, truth: dict, rows: list) -> str:
+    """The markdown report of the runs so far."""
+    return f"""# Pose refinement with perturbed training cameras
 
 - data: the dev fisheye room at {args.size}x{args.size} (`benchmarks/refinement_runs.small_dev_room`), every
   training camera turned by 1 degree about a random axis and moved by 1 % of the scene's extent
@@ -104,7 +65,42 @@ def main() -> None:
 | run | test PSNR | test SSIM | rotation error deg (mean / max) | position error % (mean / max) | training s |
 | --- | ---: | ---: | ---: | ---: | ---: |
 """ + "\n".join(rows) + "\n"
-    (ROOT / "benchmarks" / "pose_refinement_runs.md").write_text(report)
+
+
+def main() -> None:
+    args = bench_args(__doc__, 1200, "/tmp/geer_poses")
+    from nerfstudio.engine.optimizers import AdamOptimizerConfig
+    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+
+    from geer_ns.data.camera_perturbation import perturb_cameras
+
+    clean = small_dev_room(args.work, args.size)
+    noisy = fresh(args.work / f"poses_{args.size}")
+    truth = perturb_cameras(clean.parent, noisy, transforms=clean.name, rotation_deg=1.0, position_fraction=0.01)
+    schedule = {"warmup_length": 300, "refine_every": 100, "stop_split_at": 1000, "num_downscales": 0}
+    camera_opt = {"camera_opt": {
+        "optimizer": AdamOptimizerConfig(lr=5e-4, eps=1e-15),
+        "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=args.steps, warmup_steps=200,
+                                                     lr_pre_warmup=0.0)}}
+    runs = {"perturbed, no refinement": (noisy / clean.name, {}),
+            "perturbed, SO3xR3": (noisy / clean.name, {"camera_optimizer.mode": "SO3xR3"}), "true poses": (clean, {})}
+    record = {"commit": git_commit(), "size": args.size, "steps": args.steps, "runs": {}}
+    rows = []
+    for name, (data, overrides) in runs.items():
+        metrics, seconds, pipeline = train_and_score(name.replace(" ", "_").replace(",", ""), data, args.steps,
+                                                     {**schedule, **overrides}, args.work, camera_opt)
+        entry = {"seconds": seconds, "psnr": metrics["psnr"], "ssim": metrics["ssim"]}
+        if data != clean:
+            entry["cameras"] = camera_errors(pipeline, truth, refined="camera_optimizer.mode" in overrides)
+        record["runs"][name] = entry
+        cam = entry.get("cameras")
+        errors = (f"{cam['rotation_deg_mean']:.3f} / {cam['rotation_deg_max']:.3f} | "
+                  f"{cam['position_pct_mean']:.3f} / {cam['position_pct_max']:.3f}") if cam else "0 | 0"
+        rows.append(f"| {name} | {metrics['psnr']:.2f} | {metrics['ssim']:.3f} | {errors} | {seconds:.0f} |")
+        print(rows[-1], flush=True)
+        dump(ROOT / "benchmarks" / "pose_refinement_runs.json", record)
+        report = _report(args, record, truth, rows)
+        (ROOT / "benchmarks" / "pose_refinement_runs.md").write_text(report)  # after every run
     print(report)
 
 

@@ -15,6 +15,26 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 DEV_ROOM = Path("/work/shared/data/fisheye_room_dev")
 
 
+def bench_args(doc: str, steps: int, work: str):
+    """The benchmarks' command line: --size (the dev room's), --steps, --work (a scratch folder)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("--size", type=int, default=80)
+    parser.add_argument("--steps", type=int, default=steps)
+    parser.add_argument("--work", type=Path, default=Path(work))
+    return parser.parse_args()
+
+
+def fresh(path: Path) -> Path:
+    """path, removed first if it exists (a variant is written anew)."""
+    import shutil
+
+    if path.exists():
+        shutil.rmtree(path)
+    return path
+
+
 def small_dev_room(work: Path, size: int, room: Path = DEV_ROOM) -> Path:
     """The dev room at size^2 (benchmarks/densification.resized_room), its fisheye transforms file."""
     import densification
