@@ -232,20 +232,23 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     return {out_rgb, depth, acc, t_final, n_contrib, at::empty({0}, opts.dtype(at::kInt)), max_weight};
 }
 
-// -> ([N,16] gradient rows (geer_launchers.h RenderGradArgs::grads), absgrad [N,2], empty when absgrad_rows is).
+// -> ([N,16] gradient rows (geer_launchers.h RenderGradArgs::grads), absgrad [N,2], empty when absgrad_rows is,
+// dL/d(ray directions) [R,3], empty unless dir_grad).
 std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
                                         at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
                                         at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids, at::Tensor ranges,
                                         int64_t height, int64_t width, int64_t tile_size, at::Tensor t_final,
                                         at::Tensor n_contrib,
                                         at::Tensor /* blended_lanes: empty, see render_forward */, at::Tensor g_rgb,
-                                        at::Tensor g_depth, at::Tensor g_acc, at::Tensor absgrad_rows) {
+                                        at::Tensor g_depth, at::Tensor g_acc, at::Tensor absgrad_rows,
+                                        bool dir_grad) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(whiten));
     const int64_t n = whiten.size(0);
     auto opts = whiten.options();
     auto grads = at::zeros({n, geer::kGradValues}, opts);
     const bool with_absgrad = absgrad_rows.numel() > 0;
     auto absgrad = with_absgrad ? at::zeros({n, geer::kAbsgradValues}, opts) : at::empty({0}, opts);
+    auto g_dirs = dir_grad ? at::zeros({height * width, 3}, opts) : at::empty({0}, opts);
     dispatch(whiten, [&](auto tag) {
         using T = decltype(tag);
         auto a = render_args<T>(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
@@ -261,10 +264,11 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
         }
         geer::RenderGradArgs<T> g{cptr<T>(t_final), cptr<int32_t>(n_contrib), cptr<T>(g_rgb), cptr<T>(g_depth),
                                   cptr<T>(g_acc), mptr<T>(grads),
-                                  with_absgrad ? cptr<T>(absgrad_rows) : nullptr, mptr<T>(absgrad)};
+                                  with_absgrad ? cptr<T>(absgrad_rows) : nullptr, mptr<T>(absgrad),
+                                  dir_grad ? mptr<T>(g_dirs) : nullptr};
         geer::launch_render_backward<T>(a, g, stream());
     });
-    return {grads, absgrad};
+    return {grads, absgrad, g_dirs};
 }
 
 // ------------------------------------------------------------------------------------ stage 4

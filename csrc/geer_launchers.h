@@ -133,6 +133,8 @@ template <typename T> struct RenderGradArgs {
     // lane_absgrad_values) and the output sum_p |A_n dL_p/do_u| [N,2], zeroed by the caller, atomics
     const T* absgrad_rows;      // [N,6]
     T* absgrad;                 // [N,2]
+    // dL/d(ray direction) [R,3] of every valid ray (null when off: the kernel built without it runs), written
+    T* g_dirs;
 };
 template <typename T>
 void launch_render_backward(const RenderArgs<T>& a, const RenderGradArgs<T>& g, cudaStream_t stream);

@@ -163,9 +163,11 @@ GEER_HD L ray_forward_step(RayForward<L>& s, const GaussFrame<T>& g, const Vec3<
 //   d(m . g)/do_u = d_u x g,  d(m . g)/dd_u = g x o_u
 // so dL/do_u = 2 gD (d_hat x m_hat) - gt n d_hat and dL/dd_u = n [2 gD (m_hat x o_u) - gt n o_u
 // - 2 (gD D^2 + gt t*) d_hat], dL/dW = dL/dd_u d^T (C.9). Everything stays O(|o_u|), never |m|^2.
+// g_du_out (null: not wanted): dL/dd_u itself, from which the ray's direction gets W^T dL/dd_u.
 template <typename T, typename L>
 GEER_HD void pair_response_backward(const PairEval<L>& e, const Vec3<L>& o_u, const Vec3<L>& d, L g_dist_sq,
-                                    L g_t_star, Vec3<L>& g_o, L* g_w /* 9, accumulated */) {
+                                    L g_t_star, Vec3<L>& g_o, L* g_w /* 9, accumulated */,
+                                    Vec3<L>* g_du_out = nullptr) {
     const L n = e.inv_norm;
     const Vec3<L> d_hat = n * e.d_u;
     g_o = (T(2) * g_dist_sq) * cross(d_hat, e.m_hat) - (g_t_star * n) * d_hat;
@@ -174,6 +176,7 @@ GEER_HD void pair_response_backward(const PairEval<L>& e, const Vec3<L>& o_u, co
     if (lane_any(unclamped))
         g_du = lane_select3<L>(unclamped, g_du - (T(2) * (g_dist_sq * e.dist_sq + g_t_star * e.t_star)) * d_hat, g_du);
     g_du = n * g_du;
+    if (g_du_out) *g_du_out = g_du;
     const L gd[3] = {g_du.x, g_du.y, g_du.z};
     const L dv[3] = {d.x, d.y, d.z};
     for (int i = 0; i < 3; ++i)
@@ -187,16 +190,20 @@ GEER_HD void pair_response_backward(const PairEval<L>& e, const Vec3<L>& o_u, co
 //                gradient) where t* <= 0. q is C^1 across t* = 0 (both branches: value |o_u|^2,
 //                gradient 2 o_u), so only depth has a kink there, and at the tie it takes the derivative 0.
 //   min(raw, 0.99), the 1/255 skip, the 1e-4 stop: see ray_backward_step.
+// g_du_out (null: not wanted): dL/dd_u (0 on the camera-centre branch, which does not depend on the ray).
 template <typename T, typename L>
 GEER_HD void half_line_backward(const PairEval<L>& e, const Vec3<L>& o_u, const Vec3<L>& d, L g_q, L g_depth_t,
-                                Vec3<L>& g_o, L* g_w /* 9, zero on entry */) {
+                                Vec3<L>& g_o, L* g_w /* 9, zero on entry */, Vec3<L>* g_du_out = nullptr) {
     const Vec3<L> g_o_centre = (T(2) * g_q) * o_u;
+    const Vec3<L> zero3{splat<L>(T(0)), splat<L>(T(0)), splat<L>(T(0))};
     if (lane_any(e.front)) {
-        pair_response_backward<T>(e, o_u, d, g_q, g_depth_t, g_o, g_w);
+        pair_response_backward<T>(e, o_u, d, g_q, g_depth_t, g_o, g_w, g_du_out);
         g_o = lane_select3<L>(e.front, g_o, g_o_centre);
         for (int k = 0; k < 9; ++k) g_w[k] = lane_select(e.front, g_w[k], splat<L>(T(0)));
+        if (g_du_out) *g_du_out = lane_select3<L>(e.front, *g_du_out, zero3);
     } else {
         g_o = g_o_centre;
+        if (g_du_out) *g_du_out = zero3;
     }
 }
 
@@ -210,6 +217,7 @@ template <typename L> struct RayBackward {
     L g_rgb[3];   // dL/d(rgb sum), dL/d(depth sum), dL/d(accumulation) of this ray
     L g_depth;
     L g_acc;
+    Vec3<L> g_dir;  // dL/d(this ray's direction), summed over its blended pairs (ray_backward_step's kDirGrad)
 };
 
 // Per-pair gradient contributions, to be summed into the Gaussian's buffers.
@@ -237,7 +245,9 @@ template <typename L> GEER_HD void pair_grad_zero(PairGrad<L>& p) {
 //   skip (q <= q_max) and stop (T_after >= 1e-4)  piecewise constant: a blended pair gets its ordinary
 //                           derivative (also exactly on a threshold, where it is blended), others none;
 //   max(t*, 0)              half_line_backward.
-template <typename T, typename L>
+// kDirGrad: also add the pair's dL/d(ray direction) = W^T dL/dd_u to s.g_dir (lens refinement; a build of its
+// own, so that the default one keeps its registers).
+template <typename T, typename L, bool kDirGrad = false>
 GEER_HD typename Lane<L>::Mask ray_backward_step(RayBackward<L>& s, const GaussFrame<T>& g, const Vec3<L>& d,
                                                  typename Lane<L>::Mask active, PairGrad<L>& p) {
     using Mask = typename Lane<L>::Mask;
@@ -261,7 +271,14 @@ GEER_HD typename Lane<L>::Mask ray_backward_step(RayBackward<L>& s, const GaussF
     p.opacity = lane_select(unclamped, g_alpha * e.gauss, zero);
     const L g_q = lane_select(unclamped, T(-0.5) * g_alpha * e.raw, zero);
     Vec3<L> g_o;
-    half_line_backward<T>(e, splat3<L>(g.o), d, g_q, lane_select(e.front, w * s.g_depth, zero), g_o, p.w);
+    if constexpr (kDirGrad) {
+        Vec3<L> g_du;
+        half_line_backward<T>(e, splat3<L>(g.o), d, g_q, lane_select(e.front, w * s.g_depth, zero), g_o, p.w, &g_du);
+        const Vec3<L> g_d = g_du.x * splat3<L>(g.w) + g_du.y * splat3<L>(g.w + 3) + g_du.z * splat3<L>(g.w + 6);
+        s.g_dir = lane_select3<L>(live, s.g_dir + g_d, s.g_dir);
+    } else {
+        half_line_backward<T>(e, splat3<L>(g.o), d, g_q, lane_select(e.front, w * s.g_depth, zero), g_o, p.w);
+    }
     p.o[0] = g_o.x; p.o[1] = g_o.y; p.o[2] = g_o.z;
     return live;
 }

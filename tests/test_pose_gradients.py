@@ -9,6 +9,7 @@ on a BEAP grid, a 200-degree fisheye, a 360-degree equirectangular camera and a 
 
 from __future__ import annotations
 
+import copy
 import math
 import warnings
 
@@ -65,9 +66,15 @@ def _loss_map(out) -> torch.Tensor:
             + ((out.accumulation - ta) ** 2)[..., 0])
 
 
+def with_dirs(grid, dirs):
+    """The grid with its rays' directions replaced (the cull's bounds stay those of the grid's own rays)."""
+    out = copy.copy(grid)
+    out.dirs = dirs
+    return out
+
+
 def _twist(xi: torch.Tensor) -> torch.Tensor:
     """exp of the se(3) twist xi = (omega, v) [6] as a 4 x 4 matrix (left-multiplied onto a world-to-camera)."""
-    a = xi.new_zeros(4, 4)
     wx, wy, wz = xi[0], xi[1], xi[2]
     zero = xi.new_zeros(())
     a = torch.stack([
@@ -95,16 +102,23 @@ def _pose_grad(scene, viewmat0, grid, backend, degree, mask=None):
 CASES = ["beap", "fisheye200", "equirect360", "inside"]
 
 
-@pytest.mark.parametrize("degree", [None, 3])
-@pytest.mark.parametrize("name", CASES)
-def test_pose_gradient_matches_the_pytorch_renderer(ops, name, degree):
+def backends_agree(gradient, name: str, degree) -> torch.Tensor:
+    """gradient(scene, viewmat, grid, backend, degree) of the CPU build and of the PyTorch renderer on case `name`
+    agree to 1e-8 (float64); returns the CPU build's."""
     grid, scene, viewmat = _case(name)
     if degree is not None:
         scene[4] = _sh(scene[0].shape[0])
-    ours = _pose_grad(scene, viewmat, grid, "cpu", degree)
-    ref = _pose_grad(scene, viewmat, grid, "torch", degree)
-    assert float(ref.norm()) > 0
+    ours = gradient(scene, viewmat, grid, "cpu", degree)
+    ref = gradient(scene, viewmat, grid, "torch", degree)
+    assert float(ref.norm()) > 0 and torch.isfinite(ours).all()
     assert float((ours - ref).norm() / ref.norm()) <= 1e-8, (ours, ref)
+    return ours
+
+
+@pytest.mark.parametrize("degree", [None, 3])
+@pytest.mark.parametrize("name", CASES)
+def test_pose_gradient_matches_the_pytorch_renderer(ops, name, degree):
+    backends_agree(_pose_grad, name, degree)
 
 
 @pytest.mark.parametrize("name", CASES)
@@ -173,3 +187,21 @@ def test_model_refines_poses_through_the_cpu_build(ops, kind):
         grads[backend] = model.camera_optimizer.pose_adjustment.grad.clone()
     assert float(grads["torch"][1].norm()) > 0 and float(grads["torch"][[0, 2, 3]].abs().max()) == 0
     assert float((grads["cpu"] - grads["torch"]).norm() / grads["torch"].norm()) <= 1e-3
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (the kernels' pose and ray gradients)")
+@pytest.mark.parametrize("name", CASES)
+def test_cuda_kernels_give_pose_and_ray_gradients(name):
+    """The CUDA kernels' pose and ray-direction gradients against the PyTorch renderer's, on the GPU (float64)."""
+    grid, scene, viewmat = _case(name)
+    scene = [t.cuda() for t in scene[:4]] + [_sh(scene[0].shape[0]).cuda()]
+    viewmat, grid = viewmat.cuda(), grid.to("cuda")
+    found = {}
+    for backend in ("cuda", "torch"):
+        xi = torch.zeros(6, dtype=F64, device="cuda", requires_grad=True)
+        dirs = grid.dirs.detach().clone().requires_grad_(True)
+        out = render(*scene, _twist(xi) @ viewmat, with_dirs(grid, dirs), backend=backend, sh_degree=3)
+        _loss_map(out).sum().backward()
+        found[backend] = (xi.grad, dirs.grad)
+    for ours, ref in zip(found["cuda"], found["torch"]):
+        assert float((ours - ref).norm() / ref.norm()) <= 1e-8

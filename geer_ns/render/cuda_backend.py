@@ -88,7 +88,8 @@ class _Preprocess(torch.autograd.Function):
 
 class _Rasterize(torch.autograd.Function):
     """Per tile / ray: (W, o_u, colour, opacity) -> (rgb sum, depth sum, accumulation) per ray and max_weight [N]
-    (no gradient); with absgrad's offset rows [N,6] and sink [N,2], the sink's gradient is the absgrad sums."""
+    (no gradient); with absgrad's offset rows [N,6] and sink [N,2], the sink's gradient is the absgrad sums. The
+    ray directions get their gradient when they require one (lens refinement; the cull has none)."""
 
     @staticmethod
     def forward(ctx, whiten, o_u, rgb, opacities, pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height,
@@ -98,7 +99,7 @@ class _Rasterize(torch.autograd.Function):
         geometry = (pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges)
         # blended_lanes: the CPU build's record of the lanes that blended each list entry, which its backward
         # visits; made only when a backward will run (empty from the kernels, whose backward re-derives them).
-        record = any(ctx.needs_input_grad[:4]) or ctx.needs_input_grad[16]
+        record = any(ctx.needs_input_grad[:4]) or ctx.needs_input_grad[5] or ctx.needs_input_grad[16]
         out_rgb, depth, acc, t_final, n_contrib, blended_lanes, max_weight = ops.render_forward(
             whiten, o_u, rgb, opacities, *geometry, height, width, tile_size, record
         )
@@ -118,12 +119,15 @@ class _Rasterize(torch.autograd.Function):
         g_rgb = _zeros_if_none(g_rgb, (r, 3), whiten).contiguous()
         g_depth = _zeros_if_none(g_depth, (r,), whiten).contiguous()
         g_acc = _zeros_if_none(g_acc, (r,), whiten).contiguous()
-        grads, absgrad = ctx.ops.render_backward(
+        dir_grad = ctx.needs_input_grad[5]
+        grads, absgrad, g_dirs = ctx.ops.render_backward(
             whiten, o_u, rgb, opacities, *geometry, *ctx.layout, t_final, n_contrib, blended_lanes, g_rgb, g_depth, g_acc,
-            rows,
-        )  # [N, 16] rows (csrc/geer_blocks.h kGradValues): W row-major, o_u, colour, opacity; absgrad [N, 2] or empty
+            rows, dir_grad,
+        )  # [N, 16] rows (csrc/geer_blocks.h kGradValues): W row-major, o_u, colour, opacity; absgrad [N, 2] or empty;
+        # dL/d(ray directions) [R, 3] or empty
         gw, go, gc, gs = grads.split([9, 3, 3, 1], dim=1)
-        return (gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1)) + (None,) * 12 + (absgrad if rows.numel() else None,)
+        return ((gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1), None, g_dirs if dir_grad else None) + (None,) * 10
+                + (absgrad if rows.numel() else None,))
 
 
 def _zeros_if_none(g: Tensor | None, shape, like: Tensor) -> Tensor:
