@@ -114,9 +114,9 @@ def test_the_fake_implementations_give_the_real_shapes(cpu_ops):
     r = grid.num_rays
     g_out = (torch.ones(r, 3), torch.ones(r), torch.ones(r))
     calls.append(("render_backward", (whiten, o_u, colors, opacities, *geometry, t_final, n_contrib, lanes, *g_out,
-                                      whiten.new_zeros(n, 6))))
+                                      whiten.new_zeros(n, 6), False)))
     calls.append(("preprocess_backward", (means, quats, scales, pre[4], pre[5], pre[6], -1, torch.ones(n, 3, 3),
-                                          torch.ones(n, 3), torch.ones(n, 3))))
+                                          torch.ones(n, 3), torch.ones(n, 3), False)))
     for name, args in calls:
         real = getattr(torch.ops.geer, name)(*args)
         with FakeTensorMode(shape_env=ShapeEnv()) as mode:

@@ -20,8 +20,7 @@ Every operation also exists on the CPU (csrc/cpu_ops.cpp, same names and signatu
 threads: `render_cuda(..., ops=load_cpu_ops())` drives
 this whole module on the CPU, which is how tests/test_csrc_math.py checks it against the twin.
 
-Differences from the twin, all by design: the kernels return `tiles=None` (lists live as sorted pairs);
-viewmat gradients are not computed (an error if viewmat requires grad). The lists themselves are the twin's,
+Differences from the twin, all by design: the kernels return `tiles=None` (lists live as sorted pairs). The lists themselves are the twin's,
 pair for pair and in the same order: both search the same tile pyramid (raygrid.TilePyramid) with the same
 tests, and the sort key's depth order is the twin's stable depth order (float32: the depth's bits with ties
 kept in index order by the stable sort; float64: the rank from a stable sort).
@@ -54,7 +53,8 @@ from .transforms import camera_offsets, view_transform
 
 # ----------------------------------------------------------------------------------------- autograd
 class _Preprocess(torch.autograd.Function):
-    """Per Gaussian: (means_c, quats, scales, SH, SH view directions) -> (W, o_u, colour) + PBF (no grad)."""
+    """Per Gaussian: (means_c, quats, scales, SH, SH view directions, camera rotation R_c) -> (W, o_u, colour)
+    + PBF (no grad). R_c gets a gradient when it requires one (camera pose refinement)."""
 
     @staticmethod
     def forward(ctx, means_c, quats, scales, sh, sh_dirs, opacities, rot_c, sh_degree, paper, ops):
@@ -70,12 +70,17 @@ class _Preprocess(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_whiten, g_o_u, g_rgb, *_):
-        return preprocess_grads(ctx.ops, ctx.saved_tensors, ctx.sh_degree, g_whiten, g_o_u, g_rgb) + (None,) * 5
+        pose_grad = ctx.needs_input_grad[6]
+        g_mc, g_q, g_s, g_sh, g_dirs, g_rot_c = preprocess_grads(ctx.ops, ctx.saved_tensors, ctx.sh_degree, g_whiten,
+                                                                 g_o_u, g_rgb, pose_grad)
+        return (g_mc, g_q, g_s, g_sh, g_dirs, None, g_rot_c) + (None,) * 3
 
 
 class _Rasterize(torch.autograd.Function):
     """Per tile / ray: (W, o_u, colour, opacity) -> (rgb sum, depth sum, accumulation) per ray, max_weight [N]
-    and the median distance [R] (neither with a gradient); with absgrad's offset rows [N,6] and sink [N,2], the sink's gradient is the absgrad sums."""
+    and the median distance [R] (neither with a gradient); with absgrad's offset rows [N,6] and sink [N,2], the
+    sink's gradient is the absgrad sums. The ray directions get their gradient when they require one (lens
+    refinement; the cull has none)."""
 
     @staticmethod
     def forward(ctx, whiten, o_u, rgb, opacities, pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height,
@@ -85,7 +90,7 @@ class _Rasterize(torch.autograd.Function):
         geometry = (pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges)
         # blended_lanes: the CPU build's record of the lanes that blended each list entry, which its backward
         # visits; made only when a backward will run (empty from the kernels, whose backward re-derives them).
-        record = any(ctx.needs_input_grad[:4]) or ctx.needs_input_grad[16]
+        record = any(ctx.needs_input_grad[:4]) or ctx.needs_input_grad[5] or ctx.needs_input_grad[16]
         out_rgb, depth, acc, t_final, n_contrib, blended_lanes, max_weight, median = ops.render_forward(
             whiten, o_u, rgb, opacities, *geometry, height, width, tile_size, record
         )
@@ -101,8 +106,9 @@ class _Rasterize(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_rgb, g_depth, g_acc, _g_max_weight, _g_median):
         *saved, rows = ctx.saved_tensors
-        *grads, absgrad = render_grads(ctx.ops, saved, ctx.layout, g_rgb, g_depth, g_acc, rows)
-        return tuple(grads) + (None,) * 12 + (absgrad,)
+        dir_grad = ctx.needs_input_grad[5]
+        *grads, absgrad, g_dirs = render_grads(ctx.ops, saved, ctx.layout, g_rgb, g_depth, g_acc, rows, dir_grad)
+        return tuple(grads) + (None, g_dirs) + (None,) * 10 + (absgrad,)
 
 
 # ----------------------------------------------------------------------------------------- helpers
@@ -168,8 +174,6 @@ def render_cuda(
         ops = KERNELS
     if lambda_mode not in ("opacity", "paper"):
         raise ValueError(f"lambda_mode must be 'opacity' or 'paper', got {lambda_mode!r}")
-    if viewmat.requires_grad and torch.is_grad_enabled():
-        raise ValueError("viewmat: gradients w.r.t. the camera pose are not supported by the CUDA backend")
     if not 1 <= grid.tile_size <= 32 and means.device.type == "cuda":
         raise ValueError(f"the CUDA backend needs tile_size in 1..32 (one thread per ray), got {grid.tile_size}")
     dtype, device = means.dtype, means.device
@@ -178,8 +182,9 @@ def render_cuda(
     dirs = grid.dirs.to(dtype).contiguous()
     # The pose goes to the Gaussians' device (no host round trip); the kernels read rot_c there.
     # Stage 1. View transform and SH view directions in PyTorch (transforms.view_transform and camera_offsets,
-    # float64 inside, as the twin), the rest per Gaussian in the kernel.
-    viewmat = viewmat.detach().to(device=device)
+    # float64 inside, as the twin), the rest per Gaussian in the kernel. A pose that requires grad gets its
+    # gradient through all three: means_c and sh_dirs by autograd, rot_c from the preprocess backward.
+    viewmat = viewmat.to(device=device)
     means_c = view_transform(means, viewmat)
     degree = _sh_setup(colors, sh_degree)
     sh_dirs = camera_offsets(means, viewmat) if degree >= 0 else means.new_zeros(n, 3)
