@@ -126,7 +126,7 @@ def _model_config_default(name: str):
 
 
 @dataclass
-class GeerModelConfig(SplatfactoModelConfig, GeerOwnOptions, depth_supervision.DepthSupervisionOptions):
+class GeerModelConfig(SplatfactoModelConfig, depth_supervision.DepthSupervisionOptions, GeerOwnOptions):
     _target: Type = field(default_factory=lambda: GeerModel)
     # Ray-marching options of nerfstudio's ModelConfig that no Gaussian model reads: hidden from --help.
     enable_collider: tyro.conf.Suppress[bool] = _model_config_default("enable_collider")

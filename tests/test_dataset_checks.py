@@ -260,7 +260,9 @@ def test_ns_train_ends_on_a_broken_dataset_with_its_line_not_a_traceback():
     import sys
 
     def run(error: str) -> subprocess.CompletedProcess:
-        code = f"import geer_ns.model\nfrom geer_ns.data.dataset_checks import DatasetError\nraise {error}"
+        # What ns-train's main does first for a geer config (GeerTrainerConfig.set_timestamp installs the run fixes).
+        code = ("from geer_ns.distributed.trainer import install_run_fixes\ninstall_run_fixes()\n"
+                f"from geer_ns.data.dataset_checks import DatasetError\nraise {error}")
         return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
 
     broken = run("DatasetError('geer: data/transforms.json: frames[0] (a.png): `fl_x` = 0; expected > 0')")
