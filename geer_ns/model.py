@@ -46,7 +46,7 @@ from geer_ns.cameras import CameraModel
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, host_camera_model, native_view
 from geer_ns.densify.mcmc_cpu import install_mcmc_cpu_ops
-from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angular_signal, pbf_radii, pixel_signal
+from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angular_signal
 from geer_ns.densify.strategy import GeerDefaultStrategy
 from geer_ns.perceptual import build_lpips_if_cached
 from geer_ns.render import render
@@ -67,10 +67,6 @@ class GeerOwnOptions:
 
     strategy: Literal["default", "mcmc"] = "default"
     """Densification: gsplat's DefaultStrategy (3DGS heuristics) or MCMCStrategy."""
-    densify_signal: Literal["angular", "pixels"] = "angular"
-    """Densification statistics: "angular" (the same value for the same Gaussian at any field of view and
-    projection, counted in the view's supervised pixels, in the units gsplat's thresholds were tuned on:
-    geer_ns/densify/signal.py) or "pixels" (geer's former signal: BEAP pixels, normalised by the image size)."""
     max_gaussians: int = 0
     """Most Gaussians densification may create (0: no limit); the strongest candidates grow first. With
     strategy=mcmc, the cap of MCMCStrategy when set."""
@@ -126,7 +122,7 @@ class GeerModelConfig(SplatfactoModelConfig, GeerOwnOptions, depth_supervision.D
     eval_num_rays_per_chunk: tyro.conf.Suppress[int] = _model_config_default("eval_num_rays_per_chunk")
     prompt: tyro.conf.Suppress[Optional[str]] = _model_config_default("prompt")
     densify_grad_thresh: float = 0.0008
-    """Gradient threshold of DefaultStrategy's growth, in gsplat's units (what they mean: densify-signal);
+    """Gradient threshold of DefaultStrategy's growth, in gsplat's units (what they mean: docs/densification.md);
     splatfacto's value for AbsGS gradients (gsplat's 0.0002 is for summed gradients, use-absgrad False)."""
     use_absgrad: bool = True
     """Densify on AbsGS's per-pixel absolute gradients (the renderer's backward sums |dL_p/d position| over each
@@ -152,7 +148,7 @@ IGNORED_OPTIONS = ("rasterize_mode", "output_depth_during_training", "color_corr
 # geer's own options, listed first in `ns-train geer --help` (the method description).
 OWN_OPTIONS_HELP = (
     "geer's own options: --pipeline.model.renderer-backend {auto,torch,cuda,cpu}, --pipeline.model.lambda-mode "
-    "{opacity,paper}, --pipeline.model.strategy {default,mcmc}, --pipeline.model.densify-signal {angular,pixels}, "
+    "{opacity,paper}, --pipeline.model.strategy {default,mcmc}, "
     "--pipeline.model.max-gaussians, --pipeline.model.densify-min-pixels, --pipeline.model.prune-unseen, --pipeline.model.distributed {images,gaussians}, "
     "--pipeline.model.max-pairs, --pipeline.model.kernel-check-every, "
     "--pipeline.model.central-half-angles-deg, --pipeline.datamanager.supervision, "
@@ -414,11 +410,7 @@ class GeerModel(SplatfactoModel):
                 self.config.lambda_mode)):
             self.config.renderer_backend = "torch"  # every later render of this run, sharded engines' too
         if probe is not None:
-            radius = pixels = None
-            if probe.signal.radius is None:  # pixel_signal: the PBF's extent in pixels (of the image's larger side)
-                pixels = pbf_radii(out.pbf, out.visible, view.steps)
-                radius = pixels / float(max(height, width))
-            self.views.append(probe.record(out.visible.detach(), out.max_weight, radius, pixels))
+            self.views.append(probe.record(out.visible.detach(), out.max_weight))
         normals = None
         if not self.training:  # forward only: no loss reads normals
             normals = render_normals(means, params["quats"], scales, opacities, viewmat, view.rays.to(means.device),
@@ -443,12 +435,9 @@ class GeerModel(SplatfactoModel):
     def probe(self, view: View, means: Tensor, viewmat: Tensor, scales: Tensor, opacities: Tensor) -> ViewProbe:
         """The densification leaves of a training view of these Gaussians (geer_ns/densify/signal.py)."""
         means_c = view_transform(means.detach(), viewmat)
-        if self.config.densify_signal == "pixels":
-            signal = pixel_signal(means_c, view.steps, view.size)
-        else:
-            lam2, _ = pbf_lambda_sq(opacities.detach(), self.config.lambda_mode)
-            signal = angular_signal(view.project, view.rays.num_valid, view.center_solid_angle, means_c,
-                                    scales, lam2, view.source_project)
+        lam2, _ = pbf_lambda_sq(opacities.detach(), self.config.lambda_mode)
+        signal = angular_signal(view.project, view.rays.num_valid, view.center_solid_angle, means_c,
+                                scales, lam2, view.source_project)
         return ViewProbe.zeros(signal, means, self.config.use_absgrad)
 
     def _get_background_color(self) -> Tensor:

@@ -66,8 +66,6 @@ class GaussianParallel:
         problems = []
         if not isinstance(model.strategy, GeerDefaultStrategy):
             problems.append("--pipeline.model.strategy mcmc (MCMC relocates by sampling the whole scene)")
-        if model.config.densify_signal != "angular":
-            problems.append("--pipeline.model.densify-signal pixels (its screen size comes from the render's PBF)")
         if model.config.camera_optimizer.mode != "off":
             problems.append("--pipeline.model.camera-optimizer.mode (pose gradients would reach one shard only)")
         if problems:
@@ -284,10 +282,10 @@ def sharded_outputs(model, cameras, me: int) -> Dict[str, Tensor]:
 
     absgrad = record and model.config.use_absgrad
     out, seen = render_sharded(
-        means.detach(), params["quats"].detach(), scales, opacities, None, viewmats,
-        [v.rays.to(means.device) for v in views], background=background, lambda_mode=model.config.lambda_mode,
+        means.detach(), params["quats"].detach(), scales, opacities, viewmats, [v.rays.to(means.device) for v in views],
+        rows_of, background=background, lambda_mode=model.config.lambda_mode,
         backend=model.config.renderer_backend, max_pairs=model.config.max_pairs,
-        absgrad_sinks=[p.absgrad for p in probes] if absgrad else None, lateral=lateral_basis, rows_of=rows_of)
+        absgrad_sinks=[p.absgrad for p in probes] if absgrad else None, lateral=lateral_basis)
     for q, probe in enumerate(probes):
         model.views.append(probe.record(seen.seen[q], seen.max_weight[q]))
     return model.view_outputs(out, views[me], background, cameras[me])
