@@ -184,7 +184,7 @@ def budget_plan(rank: int, out: Path) -> None:
     optimizers = {k: torch.optim.Adam([p], lr=1e-3) for k, p in keep.items()}
     shard_state = {k: (v[mine].clone() if torch.is_tensor(v) and v.dim() > 0 else v) for k, v in state.items()}
     strategy.budget = scene_budget
-    strategy._grow_gs(keep, optimizers, shard_state, step=100)
+    strategy.grow(keep, optimizers, shard_state, step=100)
     torch.save({"ids": shard_state["id"], "n": keep["means"].shape[0], "candidates": int(mine[BUDGET_WANTED].sum())},
                out / f"budget_{rank}.pt")
 

@@ -33,12 +33,12 @@ from typing import Any, Callable, Dict, List, Optional
 
 import torch
 import torch.nn.functional as F
-from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import duplicate, remove
 from torch import Tensor
 
 from geer_ns.densify.identity import child_ids, normals
 from geer_ns.densify.signal import StepStatistics
+from geer_ns.gsplat_private import DefaultStrategyHooks
 from geer_ns.render.transforms import quat_to_rotmat
 
 VISIBLE_WEIGHT = 1.0 / 255.0  # the renderer's own threshold: a pair below it is skipped
@@ -66,7 +66,7 @@ def local_budget(wanted: Tensor, over: Tensor, ids: Tensor, n: int, budget: int)
 
 
 @dataclass
-class GeerDefaultStrategy(DefaultStrategy):
+class GeerDefaultStrategy(DefaultStrategyHooks):
     max_gaussians: int = 0  # 0: no budget
     min_pixels: float = 0.0  # 0: every candidate grows, resolved or not (gsplat's rule)
     prune_unseen: bool = False
@@ -80,7 +80,7 @@ class GeerDefaultStrategy(DefaultStrategy):
     def step_pre_backward(self, params, optimizers, state, step, info) -> None:
         """Nothing to prepare: every view's offsets are leaves, whose gradients autograd keeps."""
 
-    def _update_state(self, params, state: Dict[str, Any], info: Dict[str, Any], packed: bool = False) -> None:
+    def update_statistics(self, params, state: Dict[str, Any], info: Dict[str, Any], packed: bool = False) -> None:
         stats: StepStatistics = info["statistics"]
         n = len(params["means"])
         device = params["means"].device
@@ -98,7 +98,7 @@ class GeerDefaultStrategy(DefaultStrategy):
         state["weight_images"] = int(state.get("weight_images", 0)) + self.images_per_step  # not per Gaussian
 
     @torch.no_grad()
-    def _grow_gs(self, params, optimizers, state: Dict[str, Any], step: int):
+    def grow(self, params, optimizers, state: Dict[str, Any], step: int):
         n = len(params["means"])
         grads = state["grad2d"] / state["count"].clamp_min(1)
         is_grad_high = grads > self.grow_grad2d
@@ -163,7 +163,7 @@ class GeerDefaultStrategy(DefaultStrategy):
                     value[rows] = 0
 
     @torch.no_grad()
-    def _prune_gs(self, params, optimizers, state: Dict[str, Any], step: int) -> int:
+    def prune(self, params, optimizers, state: Dict[str, Any], step: int) -> int:
         entry = getattr(self, "_entry", None) or {"step": step, "before": len(params["means"])}
         entry["after growth"] = len(params["means"])
         rules = {"pruned (opacity)": torch.sigmoid(params["opacities"].flatten()) < self.prune_opa}

@@ -25,7 +25,7 @@ from typing import Callable, Dict, Iterator, List, Optional, Tuple
 
 import torch
 import torch.distributed as dist
-from gsplat.strategy.ops import _update_param_with_optimizer, remove
+from gsplat.strategy.ops import remove
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.utils.misc import step_check
 from torch import Tensor
@@ -37,6 +37,7 @@ from geer_ns.distributed.consistency import broadcast_replica, check_consistent,
 from geer_ns.distributed.reductions import optimised_parameters, reduce_gradients
 from geer_ns.distributed.sharded_render import render_sharded, shard_rows
 from geer_ns.distributed.streamed_checkpoint import leaves, replaced, save_rows_streamed
+from geer_ns.gsplat_private import update_param_with_optimizer
 from geer_ns.distributed.world import (
     World,
     all_gather_objects,
@@ -374,7 +375,7 @@ def rebalance(world: World, model, optimizers, sizes: List[int]) -> None:
         dist.all_to_all_single(out, sending, recv, send)
         return torch.cat([t[:keep], out.to(t.device)])
 
-    _update_param_with_optimizer(lambda name, p: torch.nn.Parameter(exchange(p.detach())),
+    update_param_with_optimizer(lambda name, p: torch.nn.Parameter(exchange(p.detach())),
                                  lambda key, v: exchange(v), model.gauss_params, optimizers,
                                  names=list(model.gauss_params.keys()))
     state = model.strategy_state
