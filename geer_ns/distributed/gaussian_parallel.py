@@ -1,20 +1,9 @@
 """Gaussian-parallel training (`--pipeline.model.distributed gaussians`): each process holds a shard of the
-Gaussians, its parameters and optimiser state; scenes are limited by the sum of the devices' memory.
+Gaussians with their optimizer state, so scenes are limited by the sum of the devices' memory.
 
-* Shards: at start-up every process builds (or loads) the whole model, takes rank 0's values, and keeps every
-  N-th Gaussian (shards.shard_rows: round robin, so each camera's work is spread evenly).
-* A step is rounds of one camera per process: in round i every process renders its i-th image from every
-  shard (shards.render_sharded) and backpropagates its loss, whose gradients come home by the reverse
-  all-to-all. Every shard's gradients are then complete: no Gaussian gradient is reduced; the few replicated
-  parameters (bilateral grids) are all-reduced as in image-parallel training.
-* Densification per shard on its own Gaussians' statistics, which are complete too (every camera's gradient of
-  a Gaussian reaches its owner); splits draw from each Gaussian's identity, so they equal one process's.
-  After a refinement the shards are rebalanced when their sizes differ by more than REBALANCE_FRACTION.
-* Checkpoints are gathered: rank 0 writes one ordinary checkpoint (the shards' rows in rank order) that one
-  process, ns-eval, ns-export and the viewer read; resuming keeps every N-th row of it, for any N.
-* Evaluation and the viewer on rank 0 render the gathered model (gathered at each evaluation, and every
-  VIEWER_REFRESH_STEPS steps while a viewer runs): the scene must fit rank 0's memory for that, not its
-  training state.
+A step is rounds of one camera per process, each rendered from every shard (sharded_render); densification runs
+per shard on its own complete statistics; checkpoints are one ordinary file written by rank 0; rank 0 evaluates
+from the rows of every shard a camera sees. How and why: docs/distributed.md.
 """
 
 from __future__ import annotations
