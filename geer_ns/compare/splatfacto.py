@@ -4,11 +4,11 @@ host pitfalls (../shared/HOST-PITFALLS.md) worked around only inside these runs:
 * `.cuda()` hard-coded in splatfacto's `populate_modules` and `get_outputs`: without CUDA, `Tensor.cuda` is the
   identity while those two methods run;
 * gsplat's rasterizer needs CUDA: without it, `nerfstudio.models.splatfacto.rasterization` is
-  geer_ns.compare.ewa_cpu's while `get_outputs` runs (labelled in the results);
+  geer_ns.compare.ewa_cpu's while `get_outputs` runs (labeled in the results);
 * splatfacto never passes `camera_model` to gsplat: `gsplat_camera_model` ("fisheye": gsplat's EWA with the
   equidistant fisheye Jacobian, FisheyeGS-like) is added to its call;
 * torchmetrics' LPIPS downloads AlexNet when the model is built: it is built only from cached weights
-  (geer_ns.host_fixes.build_lpips_if_cached), else a NaN stand-in (geer-compare scores LPIPS itself);
+  (geer_ns.perceptual.build_lpips_if_cached), else a NaN stand-in (geer-compare scores LPIPS itself);
 * nerfstudio-data's point cloud is read with open3d (needs libusb): read with plyfile instead;
 * `cache_images="cpu"` pins memory (fails without a GPU): the images are cached on the training device.
 
@@ -30,8 +30,9 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, Nerfst
 from nerfstudio.models import splatfacto as splatfacto_module
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 
-from geer_ns import host_fixes
 from geer_ns.compare import ewa_cpu
+from geer_ns.data.ply import read_ply_points
+from geer_ns.perceptual import build_lpips_if_cached
 
 
 @contextlib.contextmanager
@@ -66,7 +67,7 @@ class _NoLpips(torch.nn.Module):
 
 
 def _lpips_factory(*args, **kwargs):
-    metric = host_fixes.build_lpips_if_cached()
+    metric = build_lpips_if_cached()
     return metric if metric is not None else _NoLpips()
 
 
@@ -83,7 +84,7 @@ class CompareSplatfactoModelConfig(SplatfactoModelConfig):
 
 
 class CompareSplatfactoModel(SplatfactoModel):
-    """SplatfactoModel with the scoped work-arounds of the module docstring; no behaviour of its own."""
+    """SplatfactoModel with the scoped work-arounds of the module docstring; no behavior of its own."""
 
     config: CompareSplatfactoModelConfig
 
@@ -120,7 +121,7 @@ class PlyfileNerfstudio(Nerfstudio):
     config: PlyfileNerfstudioDataParserConfig
 
     def _load_3D_points(self, ply_file_path: Path, transform_matrix: torch.Tensor, scale_factor: float):
-        xyz, rgb = host_fixes.read_ply_points(ply_file_path)
+        xyz, rgb = read_ply_points(ply_file_path)
         if len(xyz) == 0:
             return None
         points = torch.from_numpy(np.concatenate([xyz, np.ones_like(xyz[:, :1])], axis=1)) @ transform_matrix.T
