@@ -4,7 +4,7 @@ gsplat's private API may change in any release. geer uses it where gsplat has no
 steps DefaultStrategy.step_post_backward calls (statistics, growth, prune: geer feeds its own statistics and
 logs each rule), the parameter-and-optimizer-state replacement of gsplat.strategy.ops, and gsplat's PyTorch
 reference projection and SH (geer's CPU twins of gsplat's EWA rendering). Each use checks the installed gsplat
-(`check_gsplat`); tests/test_gsplat_private.py pins the behaviour geer relies on.
+(`check_gsplat`); tests/test_gsplat_private.py pins the behavior geer relies on.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ strategy fed geer's statistics (geer_ns/densify). Nothing assumes CUDA.
 Why a subclass of SplatfactoModel rather than a model composing what it reuses: nerfstudio decides by
 `isinstance(model, SplatfactoModel)` whether the viewer shows a Gaussian scene (its render state machine, export
 panel, crop box) and whether `ns-export gaussian-splat` accepts a run (scripts/exporter.py asserts it). geer
-overrides what it renders and scores, and reuses splatfacto's parameter layout, initialisation helpers, camera
+overrides what it renders and scores, and reuses splatfacto's parameter layout, initialization helpers, camera
 optimizer, bilateral grid and SH schedule.
 """
 
@@ -126,7 +126,7 @@ class GeerModelConfig(SplatfactoModelConfig, GeerOwnOptions, depth_supervision.D
     splatfacto's value for AbsGS gradients (gsplat's 0.0002 is for summed gradients, use-absgrad False)."""
     use_absgrad: bool = True
     """Densify on AbsGS's per-pixel absolute gradients (the renderer's backward sums |dL_p/d position| over each
-    Gaussian's pixels: no cancelling) instead of the summed gradient, as splatfacto does."""
+    Gaussian's pixels: no canceling) instead of the summed gradient, as splatfacto does."""
     # splatfacto options geer does not use: accepted (splatfacto command lines still parse), marked, and said
     # once at start-up when set (IGNORED_OPTIONS).
     rasterize_mode: Literal["classic", "antialiased"] = "classic"
@@ -134,7 +134,7 @@ class GeerModelConfig(SplatfactoModelConfig, GeerOwnOptions, depth_supervision.D
     output_depth_during_training: bool = False
     """IGNORED by geer: depth is always rendered."""
     color_corrected_metrics: bool = False
-    """IGNORED by geer: metrics are computed over the valid pixels, without colour correction."""
+    """IGNORED by geer: metrics are computed over the valid pixels, without color correction."""
     n_split_samples: int = 2
     """IGNORED by geer: gsplat's DefaultStrategy splits a Gaussian into two."""
     # Set by the training engine (geer_ns.distributed.schedule), not on the command line: the images one
@@ -185,7 +185,7 @@ def central_region(camera: CameraModel, dirs: Tensor, half_angles: Optional[Tupl
 
 def exact_activation(fn, x: Tensor) -> Tensor:
     """fn(x) evaluated in float64 and rounded to x's dtype. torch's float32 exp and sigmoid round an element by
-    where it falls in the tensor (vectorised body, scalar tail); a shard or a subset of the Gaussians then gets
+    where it falls in the tensor (vectorized body, scalar tail); a shard or a subset of the Gaussians then gets
     other bits than the whole model. In float64 those differences are below what rounding to float32 keeps."""
     return fn(x.double()).to(x.dtype) if x.dtype == torch.float32 else fn(x)
 
@@ -249,7 +249,7 @@ class GeerModel(SplatfactoModel):
         self.views: List[ViewRecord] = []  # this step's rendered training views, for the densification statistics
         self._statistics: Optional[StepStatistics] = None  # the step's statistics, when the engine reduced them
         self._step_background: Optional[Tensor] = None  # one random background per step, for all its views
-        self.scene_gaussians: Optional[int] = None  # Gaussians over every shard (the regularisers' mean)
+        self.scene_gaussians: Optional[int] = None  # Gaussians over every shard (the regularizers' mean)
         self.display_gaussians: Optional[Dict[str, Tensor]] = None  # what eval / the viewer render, if not these
         self.loaded_images_per_step = self.config.images_per_step_total  # of the checkpoint loaded, if any
         self.render_guard = RenderGuard()
@@ -441,8 +441,8 @@ class GeerModel(SplatfactoModel):
         return ViewProbe.zeros(signal, means, self.config.use_absgrad)
 
     def _get_background_color(self) -> Tensor:
-        """splatfacto's, with one random colour per training step (drawn at its first view): every view of
-        a step, on every process, composites over the same colour, and the random stream stays the same
+        """splatfacto's, with one random color per training step (drawn at its first view): every view of
+        a step, on every process, composites over the same color, and the random stream stays the same
         however a step's views are split over processes."""
         if self.config.background_color == "random" and self.training:
             if self._step_background is None:
@@ -567,8 +567,8 @@ class GeerModel(SplatfactoModel):
         return losses
 
     def get_step_loss_dict(self) -> Dict[str, Tensor]:
-        """The losses of the parameters alone (regularisers), once per step whatever its images."""
-        losses = {"scale_reg": self._scale_regularisation()}
+        """The losses of the parameters alone (regularizers), once per step whatever its images."""
+        losses = {"scale_reg": self._scale_regularization()}
         if isinstance(self.strategy, MCMCStrategy):
             losses["opacity_reg"] = self.config.mcmc_opacity_reg * torch.sigmoid(self.opacities).mean()
             losses["mcmc_scale_reg"] = self.config.mcmc_scale_reg * torch.exp(self.scales).mean()
@@ -576,7 +576,7 @@ class GeerModel(SplatfactoModel):
             self.camera_optimizer.get_loss_dict(losses)
         return losses
 
-    def _scale_regularisation(self) -> Tensor:
+    def _scale_regularization(self) -> Tensor:
         if not (self.config.use_scale_regularization and self.step % 10 == 0):
             return torch.tensor(0.0, device=self.device)
         scale = torch.exp(self.scales)

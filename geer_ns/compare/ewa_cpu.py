@@ -5,7 +5,7 @@ compositor of geer_ns.compare.ewa_tiles. The signature and the returned `info` a
 N], `means2d` [C, N, 2] in pixels whose `.grad` / `.absgrad` DefaultStrategy reads, `width`, `height`, `n_cameras`,
 `gaussian_ids` None), so splatfacto's model, schedule and densification run unchanged. geer-compare installs it in
 splatfacto's module only for its own runs and only where CUDA is absent (geer_ns/compare/splatfacto.py); results are
-labelled "CPU EWA".
+labeled "CPU EWA".
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ def project(means: Tensor, quats: Optional[Tensor], scales: Optional[Tensor], vi
 
 
 def _colors_of(means: Tensor, colors: Tensor, viewmats: Tensor, radii: Tensor, sh_degree: Optional[int]) -> Tensor:
-    """[C, N, D]: post-activation colours, or gsplat's SH evaluation (+0.5, clamped at 0) toward each camera."""
+    """[C, N, D]: post-activation colors, or gsplat's SH evaluation (+0.5, clamped at 0) toward each camera."""
     C, N = radii.shape
     if sh_degree is None:
         return colors.expand(C, -1, -1) if colors.dim() == 2 else colors

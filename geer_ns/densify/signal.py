@@ -42,7 +42,7 @@ def tangent_basis(means_c: Tensor) -> Tensor:
 def pixel_solid_angle(project: Projection, means_c: Tensor, fallback: float, step: float = 1e-4) -> Tensor:
     """[N] solid angle (sr) of one pixel of a view at each mean's direction: 1 / |det d(pixel)/d(direction)|,
     by forward differences of `project` over `step` radians across the ray; `fallback` where the camera
-    cannot project there (such a Gaussian's centre is outside the view)."""
+    cannot project there (such a Gaussian's center is outside the view)."""
     p = means_c.detach().double()
     u = p / p.norm(dim=-1, keepdim=True).clamp_min(1e-300)
     basis = tangent_basis(p)

@@ -23,7 +23,7 @@ from geer_ns import resume
 from geer_ns.densify.signal import lateral_basis
 from geer_ns.densify.strategy import PER_GAUSSIAN_STATE, GeerDefaultStrategy, local_budget, strongest_first
 from geer_ns.distributed.consistency import broadcast_replica, check_consistent, fingerprint
-from geer_ns.distributed.reductions import optimised_parameters, reduce_gradients
+from geer_ns.distributed.reductions import optimized_parameters, reduce_gradients
 from geer_ns.distributed.sharded_render import render_sharded, shard_rows
 from geer_ns.distributed.streamed_checkpoint import leaves, replaced, save_rows_streamed
 from geer_ns.gsplat_private import update_param_with_optimizer
@@ -102,7 +102,7 @@ class GaussianParallel:
     def reduce_gradients(self) -> None:
         model, optimizers = self.trainer.pipeline.model, self.trainer.optimizers
         own = {id(p) for p in model.gauss_params.values()}
-        params = optimised_parameters(optimizers)
+        params = optimized_parameters(optimizers)
         reduce_gradients(self.world, [p for p in params if id(p) not in own], self.trainer.batch.images)
         reduce_gradients(World(), [p for p in params if id(p) in own], self.trainer.batch.images)
 
@@ -158,7 +158,7 @@ class GaussianParallel:
 
 def per_gaussian(groups) -> Callable[[Tuple], bool]:
     """Whether a checkpoint entry (its path of keys) is per Gaussian, by its name: the Gaussian parameters, the
-    strategy's per-Gaussian statistics, and their optimisers' moments (`groups`: the Gaussian parameters'
+    strategy's per-Gaussian statistics, and their optimizers' moments (`groups`: the Gaussian parameters'
     names). The same answer on every process, whatever the shards' sizes."""
     def test(path: Tuple) -> bool:
         if path[:1] == ("pipeline",) and len(path) > 1:
@@ -248,7 +248,7 @@ def visible_rows(model, camera, world: World) -> Optional[Dict[str, Tensor]]:
 def sharded_outputs(model, cameras, me: int) -> Dict[str, Tensor]:
     """GeerModel.get_outputs for camera `me` of `cameras` (one per process, this round's), rendered from every
     shard; records the densification view of this shard in every camera. Each camera's rows are made as one
-    process makes a render's Gaussians (displaced, activated, coloured per view), so that every camera's
+    process makes a render's Gaussians (displaced, activated, colored per view), so that every camera's
     gradient reaches the parameters through its own activations: the sums round as one process's do."""
     views = [model._view_for(camera) for camera in cameras]
     params = model._gaussians()
@@ -344,7 +344,7 @@ def gather_rows(world: World, tensor: Tensor, device: Optional[torch.device] = N
 def rebalance(world: World, model, optimizers, sizes: List[int]) -> None:
     """Move rows from the largest shards to the smallest until their sizes differ by at most one: each shard
     gives away its last rows (the newest), received rows are appended in rank order; parameters, their
-    optimiser state and the strategy's per-Gaussian state move together."""
+    optimizer state and the strategy's per-Gaussian state move together."""
     total, n = sum(sizes), len(sizes)
     targets = [total // n + (1 if r < total % n else 0) for r in range(n)]
     moves = _moves(sizes, targets)  # (from, to, count)

@@ -33,7 +33,7 @@ from .transforms import camera_offsets, view_transform
 
 # ----------------------------------------------------------------------------------------- autograd
 class _Preprocess(torch.autograd.Function):
-    """Per Gaussian: (means_c, quats, scales, SH, SH view directions) -> (W, o_u, colour) + PBF (no grad)."""
+    """Per Gaussian: (means_c, quats, scales, SH, SH view directions) -> (W, o_u, color) + PBF (no grad)."""
 
     @staticmethod
     def forward(ctx, means_c, quats, scales, sh, sh_dirs, opacities, rot_c, sh_degree, paper, ops):
@@ -53,7 +53,7 @@ class _Preprocess(torch.autograd.Function):
 
 
 class _Rasterize(torch.autograd.Function):
-    """Per tile / ray: (W, o_u, colour, opacity) -> (rgb sum, depth sum, accumulation) per ray, max_weight [N]
+    """Per tile / ray: (W, o_u, color, opacity) -> (rgb sum, depth sum, accumulation) per ray, max_weight [N]
     and the median distance [R] (neither with a gradient); with absgrad's offset rows [N,6] and sink [N,2], the sink's gradient is the absgrad sums."""
 
     @staticmethod
@@ -86,7 +86,7 @@ class _Rasterize(torch.autograd.Function):
 
 # ----------------------------------------------------------------------------------------- helpers
 def _sh_setup(colors: Tensor, sh_degree: int | None) -> int:
-    """Active SH degree (-1: colours are RGB), with sh.py's errors."""
+    """Active SH degree (-1: colors are RGB), with sh.py's errors."""
     if colors.ndim == 2:
         return -1
     degree = int(math.isqrt(colors.shape[1]) - 1) if sh_degree is None else sh_degree
