@@ -94,7 +94,7 @@ class GeerNerfstudio(Nerfstudio):
 
     def parse_once(self) -> _Parse:
         """transforms.json checked (geer_ns.data.dataset_checks: one line naming file, frame and field) and
-        parsed, memoised on the parser by the file's resolved path and modification time."""
+        parsed, memoized on the parser by the file's resolved path and modification time."""
         path = self.transforms_path()
         try:
             key = (path.resolve(), path.stat().st_mtime_ns)

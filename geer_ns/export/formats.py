@@ -2,7 +2,7 @@
 Niantic's SPZ (version 3, gzip). Written from the formats' specifications (docs/export.md lists them and what
 each stores, with the round-trip error the tests measure).
 
-Every writer takes a `Splats` in splatfacto's parameterisation (log-scales, opacity logits, SH with the DC term
+Every writer takes a `Splats` in splatfacto's parameterization (log-scales, opacity logits, SH with the DC term
 first) and a metadata dict saying how the scene was trained, which each format keeps where it can.
 """
 

@@ -2,7 +2,7 @@
 camera sub-frusta (CSFs) of paper Sec. 3.2, each with the angular bounds of its own rays.
 
 Two constructors: `RayGrid.beap` samples rays uniformly in (theta, phi) = (atan(x/z), atan(y/z))
-(paper Eq. 6 and 11), so image tiles and CSFs share one parameterisation; `RayGrid.from_rays` takes
+(paper Eq. 6 and 11), so image tiles and CSFs share one parameterization; `RayGrid.from_rays` takes
 any camera model's per-pixel rays (fisheye, pinhole, equirectangular, ...). Both derive the tile
 bounds from the tile's rays themselves, so the bounds are exact for the rays that are rendered.
 Invalid rays (outside a fisheye circle, masked) are skipped; a tile without a valid ray is inactive.
