@@ -167,7 +167,8 @@ def ut_counts(scene, viewmat, kind: str, focal: float, grid):
     wc = torch.tensor([2.0] + [1 / 6] * 6, dtype=torch.float64)
     mean2d = (wm[None, :, None] * pts).sum(1)
     dev = pts - mean2d[:, None]
-    cov = (wc[None, :, None, None] * dev[..., :, None] * dev[..., None, :]).sum(1) + 0.3 * torch.eye(2, dtype=torch.float64)
+    cov = (wc[None, :, None, None] * dev[..., :, None] * dev[..., None, :]).sum(1)
+    cov = cov + 0.3 * torch.eye(2, dtype=torch.float64)
     b = 0.5 * (cov[:, 0, 0] + cov[:, 1, 1])
     det = cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] ** 2
     radius = torch.ceil(3.0 * torch.sqrt(b + torch.sqrt((b * b - det).clamp_min(0.01))))

@@ -45,7 +45,8 @@ def cameras():
         f = (SIZE / 2) / math.radians(fov / 2)
         ang, psi = torch.sqrt(u * u + v * v) / f, torch.atan2(v, u)
         dirs = torch.stack([ang.sin() * psi.cos(), ang.sin() * psi.sin(), ang.cos()], -1)
-        out[f"fisheye {fov:.0f}"] = (RayGrid.from_rays(dirs.float(), ang <= math.radians(fov / 2), TILE), "fisheye", f, fov)
+        grid = RayGrid.from_rays(dirs.float(), ang <= math.radians(fov / 2), TILE)
+        out[f"fisheye {fov:.0f}"] = (grid, "fisheye", f, fov)
     for fov in (60.0, 120.0):
         f = (SIZE / 2) / math.tan(math.radians(fov / 2))
         dirs = torch.nn.functional.normalize(torch.stack([u / f, v / f, torch.ones_like(u)], -1), dim=-1)

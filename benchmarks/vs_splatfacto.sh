@@ -14,6 +14,7 @@ WORK=${WORK:-/tmp/vs_splatfacto}
 DEV_ROOM=${DEV_ROOM:-../shared/data/fisheye_room_dev}  # the shared data beside the checkout
 ROOM=$("$PY" -c "import sys; sys.path.insert(0, 'benchmarks'); from pathlib import Path; import densification as d; d.DEV_ROOM = Path('$DEV_ROOM'); print(d.resized_room(Path('$WORK'), 128))")
 START=$(date -u +%FT%TZ)
+COMMIT=$(git rev-parse --short HEAD)  # the code the runs load (the tree may move on while they train)
 nice -n 5 "$PY" -m geer_ns.compare --data "$ROOM/transforms_fisheye.json" --steps "$STEPS" \
   --methods geer splatfacto splatfacto-pinhole splatfacto-fisheye --output-dir "$WORK/fisheye" > "$WORK/fisheye.log" 2>&1 &
 FISHEYE=$!
@@ -24,11 +25,10 @@ wait $FISHEYE
 wait $PINHOLE
 cp "$WORK/fisheye/compare.png" benchmarks/vs_splatfacto_fisheye.png
 cp "$WORK/pinhole/compare.png" benchmarks/vs_splatfacto_pinhole.png
-"$PY" - "$WORK" "$STEPS" "$START" <<'PYEOF'
-import platform, subprocess, sys
+"$PY" - "$WORK" "$STEPS" "$START" "$COMMIT" <<'PYEOF'
+import platform, sys
 from pathlib import Path
-work, steps, start = Path(sys.argv[1]), sys.argv[2], sys.argv[3]
-commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+work, steps, start, commit = Path(sys.argv[1]), sys.argv[2], sys.argv[3], sys.argv[4]
 def body(name):
     return (work / name / "compare.md").read_text().replace("## geer-compare", "").strip()
 text = f"""# geer against splatfacto (geer-compare), dev room at 128^2, CPU

@@ -243,20 +243,23 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     return {out_rgb, depth, acc, t_final, n_contrib, at::empty({0}, opts.dtype(at::kInt)), max_weight, median};
 }
 
-// -> ([N,16] gradient rows (geer_launchers.h RenderGradArgs::grads), absgrad [N,2], empty when absgrad_rows is).
+// -> ([N,16] gradient rows (geer_launchers.h RenderGradArgs::grads), absgrad [N,2], empty when absgrad_rows is,
+// dL/d(ray directions) [R,3], empty unless dir_grad).
 std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
                                         at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
                                         at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids, at::Tensor ranges,
                                         int64_t height, int64_t width, int64_t tile_size, at::Tensor t_final,
                                         at::Tensor n_contrib,
                                         at::Tensor /* blended_lanes: empty, see render_forward */, at::Tensor g_rgb,
-                                        at::Tensor g_depth, at::Tensor g_acc, at::Tensor absgrad_rows) {
+                                        at::Tensor g_depth, at::Tensor g_acc, at::Tensor absgrad_rows,
+                                        bool dir_grad) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(whiten));
     const int64_t n = whiten.size(0);
     auto opts = whiten.options();
     auto grads = at::zeros({n, geer::kGradValues}, opts);
     const bool with_absgrad = absgrad_rows.numel() > 0;
     auto absgrad = with_absgrad ? at::zeros({n, geer::kAbsgradValues}, opts) : at::empty({0}, opts);
+    auto g_dirs = dir_grad ? at::zeros({height * width, 3}, opts) : at::empty({0}, opts);
     dispatch(whiten, [&](auto tag) {
         using T = decltype(tag);
         auto a = render_args<T>(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
@@ -272,22 +275,24 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
         }
         geer::RenderGradArgs<T> g{cptr<T>(t_final), cptr<int32_t>(n_contrib), cptr<T>(g_rgb), cptr<T>(g_depth),
                                   cptr<T>(g_acc), mptr<T>(grads),
-                                  with_absgrad ? cptr<T>(absgrad_rows) : nullptr, mptr<T>(absgrad)};
+                                  with_absgrad ? cptr<T>(absgrad_rows) : nullptr, mptr<T>(absgrad),
+                                  dir_grad ? mptr<T>(g_dirs) : nullptr};
         geer::launch_render_backward<T>(a, g, stream());
     });
-    return {grads, absgrad};
+    return {grads, absgrad, g_dirs};
 }
 
 // ------------------------------------------------------------------------------------ stage 4
 std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats, at::Tensor scales, at::Tensor sh,
                                             at::Tensor sh_dirs, at::Tensor rot_c, int64_t sh_degree,
-                                            at::Tensor g_whiten, at::Tensor g_o_u, at::Tensor g_rgb) {
+                                            at::Tensor g_whiten, at::Tensor g_o_u, at::Tensor g_rgb, bool pose_grad) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(means_c));
     const int64_t n = means_c.size(0);
     auto opts = means_c.options();
     auto g_mc = at::empty({n, 3}, opts), g_q = at::empty({n, 4}, opts), g_s = at::empty({n, 3}, opts);
     auto g_sh = sh_degree >= 0 ? at::empty_like(sh) : at::empty({0}, opts);
     auto g_dirs = at::zeros({n, 3}, opts);
+    auto g_rot_c = pose_grad ? at::empty({n, 3, 3}, opts) : at::empty({0}, opts);
     dispatch(means_c, [&](auto tag) {
         using T = decltype(tag);
         auto a = preprocess_args<T>(means_c, quats, scales, at::Tensor(), sh, sh_dirs, rot_c, sh_degree, false);
@@ -296,10 +301,11 @@ std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats
         if (sh_degree >= 0) check_float(g_rgb, means_c, "g_rgb");
         geer::PreprocessGradArgs<T> g{cptr<T>(g_whiten), cptr<T>(g_o_u), sh_degree >= 0 ? cptr<T>(g_rgb) : nullptr,
                                       mptr<T>(g_mc),     mptr<T>(g_q),   mptr<T>(g_s),
-                                      sh_degree >= 0 ? mptr<T>(g_sh) : nullptr, mptr<T>(g_dirs)};
+                                      sh_degree >= 0 ? mptr<T>(g_sh) : nullptr, mptr<T>(g_dirs),
+                                      pose_grad ? mptr<T>(g_rot_c) : nullptr};
         geer::launch_preprocess_backward<T>(a, g, stream());
     });
-    return {g_mc, g_q, g_s, g_sh, g_dirs};
+    return {g_mc, g_q, g_s, g_sh, g_dirs, g_rot_c};
 }
 
 // ------------------------------------------------------------------------------------ checks

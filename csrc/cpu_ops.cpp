@@ -154,13 +154,14 @@ std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tenso
 std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats, at::Tensor scales,
                                                at::Tensor sh, at::Tensor sh_dirs, at::Tensor rot_c,
                                                int64_t sh_degree, at::Tensor g_whiten, at::Tensor g_o_u,
-                                               at::Tensor g_rgb) {
+                                               at::Tensor g_rgb, bool pose_grad) {
     means_c = cpu(means_c); quats = cpu(quats); scales = cpu(scales); sh = cpu(sh); sh_dirs = cpu(sh_dirs);
     rot_c = cpu(rot_c); g_whiten = cpu(g_whiten); g_o_u = cpu(g_o_u); g_rgb = cpu(g_rgb);
     const int64_t n = means_c.size(0);
     auto opts = means_c.options();
     auto g_mc = at::zeros({n, 3}, opts), g_q = at::zeros({n, 4}, opts), g_s = at::zeros({n, 3}, opts);
     auto g_sh = at::zeros_like(sh), g_dirs = at::zeros({n, 3}, opts);
+    auto g_rot_c = pose_grad ? at::empty({n, 3, 3}, opts) : at::empty({0}, opts);
     dispatch<int>(means_c, [&](auto tag) {
         using T = decltype(tag);
         const Mat3<T> rc = geer::load_mat3(ptr<T>(rot_c));
@@ -170,7 +171,7 @@ std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats
             geer::preprocess_backward_gaussian(geer::load3(ptr<T>(means_c) + 3 * i), ptr<T>(quats) + 4 * i,
                                                ptr<T>(scales) + 3 * i, rc, ptr<T>(g_whiten) + 9 * i,
                                                geer::load3(ptr<T>(g_o_u) + 3 * i), gm, mptr<T>(g_q) + 4 * i,
-                                               mptr<T>(g_s) + 3 * i);
+                                               mptr<T>(g_s) + 3 * i, pose_grad ? mptr<T>(g_rot_c) + 9 * i : nullptr);
             geer::store3(mptr<T>(g_mc) + 3 * i, gm);
             if (sh_degree < 0) return;
             Vec3<T> gd;
@@ -181,7 +182,7 @@ std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats
         });
         return 0;
     });
-    return {g_mc, g_q, g_s, g_sh, g_dirs};
+    return {g_mc, g_q, g_s, g_sh, g_dirs, g_rot_c};
 }
 
 at::Tensor mirror_tangent(at::Tensor theta) {

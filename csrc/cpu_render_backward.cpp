@@ -94,13 +94,15 @@ template <typename T, typename L> void pair_grad_lane(const geer::PairGrad<L>& p
 // the warp cull, then every lane of the blended prefix evaluates the pair, as render.cu), which the tests check
 // gives the same bits. absgrad_rows [N,6] (empty: off): also each pair's absgrad values (geer_blocks.h
 // lane_absgrad_values), summed as the gradients are.
-template <bool kPacks, bool kRecorded>
-std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
-                                        at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
-                                        at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids, at::Tensor ranges,
-                                        int64_t height, int64_t width, int64_t tile_size, at::Tensor t_final,
-                                        at::Tensor n_contrib, at::Tensor blended_lanes, at::Tensor g_rgb,
-                                        at::Tensor g_depth, at::Tensor g_acc, at::Tensor absgrad_rows) {
+// kDirGrad: also each ray's dL/d(direction) [R,3] (geer_ray.h ray_backward_step), the third output.
+template <bool kPacks, bool kRecorded, bool kDirGrad>
+std::vector<at::Tensor> render_backward_impl(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
+                                             at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
+                                             at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids,
+                                             at::Tensor ranges, int64_t height, int64_t width, int64_t tile_size,
+                                             at::Tensor t_final, at::Tensor n_contrib, at::Tensor blended_lanes,
+                                             at::Tensor g_rgb, at::Tensor g_depth, at::Tensor g_acc,
+                                             at::Tensor absgrad_rows) {
     whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities); pbf_pieces = cpu(pbf_pieces);
     dirs = cpu(dirs); ray_bounds = cpu(ray_bounds); warp_bounds = cpu(warp_bounds);
     valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges);
@@ -118,6 +120,7 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
     auto opts = whiten.options();
     auto grads = at::zeros({n, kGradValues}, opts);
     auto absgrad = with_absgrad ? at::zeros({n, kAbsgradValues}, opts) : at::empty({0}, opts);
+    auto g_dirs = kDirGrad ? at::zeros({height * width, 3}, opts) : at::empty({0}, opts);
     dispatch<int>(whiten, [&](auto tag) {
         using T = decltype(tag);
         using L = LaneOf<T, kPacks>;
@@ -149,6 +152,8 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
                 for (int c = 0; c < 3; ++c) geer::lane_set(s.g_rgb[c], i, ok ? ptr<T>(g_rgb)[3 * ray + c] : T(0));
                 geer::lane_set(s.g_depth, i, ok ? ptr<T>(g_depth)[ray] : T(0));
                 geer::lane_set(s.g_acc, i, ok ? ptr<T>(g_acc)[ray] : T(0));
+                if (kDirGrad)
+                    for (L* c : {&s.g_dir.x, &s.g_dir.y, &s.g_dir.z}) geer::lane_set(*c, i, T(0));
             }
             const int start = rg[2 * tile];
             geer::PairGrad<T> p[kWarp];
@@ -174,8 +179,8 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
                             if (!mine) continue;
                             const auto active =
                                 geer::lanes_of_bits<L>(mine) & (geer::Lane<L>::splat_int(pos) < my_n[pk]);
-                            const uint32_t done = geer::lane_bits(geer::ray_backward_step(st[pk], frame, blk.dir[pk],
-                                                                                          active, pg));
+                            const uint32_t done = geer::lane_bits(geer::ray_backward_step<T, L, kDirGrad>(
+                                st[pk], frame, blk.dir[pk], active, pg));
                             contrib |= done << first;
                             for (uint32_t d = done; d; d &= d - 1) {
                                 const int i = __builtin_ctz(d);
@@ -193,6 +198,15 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
                     }
                 }
             }
+            if (!kDirGrad) return;
+            for (int tid = 0; tid < blk.threads; ++tid) {
+                if (!blk.valid[tid]) continue;
+                const geer::Vec3<L>& gd = st[tid / kWidth].g_dir;
+                T* out = mptr<T>(g_dirs) + 3 * blk.slot[tid].ray;
+                out[0] = geer::lane_get(gd.x, tid % kWidth);
+                out[1] = geer::lane_get(gd.y, tid % kWidth);
+                out[2] = geer::lane_get(gd.z, tid % kWidth);
+            }
         });
         const auto plus = [](T a, T b) { return a + b; };
         const EntriesOfGaussians entries = entries_of_gaussians(id, m, n);
@@ -200,7 +214,21 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
         if (rows) fold_entries(entries, kAbsgradValues, pair_absgrad.data(), mptr<T>(absgrad), plus);
         return 0;
     });
-    return {grads, absgrad};
+    return {grads, absgrad, g_dirs};
+}
+
+// -> (gradient rows, absgrad or empty, dL/d(ray directions) [R,3] where dir_grad, else empty).
+template <bool kPacks, bool kRecorded>
+std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
+                                        at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
+                                        at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids, at::Tensor ranges,
+                                        int64_t height, int64_t width, int64_t tile_size, at::Tensor t_final,
+                                        at::Tensor n_contrib, at::Tensor blended_lanes, at::Tensor g_rgb,
+                                        at::Tensor g_depth, at::Tensor g_acc, at::Tensor absgrad_rows, bool dir_grad) {
+    const auto run = dir_grad ? &render_backward_impl<kPacks, kRecorded, true>
+                              : &render_backward_impl<kPacks, kRecorded, false>;
+    return run(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height,
+               width, tile_size, t_final, n_contrib, blended_lanes, g_rgb, g_depth, g_acc, absgrad_rows);
 }
 
 // A test op's warp: values [32, width] (a row per lane), contrib [32] bools -> the contributing lanes' bits.

@@ -136,6 +136,8 @@ template <typename T> struct RenderGradArgs {
     // lane_absgrad_values) and the output sum_p |A_n dL_p/do_u| [N,2], zeroed by the caller, atomics
     const T* absgrad_rows;      // [N,6]
     T* absgrad;                 // [N,2]
+    // dL/d(ray direction) [R,3] of every valid ray (null when off: the kernel built without it runs), written
+    T* g_dirs;
 };
 template <typename T>
 void launch_render_backward(const RenderArgs<T>& a, const RenderGradArgs<T>& g, cudaStream_t stream);
@@ -151,6 +153,7 @@ template <typename T> struct PreprocessGradArgs {
     T* g_scales;         // [N,3]
     T* g_sh;             // [N,K,3] (bands above sh_degree written as 0; null when sh_degree < 0)
     T* g_sh_dirs;        // [N,3] w.r.t. the SH view directions (0 when sh_degree < 1)
+    T* g_rot_c;          // [N,9] each Gaussian's share of dL/d(camera rotation R_c) (null: not wanted)
 };
 template <typename T>
 void launch_preprocess_backward(const PreprocessArgs<T>& a, const PreprocessGradArgs<T>& g, cudaStream_t stream);

@@ -465,11 +465,13 @@ GEER_HD Vec3<T> sh_to_color(const T* coeffs, int degree, const Vec3<T>& dir, Vec
 // (PreprocessCUDA, C.4-C.6). dL/dmean_c = -W^T dL/do_u (C.15). W[i][j] = R_v[j][i] / s_i with R_v = R_c R(q / |q|),
 // so dL/dW = K W^-T = K S R_v^T; scaling s_i by (1 + eps) scales W's row i by 1 / (1 + eps): dL/ds_i = -K[i][i] / s_i.
 // From K no term cancels for thin Gaussians (the former dL/dW - dL/do_u mean_c^T lost float32's digits there).
-// mean_c: unused (kept for the callers' layout).
+// mean_c: unused (kept for the callers' layout). g_rot_c (null: not wanted): this Gaussian's share of
+// dL/dR_c = dL/dR_v R^T [9], row-major (camera pose gradients; the mean's share goes through dL/dmean_c, the SH
+// direction's through sh_backward).
 template <typename T>
 GEER_HD void preprocess_backward_gaussian(const Vec3<T>& mean_c, const T* quat, const T* scales, const Mat3<T>& rot_c,
                                           const T* k_render, const Vec3<T>& g_o, Vec3<T>& g_mean_c, T* g_quat,
-                                          T* g_scale) {
+                                          T* g_scale, T* g_rot_c = nullptr) {
     (void)mean_c;
     const Mat3<T> rot = quat_to_rotmat(quat);
     const Mat3<T> rot_v = matmul(rot_c, rot);
@@ -488,6 +490,11 @@ GEER_HD void preprocess_backward_gaussian(const Vec3<T>& mean_c, const T* quat, 
         }
         g_scale[i] = scales[i] > T(kMinScale) ? -k_render[3 * i + i] * inv_s : T(0);
     }
+    if (g_rot_c)
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                g_rot_c[3 * i + j] = g_rot_v.m[3 * i] * rot.m[3 * j] + g_rot_v.m[3 * i + 1] * rot.m[3 * j + 1]
+                                     + g_rot_v.m[3 * i + 2] * rot.m[3 * j + 2];
     // Rotation (C.11-C.14, written for R(q) of a unit quaternion, then projected for |q| != 1).
     const Mat3<T> g = matTmul(rot_c, g_rot_v);  // dL/dR
     T q[4], qn;

@@ -231,16 +231,20 @@ GEER_HD void pair_canonical_moment(const PairEval<L>& e, const Vec3<L>& o_u, L g
 //                gradient) where t* <= 0. q is C^1 across t* = 0 (both branches: value |o_u|^2,
 //                gradient 2 o_u), so only depth has a kink there, and at the tie it takes the derivative 0.
 //   min(raw, 0.99), the 1/255 skip, the 1e-4 stop: see ray_backward_step.
+// g_du_out (null: not wanted): dL/dd_u (0 on the camera-centre branch, which does not depend on the ray).
 template <typename T, typename L>
 GEER_HD void half_line_backward(const PairEval<L>& e, const Vec3<L>& o_u, L g_q, L g_depth_t, Vec3<L>& g_o,
-                                L* k /* 9 */) {
+                                L* k /* 9 */, Vec3<L>* g_du_out = nullptr) {
     const Vec3<L> g_o_centre = (T(2) * g_q) * o_u;
+    const Vec3<L> zero3{splat<L>(T(0)), splat<L>(T(0)), splat<L>(T(0))};
     if (lane_any(e.front)) {
         Vec3<L> g_du;
         pair_response_grads<T>(e, o_u, g_q, g_depth_t, g_o, g_du);
         g_o = lane_select3<L>(e.front, g_o, g_o_centre);
+        if (g_du_out) *g_du_out = lane_select3<L>(e.front, g_du, zero3);
     } else {
         g_o = g_o_centre;
+        if (g_du_out) *g_du_out = zero3;
     }
     pair_canonical_moment<T>(e, o_u, g_q, g_depth_t, g_o, k);
 }
@@ -255,6 +259,7 @@ template <typename L> struct RayBackward {
     L g_rgb[3];   // dL/d(rgb sum), dL/d(depth sum), dL/d(accumulation) of this ray
     L g_depth;
     L g_acc;
+    Vec3<L> g_dir;  // dL/d(this ray's direction), summed over its blended pairs (ray_backward_step's kDirGrad)
 };
 
 // Per-pair gradient contributions, to be summed into the Gaussian's buffers.
@@ -282,7 +287,9 @@ template <typename L> GEER_HD void pair_grad_zero(PairGrad<L>& p) {
 //   skip (q <= q_max) and stop (T_after >= 1e-4)  piecewise constant: a blended pair gets its ordinary
 //                           derivative (also exactly on a threshold, where it is blended), others none;
 //   max(t*, 0)              half_line_backward.
-template <typename T, typename L>
+// kDirGrad: also add the pair's dL/d(ray direction) = W^T dL/dd_u to s.g_dir (lens refinement; a build of its
+// own, so that the default one keeps its registers).
+template <typename T, typename L, bool kDirGrad = false>
 GEER_HD typename Lane<L>::Mask ray_backward_step(RayBackward<L>& s, const GaussFrame<T>& g, const Vec3<L>& d,
                                                  typename Lane<L>::Mask active, PairGrad<L>& p) {
     using Mask = typename Lane<L>::Mask;
@@ -306,7 +313,14 @@ GEER_HD typename Lane<L>::Mask ray_backward_step(RayBackward<L>& s, const GaussF
     p.opacity = lane_select(unclamped, g_alpha * e.gauss, zero);
     const L g_q = lane_select(unclamped, T(-0.5) * g_alpha * e.raw, zero);
     Vec3<L> g_o;
-    half_line_backward<T>(e, splat3<L>(g.o), g_q, lane_select(e.front, w * s.g_depth, zero), g_o, p.w);
+    if constexpr (kDirGrad) {
+        Vec3<L> g_du;
+        half_line_backward<T>(e, splat3<L>(g.o), g_q, lane_select(e.front, w * s.g_depth, zero), g_o, p.w, &g_du);
+        const Vec3<L> g_d = g_du.x * splat3<L>(g.w) + g_du.y * splat3<L>(g.w + 3) + g_du.z * splat3<L>(g.w + 6);
+        s.g_dir = lane_select3<L>(live, s.g_dir + g_d, s.g_dir);
+    } else {
+        half_line_backward<T>(e, splat3<L>(g.o), g_q, lane_select(e.front, w * s.g_depth, zero), g_o, p.w);
+    }
     p.o[0] = g_o.x; p.o[1] = g_o.y; p.o[2] = g_o.z;
     return live;
 }

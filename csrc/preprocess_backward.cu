@@ -1,6 +1,7 @@
 // Stage 4, per Gaussian (PreprocessCUDA of paper App. C.2): the render backward's dL/dW, dL/d(o_u)
 // and dL/d(colour) become dL/d(view-space mean), dL/dquat, dL/dscale (C.4-C.6, incl. the o_u part of
-// dL/dW) and the SH coefficient / view-direction gradients. Math: geer_math.h.
+// dL/dW), the SH coefficient / view-direction gradients and, when asked, each Gaussian's share of dL/d(camera
+// rotation). Math: geer_math.h.
 #include "geer_launchers.h"
 #include "geer_math.h"
 
@@ -13,7 +14,7 @@ __global__ void __launch_bounds__(kThreads) preprocess_backward_kernel(const Pre
     Vec3<T> g_mean_c;
     preprocess_backward_gaussian(load3(a.means_c + 3 * i), a.quats + 4 * i, a.scales + 3 * i, load_mat3(a.rot_c),
                                  g.g_whiten + 9 * i, load3(g.g_o_u + 3 * i), g_mean_c, g.g_quats + 4 * i,
-                                 g.g_scales + 3 * i);
+                                 g.g_scales + 3 * i, g.g_rot_c ? g.g_rot_c + 9 * i : nullptr);
     store3(g.g_means_c + 3 * i, g_mean_c);
     if (a.sh_degree < 0) return;
     T* g_sh = g.g_sh + size_t(i) * a.sh_k * 3;

@@ -100,9 +100,10 @@ template <int kCount, typename T> __device__ __forceinline__ void warp_tree_sum(
     });
 }
 
-// kAbsgrad: also sum each pair's absgrad values (g.absgrad_rows, g.absgrad); a build of its own, so that the
-// default one keeps its registers.
-template <typename T, int kMaxThreads, bool kAbsgrad>
+// kAbsgrad: also sum each pair's absgrad values (g.absgrad_rows, g.absgrad); kDirGrad: also each ray's
+// dL/d(direction) (g.g_dirs, one thread per ray: no atomics); builds of their own, so that the default one
+// keeps its registers.
+template <typename T, int kMaxThreads, bool kAbsgrad, bool kDirGrad>
 __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const RenderArgs<T> a, const RenderGradArgs<T> g) {
     constexpr int kBatch = Batch<T>::value;
     __shared__ GaussFrame<T> frames[kBatch];
@@ -125,6 +126,7 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
     for (int c = 0; c < 3; ++c) st.g_rgb[c] = valid ? g.g_rgb[3 * r + c] : T(0);
     st.g_depth = valid ? g.g_depth[r] : T(0);
     st.g_acc = valid ? g.g_acc[r] : T(0);
+    if constexpr (kDirGrad) st.g_dir = Vec3<T>{T(0), T(0), T(0)};
 
     // Nothing after the block's last blended Gaussian needs a visit.
     if (tid == 0) block_n = 0;
@@ -147,7 +149,7 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
             if (!ray_meets_pbf(frames[k], wb)) continue;  // the same for every lane of the warp
             const int pos = batch_entry(bt, k) - start;  // list position within the tile
             PairGrad<T> p;
-            const bool contrib = ray_backward_step(st, frames[k], d, pos < my_n, p);
+            const bool contrib = ray_backward_step<T, T, kDirGrad>(st, frames[k], d, pos < my_n, p);
             if (!__any_sync(0xffffffffu, contrib)) continue;
             if constexpr (kAbsgrad) {  // before the 16 values are reduced, while they are still p
                 T av[kAbsgradValues];
@@ -162,6 +164,9 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
             warp_reduce_scatter(v, lane);
             if (scatter_writer(lane)) atomicAdd(g.grads + kGradValues * frame_ids[k] + scatter_value(lane), v[0]);
         }
+    }
+    if constexpr (kDirGrad) {
+        if (valid) store3(g.g_dirs + 3 * r, st.g_dir);
     }
 }
 
@@ -182,11 +187,16 @@ void launch_render_backward(const RenderArgs<T>& a, const RenderGradArgs<T>& g, 
     if (n_tiles <= 0) return;
     const int threads = threads_per_tile(a.tile_size);
     const bool small = threads <= kSmallTileThreads;
-    const auto kernel = g.absgrad != nullptr
-                            ? (small ? render_backward_kernel<T, kSmallTileThreads, true>
-                                     : render_backward_kernel<T, kLargeTileThreads, true>)
-                            : (small ? render_backward_kernel<T, kSmallTileThreads, false>
-                                     : render_backward_kernel<T, kLargeTileThreads, false>);
+    const bool ag = g.absgrad != nullptr, dg = g.g_dirs != nullptr;
+    const auto kernel =
+        small ? (ag ? (dg ? render_backward_kernel<T, kSmallTileThreads, true, true>
+                          : render_backward_kernel<T, kSmallTileThreads, true, false>)
+                    : (dg ? render_backward_kernel<T, kSmallTileThreads, false, true>
+                          : render_backward_kernel<T, kSmallTileThreads, false, false>))
+              : (ag ? (dg ? render_backward_kernel<T, kLargeTileThreads, true, true>
+                          : render_backward_kernel<T, kLargeTileThreads, true, false>)
+                    : (dg ? render_backward_kernel<T, kLargeTileThreads, false, true>
+                          : render_backward_kernel<T, kLargeTileThreads, false, false>));
     kernel<<<n_tiles, threads, 0, stream>>>(a, g);
     GEER_KERNEL_LAUNCH_CHECK("render_backward_kernel");
 }

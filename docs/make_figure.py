@@ -2,7 +2,7 @@
 
     .venv/bin/python docs/make_figure.py --load-config outputs/synthetic_room/geer/<timestamp>/config.yml
 
-Loads the run as ns-eval does, renders its first eval image on the camera's own pixel rays and writes
+Loads the run as ns-eval does, renders its first eval image (inside the camera's mask) on the camera's own pixel rays and writes
 docs/images/fisheye_test_view.png (ground truth | geer | |error| x 4), upscaled with nearest neighbours so
 each pixel stays a pixel.
 """
@@ -34,7 +34,10 @@ def main() -> None:
     with torch.no_grad():
         outputs = model.get_outputs_for_camera(camera)
     gt = model.composite_with_background(model.get_gt_img(batch["image"]), outputs["background"])
-    valid = outputs["valid_rays"].to(gt.device).float()
+    valid = outputs["valid_rays"].to(gt.device)
+    if "mask" in batch:  # the image circle / mask: what the camera really saw
+        valid = valid & batch["mask"].to(gt.device).bool().reshape(valid.shape)
+    valid = valid.float()
     pred = outputs["rgb"] * valid
     gt = gt * valid
     error = ((pred - gt).abs() * 4).clamp(0, 1)

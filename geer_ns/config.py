@@ -25,7 +25,7 @@ def _adam(lr: float, scheduler=None) -> dict:
 
 
 def splatfacto_optimizers(max_steps: int = MAX_STEPS) -> dict:
-    """splatfacto's per-parameter optimizers (nerfstudio 1.1.5 method_configs)."""
+    """splatfacto's per-parameter optimizers (nerfstudio 1.1.5 method_configs), and geer's appearance model's."""
     warm = dict(warmup_steps=1000, lr_pre_warmup=0)
     return {
         "means": _adam(1.6e-4, ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=max_steps)),
@@ -36,6 +36,8 @@ def splatfacto_optimizers(max_steps: int = MAX_STEPS) -> dict:
         "quats": _adam(0.001),
         "camera_opt": _adam(1e-4, ExponentialDecaySchedulerConfig(lr_final=5e-7, max_steps=max_steps, **warm)),
         "bilateral_grid": _adam(2e-3, ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=max_steps, **warm)),
+        # geer's appearance model (--pipeline.model.appearance exposure; docs/refinement.md)
+        "appearance": _adam(5e-3, ExponentialDecaySchedulerConfig(lr_final=5e-4, max_steps=max_steps, **warm)),
     }
 
 

@@ -42,7 +42,9 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from geer_ns import compat, depth_supervision, resume
 from geer_ns import outputs as geer_outputs
+from geer_ns.appearance import Appearance
 from geer_ns.cameras import CameraModel
+from geer_ns.color_metrics import color_corrected_metrics
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, host_camera_model, native_view
 from geer_ns.densify.mcmc_cpu import install_mcmc_cpu_ops
@@ -95,6 +97,13 @@ class GeerOwnOptions:
     central_half_angles_deg: Optional[Tuple[float, float]] = None
     """Half-extents (theta, phi) of the 'central' eval region in degrees; None = the paper's App. G rule
     (theta in +-w/(2 fx), phi in +-h/(2 fy))."""
+    appearance: Literal["off", "exposure"] = "off"
+    """"exposure": a per-image exposure and white balance and the camera's vignetting (radial falloff in the
+    ray's angle from the optical axis), applied in linear light to each rendered training image; evaluation
+    renders neutral exposure with the learnt vignetting (geer_ns/appearance.py). use-bilateral-grid is the other
+    option."""
+    appearance_reg: float = 0.1
+    """appearance=exposure: weight pulling the images' mean log gain to zero."""
     mcmc_cap_max: int = 1_000_000
     """strategy=mcmc: most Gaussians (gsplat MCMCStrategy cap_max)."""
     mcmc_noise_lr: float = 5e5
@@ -245,6 +254,7 @@ class GeerModel(SplatfactoModel):
         if self.config.use_bilateral_grid:
             shape = self.config.grid_shape
             self.bil_grids = BilateralGrid(num=self.num_train_data, grid_X=shape[0], grid_Y=shape[1], grid_W=shape[2])
+        self.appearance = Appearance(self.num_train_data) if self.config.appearance == "exposure" else None
         self.strategy, self.strategy_state = self._build_strategy()
         self.views: List[ViewRecord] = []  # this step's rendered training views, for the densification statistics
         self._statistics: Optional[StepStatistics] = None  # the step's statistics, when the engine reduced them
@@ -430,6 +440,8 @@ class GeerModel(SplatfactoModel):
         cam_idx = (camera.metadata or {}).get("cam_idx")
         if self.config.use_bilateral_grid and self.training and cam_idx is not None:
             outputs["rgb"] = self._apply_bilateral_grid(outputs["rgb"][None], cam_idx, height, width)[0]
+        if self.appearance is not None:
+            outputs["rgb"] = self.appearance(outputs["rgb"], view.rays.dirs, cam_idx if self.training else None)
         return outputs
 
     def probe(self, view: View, means: Tensor, viewmat: Tensor, scales: Tensor, opacities: Tensor) -> ViewProbe:
@@ -574,7 +586,15 @@ class GeerModel(SplatfactoModel):
             losses["mcmc_scale_reg"] = self.config.mcmc_scale_reg * torch.exp(self.scales).mean()
         if self.training:
             self.camera_optimizer.get_loss_dict(losses)
+            if self.appearance is not None:
+                losses["appearance_reg"] = self.config.appearance_reg * self.appearance.regularization()
         return losses
+
+    def get_param_groups(self) -> Dict[str, List[torch.nn.Parameter]]:
+        groups = super().get_param_groups()
+        if self.appearance is not None:
+            groups["appearance"] = list(self.appearance.parameters())
+        return groups
 
     def _scale_regularization(self) -> Tensor:
         if not (self.config.use_scale_regularization and self.step % 10 == 0):
@@ -595,8 +615,8 @@ class GeerModel(SplatfactoModel):
         return self._perceptual["lpips"]
 
     def get_image_metrics_and_images(self, outputs, batch) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
-        """Native-image metrics over valid pixels: PSNR, SSIM, LPIPS (when its weights are cached) and the
-        central / peripheral PSNR of the paper's App. G."""
+        """Native-image metrics over valid pixels: PSNR, SSIM, LPIPS (when its weights are cached), the
+        central / peripheral PSNR of the paper's App. G and the color-corrected psnr_cc / ssim_cc."""
         gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
         valid = self._batch_mask(outputs, batch)
         pred = torch.where(valid, outputs["rgb"], gt)
@@ -608,6 +628,7 @@ class GeerModel(SplatfactoModel):
         if lpips is not None:
             metrics["lpips"] = float(lpips(gt_b.clamp(0, 1), pred_b.clamp(0, 1)))
         metrics.update(self._region_psnr(pred, gt, valid[..., 0], outputs.get("central_region")))
+        metrics.update(color_corrected_metrics(pred, gt, valid[..., 0], self.ssim))
         metrics["valid_fraction"] = float(valid.float().mean())
         metrics.update(geer_outputs.distance_statistics(outputs, valid[..., 0]))
         metrics.update(depth_supervision.depth_metrics(outputs, batch, valid[..., 0]))

@@ -211,7 +211,8 @@ def _rim_scene(n, seed):
     means = d * (0.5 + 3.5 * torch.rand(n, 1, generator=gen, dtype=torch.float64))
     scales = torch.exp(math.log(0.004) + math.log(40.0) * torch.rand(n, 3, generator=gen, dtype=torch.float64))
     opac = 0.05 + 0.9 * torch.rand(n, generator=gen, dtype=torch.float64)
-    return means, random_quats(n, gen, torch.float64), scales, opac, torch.rand(n, 3, generator=gen, dtype=torch.float64)
+    colors = torch.rand(n, 3, generator=gen, dtype=torch.float64)
+    return means, random_quats(n, gen, torch.float64), scales, opac, colors
 
 
 def _tile_visible(grid, scene):
@@ -237,7 +238,8 @@ def test_cone_test_complete_and_tight_at_the_rim(fov, dtype):
     lists are about as close to that exact set as at the centre, where the box test alone lists several times more."""
     dirs, valid = equidistant_fisheye_rays(96, fov, dtype=dtype)
     grid = RayGrid.from_rays(dirs, valid, tile_size=8)
-    scene = [torch.cat(parts) for parts in zip(_rim_scene(500, 3), random_scene(300, 4, around=True, scale_range=(0.004, 0.15)))]
+    around = random_scene(300, 4, around=True, scale_range=(0.004, 0.15))
+    scene = [torch.cat(parts) for parts in zip(_rim_scene(500, 3), around)]
     visible = _tile_visible(grid, scene)
     pre = preprocess(*(t.to(dtype) for t in scene), torch.eye(4, dtype=dtype))
     listed = _listed(associate(pre.pbf, grid, pre.depth), grid, visible.shape[1])

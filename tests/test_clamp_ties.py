@@ -134,6 +134,6 @@ def test_scale_exactly_at_min_scale(ops):
     zeros = torch.zeros(1, 3, dtype=F64)
     k = g_w @ whitening(rot, scales).transpose(-1, -2)  # the kernels' canonical moment K = dL/dW W^T
     kernels = ops.preprocess_backward(means_c, quats, scales, torch.zeros(1, 0, 3, dtype=F64), zeros,
-                                      torch.eye(3, dtype=F64), -1, k.contiguous(), zeros, zeros)[2]
+                                      torch.eye(3, dtype=F64), -1, k.contiguous(), zeros, zeros, False)[2]
     for name, grad in (("torch", leaf.grad[0, 1]), ("cpu", kernels[0, 1])):
         _assert_clamped_side(float(grad), below, above, "below", name)

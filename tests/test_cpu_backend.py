@@ -73,17 +73,6 @@ def test_auto_falls_back_loudly_once_when_the_cpu_build_fails(ops, monkeypatch):
         resolve_backend("cpu", torch.device("cpu"))  # an explicit request is an error
 
 
-def test_auto_renders_pose_gradients_with_the_twin(ops):
-    grid = reference_grids(torch.float32)["beap"]
-    scene = random_scene(50, 2, dtype=torch.float32)
-    viewmat = torch.eye(4).requires_grad_(True)
-    _warned.clear()
-    with pytest.warns(RuntimeWarning, match="pose gradients"):
-        out = render(*scene, viewmat, grid)
-    out.rgb.sum().backward()
-    assert viewmat.grad is not None and float(viewmat.grad.abs().sum()) > 0
-
-
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_lists_longer_than_a_batch_match_the_twin(ops, dtype):
     """Tile lists spanning several shared-memory batches (geer_blocks.h: 256 float32 / 128 float64 frames):

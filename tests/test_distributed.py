@@ -274,9 +274,9 @@ def test_gaussian_parallel_evaluates_at_the_scaled_steps(room, tmp_path, single_
     """kappa = 3 (one process, 3 images per step, Gaussian-parallel): --steps-per-eval-all-images 6 counts
     images, so the all-images evaluation runs at step 2 of the 4 steps (12 images), as nerfstudio's loop
     schedules it on the scaled configuration."""
-    from nerfstudio.utils import writer
-
     config = harness.sharded_config(room, tmp_path, "eval_kappa3", images_per_step=3, steps=2)
+    from nerfstudio.utils import writer  # after the configs: nerfstudio's writer imported first is a circle
+
     config.max_num_iterations = 12
     config.steps_per_eval_all_images = 6
     config.pipeline.model.distributed = "gaussians"

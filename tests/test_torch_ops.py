@@ -69,7 +69,7 @@ def test_the_registered_backward_equals_the_autograd_wrappers(cpu_ops):
                                                       False)
         ids, ranges, _, _ = torch.ops.geer.associate(bounds, alive, cuda_backend.depth_order_key(means.norm(dim=-1)),
                                                      grid.tile_pyramid().bounds, grid.tile_pyramid().active,
-                                                     grid.tiles_x, grid.tiles_y)
+                                                     grid.tiles_x, grid.tiles_y, bounds.new_zeros(0), bounds.new_zeros(0))
         geometry = (pbf_cull_pieces(bounds), grid.dirs, grid.ray_cull_bounds(), grid.warp_cull_bounds(), grid.valid,
                     ids, ranges, grid.height, grid.width, grid.tile_size)
         rgb, depth, acc = rasterize(whiten, o_u, colors, opacities, geometry)[:3]
@@ -103,20 +103,20 @@ def test_the_fake_implementations_give_the_real_shapes(cpu_ops):
     calls.append(("preprocess_forward", pre))
     whiten, o_u, rgb, bounds, alive, _ = torch.ops.geer.preprocess_forward(*pre)
     assoc = (bounds, alive, cuda_backend.depth_order_key(means.norm(dim=-1)), pyr.bounds, pyr.active, grid.tiles_x,
-             grid.tiles_y)
+             grid.tiles_y, bounds.new_zeros(0), bounds.new_zeros(0))  # no cones: the box test alone
     calls.append(("associate", assoc))
     ids, ranges, _, _ = torch.ops.geer.associate(*assoc)
     geometry = (pbf_cull_pieces(bounds), grid.dirs, grid.ray_cull_bounds(), grid.warp_cull_bounds(), grid.valid, ids,
                 ranges, grid.height, grid.width, grid.tile_size)
     fwd = (whiten, o_u, colors, opacities, *geometry, True)
     calls.append(("render_forward", fwd))
-    _, _, _, t_final, n_contrib, lanes, _ = torch.ops.geer.render_forward(*fwd)
+    _, _, _, t_final, n_contrib, lanes, _, _ = torch.ops.geer.render_forward(*fwd)
     r = grid.num_rays
     g_out = (torch.ones(r, 3), torch.ones(r), torch.ones(r))
     calls.append(("render_backward", (whiten, o_u, colors, opacities, *geometry, t_final, n_contrib, lanes, *g_out,
-                                      whiten.new_zeros(n, 6))))
+                                      whiten.new_zeros(n, 6), False)))
     calls.append(("preprocess_backward", (means, quats, scales, pre[4], pre[5], pre[6], -1, torch.ones(n, 3, 3),
-                                          torch.ones(n, 3), torch.ones(n, 3))))
+                                          torch.ones(n, 3), torch.ones(n, 3), False)))
     for name, args in calls:
         real = getattr(torch.ops.geer, name)(*args)
         with FakeTensorMode(shape_env=ShapeEnv()) as mode:

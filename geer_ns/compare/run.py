@@ -141,7 +141,7 @@ def run_method(method: Method, steps: int, capture: Capture, out_dir: Path, lpip
 
 def lpips_metric(device: Optional[torch.device] = None):
     """torchmetrics' LPIPS (AlexNet) when its weights are cached, else None (no download)."""
-    from geer_ns.perceptual import build_lpips_if_cached
+    from geer_ns import perceptual
 
-    metric = build_lpips_if_cached()
+    metric = perceptual.build_lpips_if_cached()
     return None if metric is None else metric.to(device or "cpu")

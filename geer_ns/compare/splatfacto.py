@@ -30,9 +30,9 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, Nerfst
 from nerfstudio.models import splatfacto as splatfacto_module
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 
-from geer_ns.compare import ewa_cpu
+from geer_ns import perceptual
 from geer_ns.data.ply import read_ply_points
-from geer_ns.perceptual import build_lpips_if_cached
+from geer_ns.compare import ewa_cpu
 
 
 @contextlib.contextmanager
@@ -67,7 +67,7 @@ class _NoLpips(torch.nn.Module):
 
 
 def _lpips_factory(*args, **kwargs):
-    metric = build_lpips_if_cached()
+    metric = perceptual.build_lpips_if_cached()
     return metric if metric is not None else _NoLpips()
 
 

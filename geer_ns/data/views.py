@@ -95,7 +95,7 @@ def camera_model(cameras: Cameras, index: int = 0) -> CameraModel:
 
 # Camera metadata key: the camera's model made on the host when the batch was made (datamanager.train_camera),
 # so that a render on the GPU reads no camera parameter back from it (one host sync per float).
-HOST_MODEL_KEY = "geer_camera_model"
+HOST_MODEL_KEY = "geer_host_camera_model"  # a CameraModel (not nerfstudio_parser.CAMERA_MODEL_KEY)
 
 
 def host_camera_model(camera: Cameras) -> CameraModel:

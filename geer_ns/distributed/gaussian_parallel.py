@@ -42,6 +42,7 @@ from geer_ns.render.transforms import camera_offsets
 
 REBALANCE_FRACTION = 0.1  # rebalance when the largest shard exceeds the smallest by more than this
 VIEWER_REFRESH_STEPS = 100
+SEARCH_ROWS = 1 << 18  # an evaluation camera's visibility search goes through a shard this many rows at a time
 PIPELINE_GAUSS_PREFIX = "_model." + resume.GAUSS_PREFIX  # a Gaussian parameter's key in the pipeline's state
 
 
@@ -217,12 +218,17 @@ def visible_rows(model, camera, world: World) -> Optional[Dict[str, Tensor]]:
     finally:
         model.train(training)
     params = {name: p.detach() for name, p in model.gauss_params.items()}
-    scales, opacities = model.activated(params)
-    viewmat = model.viewmat(camera.camera_to_worlds[0], params["means"].device)
-    pre = preprocess(params["means"], params["quats"], scales, opacities, params["means"].new_zeros(len(scales), 3),
-                     viewmat, lambda_mode=model.config.lambda_mode)
-    rows = torch.nonzero(seen_by(pre.pbf, view.rays.to(params["means"].device))).squeeze(1)
-    del pre
+    device = params["means"].device
+    viewmat, grid = model.viewmat(camera.camera_to_worlds[0], device), view.rays.to(device)
+    found = []
+    for start in range(0, params["means"].shape[0], SEARCH_ROWS):  # the search's temporaries: a chunk's
+        part = {name: p[start : start + SEARCH_ROWS] for name, p in params.items()}
+        scales, opacities = model.activated(part)
+        pre = preprocess(part["means"], part["quats"], scales, opacities, part["means"].new_zeros(len(scales), 3),
+                         viewmat, lambda_mode=model.config.lambda_mode)
+        found.append(torch.nonzero(seen_by(pre.pbf, grid)).squeeze(1) + start)
+        del pre, part
+    rows = torch.cat(found) if found else torch.zeros(0, dtype=torch.long, device=device)
     if not world.distributed:
         return {name: p[rows] for name, p in params.items()}
     counts = all_gather_objects(int(rows.numel()))

@@ -4,10 +4,10 @@
 on first use, multi-threaded, analytic backward, checked against the twin by tests/test_csrc_math.py;
 benchmarks/cpu_training.md). CUDA tensors: `cuda` when the kernels passed their self-test on this GPU
 (verdict.py: run once per GPU, driver, torch and build, in a child process, recorded beside the extension
-cache). When auto cannot use them (a failed self-test or build, camera pose gradients, which only the twin
-computes) it renders with the PyTorch twin and says so in one line, once. GEER_VERIFY_CPU_BUILD=1 makes auto
-ask the same of the CPU build. An explicit `cpu` or `cuda` request that cannot be honored is an error, never
-a silent fallback; an explicit request runs no self-test.
+cache). When auto cannot use them (a failed self-test or build) it renders with the PyTorch twin and says so in
+one line, once. GEER_VERIFY_CPU_BUILD=1 makes auto ask the same of the CPU build. Every backend gives camera pose
+and ray-direction gradients (docs/refinement.md). An explicit `cpu` or `cuda` request that cannot be honored is
+an error, never a silent fallback; an explicit request runs no self-test.
 """
 
 from __future__ import annotations
@@ -66,9 +66,8 @@ def cpu_ops_available() -> bool:
     return True
 
 
-def resolve_backend(backend: Backend, device: torch.device, pose_grad: bool = False) -> Literal["torch", "cuda", "cpu"]:
-    """The backend that renders tensors on `device`; `pose_grad`: gradients w.r.t. the camera pose are
-    needed (only the PyTorch twin computes them)."""
+def resolve_backend(backend: Backend, device: torch.device) -> Literal["torch", "cuda", "cpu"]:
+    """The backend that renders tensors on `device`."""
     if backend == "torch":
         return "torch"
     if backend == "cpu":
@@ -86,10 +85,6 @@ def resolve_backend(backend: Backend, device: torch.device, pose_grad: bool = Fa
             raise RuntimeError("backend='cuda' requested but the geer CUDA extension could not be built or loaded")
         return "cuda"
     if backend == "auto":
-        if pose_grad:
-            _warn_once("geer: camera pose gradients are requested; rendering with the PyTorch renderer (the "
-                       "compiled backends do not compute them)")
-            return "torch"
         if device.type == "cpu":
             if cpu_ops_available():
                 verify = os.environ.get("GEER_VERIFY_CPU_BUILD", "") not in ("", "0")

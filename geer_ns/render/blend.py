@@ -109,6 +109,8 @@ class _BlendLists(torch.autograd.Function):
         o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, t_starts, rows = ctx.saved_tensors
         params = (o_u, whiten, opacities, colors)
         grads = [x.new_zeros(x.shape) for x in params]  # contiguous, whatever the inputs' strides
+        with_dirs = ctx.needs_input_grad[4]
+        g_dirs = dirs.new_zeros(dirs.shape) if with_dirs else None
         with_absgrad = rows is not None and ctx.needs_input_grad[11]
         absgrad = o_u.new_zeros(o_u.shape[0], 2) if with_absgrad else None
         offset = 0
@@ -132,10 +134,13 @@ class _BlendLists(torch.autograd.Function):
                 with torch.enable_grad():
                     leaves = [x[g].detach().requires_grad_(True) for x in params]
                     t0 = t0.detach().requires_grad_(True)
-                    (*outs, t_end), q, depth, weights = _blend_piece(*leaves, d, r_ok, g_idx >= 0, t0)
+                    d_leaf = d.detach().requires_grad_(with_dirs)
+                    (*outs, t_end), q, depth, weights = _blend_piece(*leaves, d_leaf, r_ok, g_idx >= 0, t0)
                     loss = sum((go * o).sum() for go, o in zip(g_out, outs)) + (g_t * t_end).sum()
-                    wanted = leaves + [t0] + ([q, depth] if with_absgrad else [])
+                    wanted = leaves + [t0] + ([q, depth] if with_absgrad else []) + ([d_leaf] if with_dirs else [])
                     piece_grads = torch.autograd.grad(loss, wanted, allow_unused=True)
+                if with_dirs and piece_grads[-1] is not None:
+                    g_dirs.index_add_(0, r_idx[keep], piece_grads[-1][keep])
                 g_ok = (g_idx >= 0).reshape(-1)
                 for acc, pg in zip(grads, piece_grads[:4]):
                     if pg is not None:
@@ -146,7 +151,7 @@ class _BlendLists(torch.autograd.Function):
                     g_o = pair_o_u_grad(*piece_grads[5:7], leaves[0].detach(), leaves[1].detach(), d, depth.detach())
                     over_rays = pair_absgrad(rows[g], g_o, weights.detach() > 0).sum(-3)  # [G, K, 2]
                     absgrad.index_add_(0, g.reshape(-1)[g_ok], over_rays.reshape(-1, 2)[g_ok])
-        return (*grads, None, None, None, None, None, None, None, absgrad)
+        return (*grads, g_dirs, None, None, None, None, None, None, absgrad)
 
 
 def blend_lists(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs, absgrad=None):
@@ -156,7 +161,7 @@ def blend_lists(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, list
     Returns per-ray rgb [R, 3] (no background), depth sum [R] and accumulation [R], rays in no group (empty or
     inactive tiles) 0, max_weight [N], each Gaussian's largest blend weight (0: never blended; no gradient), and
     the median distance [R], where the transmittance crosses 0.5 (0: it never does; no gradient).
-    Differentiable w.r.t. o_u, whiten, opacities and colors; absgrad: (offset rows [N, 2, 3], sink [N, 2])
+    Differentiable w.r.t. o_u, whiten, opacities, colors and dirs [R, 3]; absgrad: (offset rows [N, 2, 3], sink [N, 2])
     (absgrad.py), whose sink gets the absgrad sums as its gradient.
     """
     rows, sink = absgrad if absgrad is not None else (None, None)

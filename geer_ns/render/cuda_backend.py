@@ -33,7 +33,8 @@ from .transforms import camera_offsets, view_transform
 
 # ----------------------------------------------------------------------------------------- autograd
 class _Preprocess(torch.autograd.Function):
-    """Per Gaussian: (means_c, quats, scales, SH, SH view directions) -> (W, o_u, color) + PBF (no grad)."""
+    """Per Gaussian: (means_c, quats, scales, SH, SH view directions, camera rotation R_c) -> (W, o_u, color)
+    + PBF (no grad). R_c gets a gradient when it requires one (camera pose refinement)."""
 
     @staticmethod
     def forward(ctx, means_c, quats, scales, sh, sh_dirs, opacities, rot_c, sh_degree, paper, ops):
@@ -49,12 +50,17 @@ class _Preprocess(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_whiten, g_o_u, g_rgb, *_):
-        return preprocess_grads(ctx.ops, ctx.saved_tensors, ctx.sh_degree, g_whiten, g_o_u, g_rgb) + (None,) * 5
+        pose_grad = ctx.needs_input_grad[6]
+        g_mc, g_q, g_s, g_sh, g_dirs, g_rot_c = preprocess_grads(ctx.ops, ctx.saved_tensors, ctx.sh_degree, g_whiten,
+                                                                 g_o_u, g_rgb, pose_grad)
+        return (g_mc, g_q, g_s, g_sh, g_dirs, None, g_rot_c) + (None,) * 3
 
 
 class _Rasterize(torch.autograd.Function):
     """Per tile / ray: (W, o_u, color, opacity) -> (rgb sum, depth sum, accumulation) per ray, max_weight [N]
-    and the median distance [R] (neither with a gradient); with absgrad's offset rows [N,6] and sink [N,2], the sink's gradient is the absgrad sums."""
+    and the median distance [R] (neither with a gradient); with absgrad's offset rows [N,6] and sink [N,2], the
+    sink's gradient is the absgrad sums. The ray directions get their gradient when they require one (lens
+    refinement; the cull has none)."""
 
     @staticmethod
     def forward(ctx, whiten, o_u, rgb, opacities, pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height,
@@ -64,7 +70,7 @@ class _Rasterize(torch.autograd.Function):
         geometry = (pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges)
         # blended_lanes: the CPU build's record of the lanes that blended each list entry, which its backward
         # visits; made only when a backward will run (empty from the kernels, whose backward re-derives them).
-        record = any(ctx.needs_input_grad[:4]) or ctx.needs_input_grad[16]
+        record = any(ctx.needs_input_grad[:4]) or ctx.needs_input_grad[5] or ctx.needs_input_grad[16]
         out_rgb, depth, acc, t_final, n_contrib, blended_lanes, max_weight, median = ops.render_forward(
             whiten, o_u, rgb, opacities, *geometry, height, width, tile_size, record
         )
@@ -80,8 +86,9 @@ class _Rasterize(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_rgb, g_depth, g_acc, _g_max_weight, _g_median):
         *saved, rows = ctx.saved_tensors
-        *grads, absgrad = render_grads(ctx.ops, saved, ctx.layout, g_rgb, g_depth, g_acc, rows)
-        return tuple(grads) + (None,) * 12 + (absgrad,)
+        dir_grad = ctx.needs_input_grad[5]
+        *grads, absgrad, g_dirs = render_grads(ctx.ops, saved, ctx.layout, g_rgb, g_depth, g_acc, rows, dir_grad)
+        return tuple(grads) + (None, g_dirs) + (None,) * 10 + (absgrad,)
 
 
 # ----------------------------------------------------------------------------------------- helpers
@@ -147,8 +154,6 @@ def render_cuda(
         ops = KERNELS
     if lambda_mode not in ("opacity", "paper"):
         raise ValueError(f"lambda_mode must be 'opacity' or 'paper', got {lambda_mode!r}")
-    if viewmat.requires_grad and torch.is_grad_enabled():
-        raise ValueError("viewmat: gradients w.r.t. the camera pose are not supported by the CUDA backend")
     if not 1 <= grid.tile_size <= 32 and means.device.type == "cuda":
         raise ValueError(f"the CUDA backend needs tile_size in 1..32 (one thread per ray), got {grid.tile_size}")
     dtype, device = means.dtype, means.device
@@ -157,8 +162,9 @@ def render_cuda(
     dirs = grid.dirs.to(dtype).contiguous()
     # The pose goes to the Gaussians' device (no host round trip); the kernels read rot_c there.
     # Stage 1. View transform and SH view directions in PyTorch (transforms.view_transform and camera_offsets,
-    # float64 inside, as the twin), the rest per Gaussian in the kernel.
-    viewmat = viewmat.detach().to(device=device)
+    # float64 inside, as the twin), the rest per Gaussian in the kernel. A pose that requires grad gets its
+    # gradient through all three: means_c and sh_dirs by autograd, rot_c from the preprocess backward.
+    viewmat = viewmat.to(device=device)
     means_c = view_transform(means, viewmat)
     degree = _sh_setup(colors, sh_degree)
     sh_dirs = camera_offsets(means, viewmat) if degree >= 0 else means.new_zeros(n, 3)

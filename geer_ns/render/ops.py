@@ -29,8 +29,8 @@ from torch import Tensor
 from .extensions import load_cpu_ops, load_extension
 
 T2 = Tuple[Tensor, Tensor]
+T3 = Tuple[Tensor, Tensor, Tensor]
 T4 = Tuple[Tensor, Tensor, Tensor, Tensor]
-T5 = Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]
 T6 = Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]
 T8 = Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]
 GRAD_VALUES, ABSGRAD_VALUES = 16, 2  # csrc/geer_blocks.h kGradValues, kAbsgradValues
@@ -45,7 +45,7 @@ def _one_device(op: str, *tensors: Tensor) -> torch.device:
     """The inputs' one device; a tensor elsewhere is an error (the kernels would read a host pointer)."""
     device = tensors[0].device
     for t in tensors[1:]:
-        if t.device != device and t.numel() > 0:
+        if t.device != device and not (isinstance(t.numel(), int) and t.numel() == 0):  # numel: maybe symbolic
             raise RuntimeError(f"geer::{op}: expected all tensors on {device}, got one on {t.device} "
                                f"{tuple(t.shape)}")
     return device
@@ -71,20 +71,23 @@ def _(means_c, quats, scales, opacities, sh, sh_dirs, rot_c, sh_degree, paper):
 
 @torch.library.custom_op("geer::preprocess_backward", mutates_args=())
 def preprocess_backward(means_c: Tensor, quats: Tensor, scales: Tensor, sh: Tensor, sh_dirs: Tensor, rot_c: Tensor,
-                        sh_degree: int, g_whiten: Tensor, g_o_u: Tensor, g_rgb: Tensor) -> T5:
-    """-> gradients to (means_c, quats, scales, SH (empty without SH), SH directions)."""
+                        sh_degree: int, g_whiten: Tensor, g_o_u: Tensor, g_rgb: Tensor, pose_grad: bool) -> T6:
+    """-> gradients to (means_c, quats, scales, SH (empty without SH), SH directions) and, when `pose_grad`, each
+    Gaussian's share of dL/dR_c [N,3,3] (else empty). g_whiten carries the canonical moment K (render_backward)."""
     _one_device("preprocess_backward", means_c, quats, scales, sh, sh_dirs, rot_c, g_whiten, g_o_u, g_rgb)
     return tuple(_build(means_c).preprocess_backward(means_c, quats, scales, sh, sh_dirs, rot_c, sh_degree, g_whiten,
-                                                     g_o_u, g_rgb))
+                                                     g_o_u, g_rgb, pose_grad))
 
 
 @preprocess_backward.register_fake
-def _(means_c, quats, scales, sh, sh_dirs, rot_c, sh_degree, g_whiten, g_o_u, g_rgb):
+def _(means_c, quats, scales, sh, sh_dirs, rot_c, sh_degree, g_whiten, g_o_u, g_rgb, pose_grad):
     _one_device("preprocess_backward", means_c, quats, scales, sh, sh_dirs, rot_c, g_whiten, g_o_u, g_rgb)
     n = means_c.shape[0]
     on_cpu = means_c.device.type == "cpu"  # the CPU build returns zeros like sh also without SH
     g_sh = torch.empty_like(sh) if sh_degree >= 0 or on_cpu else means_c.new_empty(0)
-    return means_c.new_empty(n, 3), means_c.new_empty(n, 4), means_c.new_empty(n, 3), g_sh, means_c.new_empty(n, 3)
+    g_rot = means_c.new_empty(n, 3, 3) if pose_grad else means_c.new_empty(0)
+    return (means_c.new_empty(n, 3), means_c.new_empty(n, 4), means_c.new_empty(n, 3), g_sh, means_c.new_empty(n, 3),
+            g_rot)
 
 
 def _preprocess_setup(ctx, inputs, output) -> None:
@@ -93,21 +96,25 @@ def _preprocess_setup(ctx, inputs, output) -> None:
     ctx.sh_degree = sh_degree
 
 
-def preprocess_grads(kernels, saved, sh_degree: int, g_whiten, g_o_u, g_rgb) -> T5:
+def preprocess_grads(kernels, saved, sh_degree: int, g_whiten, g_o_u, g_rgb, pose_grad: bool = False) -> T6:
     """The preprocess stage's backward (missing gradients are zeros): to (means_c, quats, scales, SH, SH
-    directions), the last two None without SH. `kernels`: KERNELS or an extension module."""
+    directions, the camera rotation R_c), SH's two None without SH, R_c's None unless `pose_grad`.
+    `kernels`: KERNELS or an extension module."""
     means_c = saved[0]
     n = means_c.shape[0]
     g_whiten, g_o_u, g_rgb = (_zeros_if_none(g, shape, means_c) for g, shape in
                               ((g_whiten, (n, 3, 3)), (g_o_u, (n, 3)), (g_rgb, (n, 3))))
-    g_mc, g_q, g_s, g_sh, g_dirs = kernels.preprocess_backward(*saved, sh_degree, g_whiten, g_o_u, g_rgb)
+    g_mc, g_q, g_s, g_sh, g_dirs, g_rot = kernels.preprocess_backward(*saved, sh_degree, g_whiten, g_o_u, g_rgb,
+                                                                      pose_grad)
     has_sh = sh_degree >= 0
-    return g_mc, g_q, g_s, g_sh if has_sh else None, g_dirs if has_sh else None
+    g_rot_c = g_rot.sum(0) if pose_grad else None  # the Gaussians' shares of dL/dR_c
+    return g_mc, g_q, g_s, g_sh if has_sh else None, g_dirs if has_sh else None, g_rot_c
 
 
 def _preprocess_backward(ctx, g_whiten, g_o_u, g_rgb, *_):
-    g_mc, g_q, g_s, g_sh, g_dirs = preprocess_grads(KERNELS, ctx.saved_tensors, ctx.sh_degree, g_whiten, g_o_u, g_rgb)
-    return g_mc, g_q, g_s, None, g_sh, g_dirs, None, None, None  # opacities: the PBF only
+    g_mc, g_q, g_s, g_sh, g_dirs, g_rot_c = preprocess_grads(KERNELS, ctx.saved_tensors, ctx.sh_degree, g_whiten,
+                                                             g_o_u, g_rgb, ctx.needs_input_grad[6])
+    return g_mc, g_q, g_s, None, g_sh, g_dirs, g_rot_c, None, None  # opacities: the PBF only
 
 
 torch.library.register_autograd("geer::preprocess_forward", _preprocess_backward, setup_context=_preprocess_setup)
@@ -163,36 +170,43 @@ def _(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, va
 def render_backward(whiten: Tensor, o_u: Tensor, rgb: Tensor, opacities: Tensor, pbf_pieces: Tensor, dirs: Tensor,
                     ray_bounds: Tensor, warp_bounds: Tensor, valid: Tensor, ids: Tensor, ranges: Tensor, height: int,
                     width: int, tile_size: int, t_final: Tensor, n_contrib: Tensor, blended_lanes: Tensor,
-                    g_rgb: Tensor, g_depth: Tensor, g_acc: Tensor, absgrad_rows: Tensor) -> T2:
+                    g_rgb: Tensor, g_depth: Tensor, g_acc: Tensor, absgrad_rows: Tensor, dir_grad: bool) -> T3:
     """-> (gradient rows [N,16]: the canonical moment K = dL/dW W^T row-major (what the preprocess backward takes in
-    W's slot), o_u, color, opacity; absgrad [N,2], empty when absgrad_rows is)."""
+    W's slot), o_u, color, opacity; absgrad [N,2], empty when absgrad_rows is; dL/d(ray directions) [R,3] when
+    `dir_grad`, else empty)."""
     _one_device("render_backward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
                 ranges, t_final, n_contrib, g_rgb, g_depth, g_acc, absgrad_rows)
     return tuple(_build(whiten).render_backward(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds,
                                                 warp_bounds, valid, ids, ranges, height, width, tile_size, t_final,
-                                                n_contrib, blended_lanes, g_rgb, g_depth, g_acc, absgrad_rows))
+                                                n_contrib, blended_lanes, g_rgb, g_depth, g_acc, absgrad_rows,
+                                                dir_grad))
 
 
 @render_backward.register_fake
 def _(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height, width,
-      tile_size, t_final, n_contrib, blended_lanes, g_rgb, g_depth, g_acc, absgrad_rows):
+      tile_size, t_final, n_contrib, blended_lanes, g_rgb, g_depth, g_acc, absgrad_rows, dir_grad):
     _one_device("render_backward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
                 ranges, t_final, n_contrib, g_rgb, g_depth, g_acc, absgrad_rows)
     n = whiten.shape[0]
     absgrad = whiten.new_empty(n, ABSGRAD_VALUES) if absgrad_rows.numel() > 0 else whiten.new_empty(0)
-    return whiten.new_empty(n, GRAD_VALUES), absgrad
+    g_dirs = whiten.new_empty(dirs.shape[0], 3) if dir_grad else whiten.new_empty(0)
+    return whiten.new_empty(n, GRAD_VALUES), absgrad, g_dirs
 
 
-def render_grads(kernels, saved, layout, g_rgb, g_depth, g_acc, rows: Tensor) -> Tuple[Tensor, ...]:
-    """The render stage's backward (missing gradients are zeros): (W, o_u, color, opacity, absgrad or None).
-    saved: the forward's 11 inputs from whiten to ranges, then T_final, n_contrib, blended lanes."""
+def render_grads(kernels, saved, layout, g_rgb, g_depth, g_acc, rows: Tensor,
+                 dir_grad: bool = False) -> Tuple[Tensor, ...]:
+    """The render stage's backward (missing gradients are zeros): (W's slot (K), o_u, color, opacity, absgrad or
+    None, ray directions or None). saved: the forward's 11 inputs from whiten to ranges, then T_final, n_contrib,
+    blended lanes."""
     whiten, dirs = saved[0], saved[5]
     r = dirs.shape[0]
     g_rgb, g_depth, g_acc = (_zeros_if_none(g, shape, whiten) for g, shape in
                              ((g_rgb, (r, 3)), (g_depth, (r,)), (g_acc, (r,))))
-    grads, absgrad = kernels.render_backward(*saved[:11], *layout, *saved[11:], g_rgb, g_depth, g_acc, rows)
+    grads, absgrad, g_dirs = kernels.render_backward(*saved[:11], *layout, *saved[11:], g_rgb, g_depth, g_acc, rows,
+                                                     dir_grad)
     gw, go, gc, gs = grads.split([9, 3, 3, 1], dim=1)
-    return gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1), (absgrad if rows.numel() else None)
+    return (gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1), (absgrad if rows.numel() else None),
+            (g_dirs if dir_grad else None))
 
 
 def _render_setup(ctx, inputs, output) -> None:
@@ -202,8 +216,9 @@ def _render_setup(ctx, inputs, output) -> None:
 
 def _render_backward(ctx, g_rgb, g_depth, g_acc, *_):
     saved = ctx.saved_tensors
-    grads = render_grads(KERNELS, saved, ctx.layout, g_rgb, g_depth, g_acc, saved[0].new_zeros(0))
-    return grads[:4] + (None,) * 11
+    grads = render_grads(KERNELS, saved, ctx.layout, g_rgb, g_depth, g_acc, saved[0].new_zeros(0),
+                         ctx.needs_input_grad[5])
+    return grads[:4] + (None, grads[5]) + (None,) * 9
 
 
 torch.library.register_autograd("geer::render_forward", _render_backward, setup_context=_render_setup)

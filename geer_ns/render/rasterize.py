@@ -109,7 +109,7 @@ def render(
     _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background)
     if absgrad is not None:
         check_absgrad(absgrad, means)
-    chosen = resolve_backend(backend, means.device, pose_grad=viewmat.requires_grad and torch.is_grad_enabled())
+    chosen = resolve_backend(backend, means.device)
     if chosen != "torch":  # the kernels (CUDA), or their math compiled for the CPU
         return render_cuda(means, quats, scales, opacities, colors, viewmat, grid, sh_degree=sh_degree,
                            background=background, lambda_mode=lambda_mode,

@@ -1,0 +1,92 @@
+"""Short training runs for the refinement benchmarks (benchmarks/appearance_bench.py, pose_bench.py): train
+geer in this process with nerfstudio's loop, then score the eval split as ns-eval does."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+DEV_ROOM = Path("/work/shared/data/fisheye_room_dev")
+
+
+def bench_args(doc: str, steps: int, work: str):
+    """The benchmarks' command line: --size (the dev room's), --steps, --work (a scratch folder)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("--size", type=int, default=80)
+    parser.add_argument("--steps", type=int, default=steps)
+    parser.add_argument("--work", type=Path, default=Path(work))
+    return parser.parse_args()
+
+
+def fresh(path: Path) -> Path:
+    """path, removed first if it exists (a variant is written anew)."""
+    import shutil
+
+    if path.exists():
+        shutil.rmtree(path)
+    return path
+
+
+def small_dev_room(work: Path, size: int, room: Path = DEV_ROOM) -> Path:
+    """The dev room at size^2 (benchmarks/densification.resized_room), its fisheye transforms file."""
+    import densification
+
+    densification.DEV_ROOM = room
+    return densification.resized_room(work, size) / "transforms_fisheye.json"
+
+
+def train_and_score(name: str, data: Path, steps: int, overrides: dict, out: Path, optimizers: dict | None = None):
+    """(ns-eval's averaged metrics of the eval split, seconds of training, the trained pipeline). overrides: model
+    options (dotted: camera_optimizer.mode); optimizers: parameter group -> optimizer entry replacing geer's."""
+    from nerfstudio.scripts.train import _set_random_seed
+    from nerfstudio.utils import writer
+
+    from geer_ns.config import geer_trainer_config
+    from geer_ns.model import GeerModelConfig
+
+    config = geer_trainer_config("geer", GeerModelConfig())
+    config.data = config.pipeline.datamanager.data = data
+    config.pipeline.datamanager.cache_images = "cpu"
+    config.output_dir, config.experiment_name, config.timestamp = out / "runs", name, "run"
+    config.vis = "tensorboard"
+    config.max_num_iterations = steps
+    config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = 0
+    config.steps_per_save = 10**9
+    for key, value in overrides.items():
+        target = config.pipeline.model
+        *path, leaf = key.split(".")
+        for part in path:
+            target = getattr(target, part)
+        setattr(target, leaf, value)
+    config.optimizers.update(optimizers or {})
+    writer.EVENT_WRITERS.clear()
+    _set_random_seed(config.machine.seed)
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    start = time.perf_counter()
+    trainer.train()
+    seconds = time.perf_counter() - start
+    metrics = trainer.pipeline.get_average_eval_image_metrics(step=steps)
+    writer.EVENT_WRITERS.clear()
+    return metrics, seconds, trainer.pipeline
+
+
+def git_commit() -> str:
+    done = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT)
+    return done.stdout.strip()
+
+
+def load_average() -> str:
+    return Path("/proc/loadavg").read_text().split()[0]
+
+
+def dump(path: Path, record: dict) -> None:
+    path.write_text(json.dumps(record, indent=2) + "\n")
