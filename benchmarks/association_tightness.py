@@ -121,13 +121,13 @@ def _covariances(quats, scales):
 
 def ewa_counts(scene, viewmat, kind: str, focal: float):
     """gsplat 1.4's EWA: its PyTorch reference projection and 3-sigma squares."""
-    from gsplat.cuda._torch_impl import _fully_fused_projection
+    from geer_ns.gsplat_private import fully_fused_projection
 
     means, quats, scales = scene[:3]
     _, covars = _covariances(quats, scales)
     k = torch.tensor([[focal, 0, SIZE / 2], [0, focal, SIZE / 2], [0, 0, 1]], dtype=torch.float32)
-    radii, means2d, _, _, _ = _fully_fused_projection(means, covars, viewmat[None], k[None], SIZE, SIZE,
-                                                       camera_model=kind)
+    radii, means2d, _, _, _ = fully_fused_projection(means, covars, viewmat[None], k[None], SIZE, SIZE,
+                                                      camera_model=kind)
     alive = scene[3] >= 1 / 255
     return _box_counts(means2d[0][alive], radii[0][alive].float(), SIZE, SIZE)
 

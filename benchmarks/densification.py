@@ -7,6 +7,10 @@ rule by rule.
              --pipeline.model.densify-grad-thresh 0.0002 --pipeline.model.prune-unseen False
     current  the defaults (angular statistics, absgrad with splatfacto's 0.0008, the unseen prune)
 
+The former signal is no longer in geer_ns: the former runs train with geer_ns as it was at the git tag
+`densify-pixel-signal` (the last commit that had it), extracted with `git archive` into the work dir; the current
+runs with this checkout's.
+
 Dev room schedule (both): refinement every 100 steps from step 300, splits until step 1000, full resolution from
 the start (num-downscales 0), otherwise geer's defaults; one more run trains the 128^2 fisheye views with geer's
 own schedule (splits until step 15000, as splatfacto) to show where the count settles. The 128^2 / 256^2
@@ -33,7 +37,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+FORMER_TAG = "densify-pixel-signal"  # git tag: the last commit whose geer_ns had the former densification signal
+SOURCE_ENV = "GEER_DENSIFICATION_SOURCE"  # a run's geer_ns tree (the tag's, for the former runs)
+sys.path.insert(0, os.environ.get(SOURCE_ENV, str(ROOT)))
 DEV_ROOM = ROOT.parent / "shared" / "data" / "fisheye_room_dev"
 FORMER = {"densify_signal": "pixels", "use_absgrad": False, "densify_grad_thresh": 0.0002, "prune_unseen": False}
 
@@ -132,7 +138,8 @@ def one_run(name: str, data: Path, steps: int, overrides: dict, eval_every: int,
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     pipeline, model = trainer.pipeline, trainer.pipeline.model
-    record = {"name": name, "commit": git_commit(), "machine_session": machine_session(), "steps": steps,
+    commit = f"{git_commit(FORMER_TAG)} ({FORMER_TAG})" if is_former(overrides) else git_commit()
+    record = {"name": name, "commit": commit, "machine_session": machine_session(), "steps": steps,
               "overrides": {k: list(v) if isinstance(v, tuple) else v for k, v in overrides.items()}, "points": []}
     clock = {"train": 0.0, "start": 0.0}
 
@@ -161,9 +168,27 @@ def one_run(name: str, data: Path, steps: int, overrides: dict, eval_every: int,
 
 
 # ----------------------------------------------------------------------------------------- the report
-def git_commit() -> str:
-    done = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT)
+def git_commit(rev: str = "HEAD") -> str:
+    done = subprocess.run(["git", "rev-parse", "--short", f"{rev}^{{commit}}"], capture_output=True, text=True,
+                          cwd=ROOT)
     return done.stdout.strip()
+
+
+def is_former(overrides: dict) -> bool:
+    return overrides.get("densify_signal") == "pixels"
+
+
+def former_source(work: Path) -> Path:
+    """The tree of git tag FORMER_TAG, extracted once into `work` (the former runs import its geer_ns)."""
+    out = work / FORMER_TAG
+    if not (out / "geer_ns").is_dir():
+        out.mkdir(parents=True, exist_ok=True)
+        archive = subprocess.run(["git", "archive", "--format=tar", FORMER_TAG], cwd=ROOT, capture_output=True)
+        if archive.returncode:
+            raise SystemExit(f"densification.py: the former runs need git tag {FORMER_TAG} (the last commit with the "
+                             f"former signal): {archive.stderr.decode().strip()}")
+        subprocess.run(["tar", "-x", "-C", str(out)], input=archive.stdout, check=True)
+    return out
 
 
 def machine_session() -> str:
@@ -268,7 +293,7 @@ def write(out_md: Path, records: list, runs: dict, args) -> None:
 - commands: `.venv/bin/python benchmarks/densification.py [--only NAME ...] [--again]` makes the runs not yet
   kept (or repeats the named ones) and rewrites this report; each record keeps its steps and overrides. This
   report: `.venv/bin/python benchmarks/densification.py {shlex.join(sys.argv[1:])}`
-- former: `densify-signal pixels`, summed gradients, `densify-grad-thresh 0.0002`, no unseen prune (the 1-pixel
+- former (trained with geer_ns at git tag `{FORMER_TAG}`): `densify-signal pixels`, summed gradients, `densify-grad-thresh 0.0002`, no unseen prune (the 1-pixel
   growth floor stays on; the rules table shows what it held back); current: the defaults (statistics in the
   views' pixels, AbsGS gradients, 0.0008, unseen prune, 1-pixel floor). Dev room: refinement every 100 steps
   from step 300, splits until step 1000, full resolution; eval: the 6 held-out views in native pixels (fisheye
@@ -329,8 +354,14 @@ def main() -> None:
                 stale.unlink(missing_ok=True)
             command = [sys.executable, __file__, "--run", name, "--steps", str(args.steps), "--former-steps",
                        str(args.former_steps), "--eval-every", str(args.eval_every), "--work", str(args.work)]
+            source = ROOT
+            if is_former(runs[name][2]):
+                source = former_source(args.work)
+                print(f"[{name}] trains with geer_ns at git tag {FORMER_TAG} ({source}): the former signal is no "
+                      "longer in this checkout", flush=True)
             try:
-                subprocess.run(command, check=True, env=dict(os.environ, PYTHONPATH=str(ROOT)),
+                subprocess.run(command, check=True, env=dict(os.environ, PYTHONPATH=str(source),
+                                                              **{SOURCE_ENV: str(source)}),
                                timeout=args.minutes * 60 if args.minutes else None)
             except subprocess.TimeoutExpired:  # the run keeps the points it reached (its .partial.json)
                 print(f"[{name}] stopped after {args.minutes} minutes", flush=True)

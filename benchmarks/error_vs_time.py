@@ -80,15 +80,15 @@ def geer_image(ops, scene, viewmat, grid, dtype, paper_lambda: bool):
 
 def ewa_image(scene, viewmat, kind: str, focal: float, eps2d: float = 0.3) -> torch.Tensor:
     """[R,3] float64: gsplat's EWA projection (eps2d: its 2-D dilation) composited per pixel, tile by tile."""
-    from gsplat.cuda._torch_impl import _fully_fused_projection
+    from geer_ns.gsplat_private import fully_fused_projection
 
     from geer_ns.render import quat_to_rotmat
 
     means, quats, scales, opac, colors = scene
     m = quat_to_rotmat(quats) * scales[:, None, :]
     k = torch.tensor([[focal, 0, SIZE / 2], [0, focal, SIZE / 2], [0, 0, 1]], dtype=torch.float32)
-    radii, means2d, depths, conics, _ = _fully_fused_projection(means, m @ m.transpose(-1, -2), viewmat[None], k[None],
-                                                                SIZE, SIZE, eps2d=eps2d, camera_model=kind)
+    radii, means2d, depths, conics, _ = fully_fused_projection(means, m @ m.transpose(-1, -2), viewmat[None], k[None],
+                                                               SIZE, SIZE, eps2d=eps2d, camera_model=kind)
     radii, means2d, depths, conics = radii[0].double(), means2d[0].double(), depths[0].double(), conics[0].double()
     keep = (radii > 0) & (opac >= 1 / 255)
     order = torch.nonzero(keep).squeeze(1)

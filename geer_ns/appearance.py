@@ -1,6 +1,6 @@
 """Per-image exposure and white balance, per-camera vignetting: the sensor between the scene and an image.
 
-A rendered colour c (the scene as the Gaussians hold it, in the images' encoding) becomes what image i of
+A rendered color c (the scene as the Gaussians hold it, in the images' encoding) becomes what image i of
 camera k recorded as
 
     srgb( gain_i * vignetting_k(theta) * linear(c) ),   gain_i = exp(g_i) per channel,
@@ -9,7 +9,7 @@ camera k recorded as
 in linear light (the sRGB transfer curve), theta the ray's angle from the camera's optical axis: the same
 falloff at any field of view, fisheye included. g_i's mean over the channels is the image's exposure (natural
 log of the gain), its deviations the white balance. Images and cameras start neutral (all zero). The
-gains' mean over the images is pulled to zero (`regularisation`), so the scene keeps the images' average
+gains' mean over the images is pulled to zero (`regularization`), so the scene keeps the images' average
 exposure instead of drifting against the gains. Unknown images (evaluation views) get the neutral gain and
 their camera's vignetting. docs/refinement.md says how to use it.
 """
@@ -62,7 +62,7 @@ class Appearance(nn.Module):
             scale = scale * torch.exp(self.log_gains[image])
         return linear_to_srgb(srgb_to_linear(rgb) * scale.to(rgb.dtype))
 
-    def regularisation(self) -> Tensor:
+    def regularization(self) -> Tensor:
         """The squared mean log gain over the images and channels (the scene's overall brightness is the
         images' average, not a free direction shared by the scene and every gain)."""
         return self.log_gains.mean() ** 2

@@ -1,6 +1,6 @@
-"""Colour-corrected image metrics: psnr_cc and ssim_cc.
+"""Color-corrected image metrics: psnr_cc and ssim_cc.
 
-Before the metric, the prediction's colours are mapped by the affine colour transform (3x3 matrix + offset)
+Before the metric, the prediction's colors are mapped by the affine color transform (3x3 matrix + offset)
 that best fits the ground truth over the valid pixels, in least squares, one fit per image (as the bilateral-
 grid and PPISP papers evaluate). A run that renders the scene right but at another exposure or white balance
 than a test image scores as well as one that guessed the image's exposure: runs with and without appearance
@@ -16,13 +16,13 @@ from torch import Tensor
 
 
 def affine_color_fit(pred: Tensor, gt: Tensor, valid: Tensor) -> Tensor:
-    """pred [H, W, 3] mapped by the least-squares affine colour transform to gt over valid [H, W] (float64 fit;
+    """pred [H, W, 3] mapped by the least-squares affine color transform to gt over valid [H, W] (float64 fit;
     the identity when fewer than 4 pixels are valid)."""
     x = pred[valid].double()
     if x.shape[0] < 4:
         return pred
     a = torch.cat([x, torch.ones_like(x[:, :1])], dim=-1)  # [P, 4]
-    # Normal equations with a tiny ridge: a flat image (rank-deficient colours) still gets a finite fit.
+    # Normal equations with a tiny ridge: a flat image (rank-deficient colors) still gets a finite fit.
     ata = a.T @ a + 1e-8 * torch.eye(4, dtype=a.dtype, device=a.device) * a.shape[0]
     coeffs = torch.linalg.solve(ata, a.T @ gt[valid].double())  # [4, 3]
     full = torch.cat([pred.double(), torch.ones_like(pred[..., :1]).double()], dim=-1)

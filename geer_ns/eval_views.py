@@ -5,7 +5,7 @@
 
 The model is loaded as ns-eval loads it; the other file is read by geer's nerfstudio parser (per-frame
 camera models allowed) with its poses mapped through the run's ``dataparser_transforms.json`` (not oriented,
-centred and scaled anew), so a file sharing the training world frame lands on the training scene. Its
+centered and scaled anew), so a file sharing the training world frame lands on the training scene. Its
 ``--split`` views (default: test) are rendered from their own pixel rays and scored exactly like ns-eval's
 (valid pixels only, central / peripheral PSNR, metrics per camera kind); the JSON has ns-eval's layout plus
 ``views`` and ``split``. Typical use: train on a fisheye, score on pinhole views of the same poses, and the

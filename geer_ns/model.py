@@ -8,7 +8,7 @@ strategy fed geer's statistics (geer_ns/densify). Nothing assumes CUDA.
 Why a subclass of SplatfactoModel rather than a model composing what it reuses: nerfstudio decides by
 `isinstance(model, SplatfactoModel)` whether the viewer shows a Gaussian scene (its render state machine, export
 panel, crop box) and whether `ns-export gaussian-splat` accepts a run (scripts/exporter.py asserts it). geer
-overrides what it renders and scores, and reuses splatfacto's parameter layout, initialisation helpers, camera
+overrides what it renders and scores, and reuses splatfacto's parameter layout, initialization helpers, camera
 optimizer, bilateral grid and SH schedule.
 """
 
@@ -48,7 +48,7 @@ from geer_ns.color_metrics import color_corrected_metrics
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, host_camera_model, native_view
 from geer_ns.densify.mcmc_cpu import install_mcmc_cpu_ops
-from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angular_signal, pbf_radii, pixel_signal
+from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angular_signal
 from geer_ns.densify.strategy import GeerDefaultStrategy
 from geer_ns.perceptual import build_lpips_if_cached
 from geer_ns.render import render
@@ -69,10 +69,6 @@ class GeerOwnOptions:
 
     strategy: Literal["default", "mcmc"] = "default"
     """Densification: gsplat's DefaultStrategy (3DGS heuristics) or MCMCStrategy."""
-    densify_signal: Literal["angular", "pixels"] = "angular"
-    """Densification statistics: "angular" (the same value for the same Gaussian at any field of view and
-    projection, counted in the view's supervised pixels, in the units gsplat's thresholds were tuned on:
-    geer_ns/densify/signal.py) or "pixels" (geer's former signal: BEAP pixels, normalised by the image size)."""
     max_gaussians: int = 0
     """Most Gaussians densification may create (0: no limit); the strongest candidates grow first. With
     strategy=mcmc, the cap of MCMCStrategy when set."""
@@ -135,11 +131,11 @@ class GeerModelConfig(SplatfactoModelConfig, depth_supervision.DepthSupervisionO
     eval_num_rays_per_chunk: tyro.conf.Suppress[int] = _model_config_default("eval_num_rays_per_chunk")
     prompt: tyro.conf.Suppress[Optional[str]] = _model_config_default("prompt")
     densify_grad_thresh: float = 0.0008
-    """Gradient threshold of DefaultStrategy's growth, in gsplat's units (what they mean: densify-signal);
+    """Gradient threshold of DefaultStrategy's growth, in gsplat's units (what they mean: docs/densification.md);
     splatfacto's value for AbsGS gradients (gsplat's 0.0002 is for summed gradients, use-absgrad False)."""
     use_absgrad: bool = True
     """Densify on AbsGS's per-pixel absolute gradients (the renderer's backward sums |dL_p/d position| over each
-    Gaussian's pixels: no cancelling) instead of the summed gradient, as splatfacto does."""
+    Gaussian's pixels: no canceling) instead of the summed gradient, as splatfacto does."""
     # splatfacto options geer does not use: accepted (splatfacto command lines still parse), marked, and said
     # once at start-up when set (IGNORED_OPTIONS).
     rasterize_mode: Literal["classic", "antialiased"] = "classic"
@@ -147,7 +143,7 @@ class GeerModelConfig(SplatfactoModelConfig, depth_supervision.DepthSupervisionO
     output_depth_during_training: bool = False
     """IGNORED by geer: depth is always rendered."""
     color_corrected_metrics: bool = False
-    """IGNORED by geer: metrics are computed over the valid pixels, without colour correction."""
+    """IGNORED by geer: metrics are computed over the valid pixels, without color correction."""
     n_split_samples: int = 2
     """IGNORED by geer: gsplat's DefaultStrategy splits a Gaussian into two."""
     # Set by the training engine (geer_ns.distributed.schedule), not on the command line: the images one
@@ -161,7 +157,7 @@ IGNORED_OPTIONS = ("rasterize_mode", "output_depth_during_training", "color_corr
 # geer's own options, listed first in `ns-train geer --help` (the method description).
 OWN_OPTIONS_HELP = (
     "geer's own options: --pipeline.model.renderer-backend {auto,torch,cuda,cpu}, --pipeline.model.lambda-mode "
-    "{opacity,paper}, --pipeline.model.strategy {default,mcmc}, --pipeline.model.densify-signal {angular,pixels}, "
+    "{opacity,paper}, --pipeline.model.strategy {default,mcmc}, "
     "--pipeline.model.max-gaussians, --pipeline.model.densify-min-pixels, --pipeline.model.prune-unseen, --pipeline.model.distributed {images,gaussians}, "
     "--pipeline.model.max-pairs, --pipeline.model.kernel-check-every, "
     "--pipeline.model.central-half-angles-deg, --pipeline.datamanager.supervision, "
@@ -198,7 +194,7 @@ def central_region(camera: CameraModel, dirs: Tensor, half_angles: Optional[Tupl
 
 def exact_activation(fn, x: Tensor) -> Tensor:
     """fn(x) evaluated in float64 and rounded to x's dtype. torch's float32 exp and sigmoid round an element by
-    where it falls in the tensor (vectorised body, scalar tail); a shard or a subset of the Gaussians then gets
+    where it falls in the tensor (vectorized body, scalar tail); a shard or a subset of the Gaussians then gets
     other bits than the whole model. In float64 those differences are below what rounding to float32 keeps."""
     return fn(x.double()).to(x.dtype) if x.dtype == torch.float32 else fn(x)
 
@@ -263,7 +259,7 @@ class GeerModel(SplatfactoModel):
         self.views: List[ViewRecord] = []  # this step's rendered training views, for the densification statistics
         self._statistics: Optional[StepStatistics] = None  # the step's statistics, when the engine reduced them
         self._step_background: Optional[Tensor] = None  # one random background per step, for all its views
-        self.scene_gaussians: Optional[int] = None  # Gaussians over every shard (the regularisers' mean)
+        self.scene_gaussians: Optional[int] = None  # Gaussians over every shard (the regularizers' mean)
         self.display_gaussians: Optional[Dict[str, Tensor]] = None  # what eval / the viewer render, if not these
         self.loaded_images_per_step = self.config.images_per_step_total  # of the checkpoint loaded, if any
         self.render_guard = RenderGuard()
@@ -424,11 +420,7 @@ class GeerModel(SplatfactoModel):
                 self.config.lambda_mode)):
             self.config.renderer_backend = "torch"  # every later render of this run, sharded engines' too
         if probe is not None:
-            radius = pixels = None
-            if probe.signal.radius is None:  # pixel_signal: the PBF's extent in pixels (of the image's larger side)
-                pixels = pbf_radii(out.pbf, out.visible, view.steps)
-                radius = pixels / float(max(height, width))
-            self.views.append(probe.record(out.visible.detach(), out.max_weight, radius, pixels))
+            self.views.append(probe.record(out.visible.detach(), out.max_weight))
         normals = None
         if not self.training:  # forward only: no loss reads normals
             normals = render_normals(means, params["quats"], scales, opacities, viewmat, view.rays.to(means.device),
@@ -455,17 +447,14 @@ class GeerModel(SplatfactoModel):
     def probe(self, view: View, means: Tensor, viewmat: Tensor, scales: Tensor, opacities: Tensor) -> ViewProbe:
         """The densification leaves of a training view of these Gaussians (geer_ns/densify/signal.py)."""
         means_c = view_transform(means.detach(), viewmat)
-        if self.config.densify_signal == "pixels":
-            signal = pixel_signal(means_c, view.steps, view.size)
-        else:
-            lam2, _ = pbf_lambda_sq(opacities.detach(), self.config.lambda_mode)
-            signal = angular_signal(view.project, view.rays.num_valid, view.center_solid_angle, means_c,
-                                    scales, lam2, view.source_project)
+        lam2, _ = pbf_lambda_sq(opacities.detach(), self.config.lambda_mode)
+        signal = angular_signal(view.project, view.rays.num_valid, view.center_solid_angle, means_c,
+                                scales, lam2, view.source_project)
         return ViewProbe.zeros(signal, means, self.config.use_absgrad)
 
     def _get_background_color(self) -> Tensor:
-        """splatfacto's, with one random colour per training step (drawn at its first view): every view of
-        a step, on every process, composites over the same colour, and the random stream stays the same
+        """splatfacto's, with one random color per training step (drawn at its first view): every view of
+        a step, on every process, composites over the same color, and the random stream stays the same
         however a step's views are split over processes."""
         if self.config.background_color == "random" and self.training:
             if self._step_background is None:
@@ -590,15 +579,15 @@ class GeerModel(SplatfactoModel):
         return losses
 
     def get_step_loss_dict(self) -> Dict[str, Tensor]:
-        """The losses of the parameters alone (regularisers), once per step whatever its images."""
-        losses = {"scale_reg": self._scale_regularisation()}
+        """The losses of the parameters alone (regularizers), once per step whatever its images."""
+        losses = {"scale_reg": self._scale_regularization()}
         if isinstance(self.strategy, MCMCStrategy):
             losses["opacity_reg"] = self.config.mcmc_opacity_reg * torch.sigmoid(self.opacities).mean()
             losses["mcmc_scale_reg"] = self.config.mcmc_scale_reg * torch.exp(self.scales).mean()
         if self.training:
             self.camera_optimizer.get_loss_dict(losses)
             if self.appearance is not None:
-                losses["appearance_reg"] = self.config.appearance_reg * self.appearance.regularisation()
+                losses["appearance_reg"] = self.config.appearance_reg * self.appearance.regularization()
         return losses
 
     def get_param_groups(self) -> Dict[str, List[torch.nn.Parameter]]:
@@ -607,7 +596,7 @@ class GeerModel(SplatfactoModel):
             groups["appearance"] = list(self.appearance.parameters())
         return groups
 
-    def _scale_regularisation(self) -> Tensor:
+    def _scale_regularization(self) -> Tensor:
         if not (self.config.use_scale_regularization and self.step % 10 == 0):
             return torch.tensor(0.0, device=self.device)
         scale = torch.exp(self.scales)
@@ -627,7 +616,7 @@ class GeerModel(SplatfactoModel):
 
     def get_image_metrics_and_images(self, outputs, batch) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
         """Native-image metrics over valid pixels: PSNR, SSIM, LPIPS (when its weights are cached), the
-        central / peripheral PSNR of the paper's App. G and the colour-corrected psnr_cc / ssim_cc."""
+        central / peripheral PSNR of the paper's App. G and the color-corrected psnr_cc / ssim_cc."""
         gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
         valid = self._batch_mask(outputs, batch)
         pred = torch.where(valid, outputs["rgb"], gt)

@@ -1,6 +1,6 @@
 """The nerfstudio outputs of a geer render: one name per meaning, and which of them the viewer lists.
 
-    rgb               colour, background composited
+    rgb               color, background composited
     accumulation      sum of the blend weights (opacity of the ray)
     distance          expected distance along the ray, sum_i w_i t_i / sum_i w_i (radial: fisheye, 360)
     depth             camera-space z of the expected hit point, as splatfacto's `depth` (pinhole convention)
@@ -30,7 +30,7 @@ INTERNAL_OUTPUTS = ("valid_rays", "central_region", "background", "depth_defined
 
 def filled(values: Tensor, defined: Tensor) -> Tensor:
     """values where `defined`, the largest defined value (no gradient) elsewhere; 0 when nothing is defined.
-    No host synchronisation (it runs every training step)."""
+    No host synchronization (it runs every training step)."""
     top = torch.where(defined, values.detach(), torch.full_like(values, -torch.inf)).amax()
     return torch.where(defined, values, torch.where(torch.isfinite(top), top, torch.zeros_like(top)))
 

@@ -184,7 +184,7 @@ def budget_plan(rank: int, out: Path) -> None:
     optimizers = {k: torch.optim.Adam([p], lr=1e-3) for k, p in keep.items()}
     shard_state = {k: (v[mine].clone() if torch.is_tensor(v) and v.dim() > 0 else v) for k, v in state.items()}
     strategy.budget = scene_budget
-    strategy._grow_gs(keep, optimizers, shard_state, step=100)
+    strategy.grow(keep, optimizers, shard_state, step=100)
     torch.save({"ids": shard_state["id"], "n": keep["means"].shape[0], "candidates": int(mine[BUDGET_WANTED].sum())},
                out / f"budget_{rank}.pt")
 
@@ -269,6 +269,11 @@ def shard_case(name: str, dtype):
     return scene, viewmats, grid_pair, weights
 
 
+def payload_rows(shard):
+    """render_sharded's rows_of for a shard of plain tensors (RGB colors): camera q's payload is the rows."""
+    return lambda q, rows: tuple(t[rows] for t in shard)
+
+
 def shard_loss(out, weights):
     return (out.rgb.reshape(-1, 3) * weights).sum() + 0.1 * out.depth.sum() + out.accumulation.sum()
 
@@ -283,7 +288,7 @@ def sharded_render_plan(rank: int, out: Path) -> None:
             scene, viewmats, grids, weights = shard_case(name, dtype)
             rows = shard_rows(rank, 2)
             shard = [t[rows].clone().requires_grad_(True) for t in scene]
-            image, views = render_sharded(*shard, viewmats, grids)
+            image, views = render_sharded(*shard[:4], viewmats, grids, payload_rows(shard))
             shard_loss(image, weights[rank]).backward()
             torch.save({"rgb": image.rgb.detach(), "depth": image.depth.detach(), "acc": image.accumulation.detach(),
                         "grads": [t.grad for t in shard], "seen": views.seen, "sent": views.sent},
@@ -408,7 +413,8 @@ def nccl_rule_plan(global_rank: int, out: Path) -> None:
         def sharded_render():
             scene, viewmats, grids, _ = shard_case("fisheye180", torch.float64)
             shard = [cuda(t[shard_rows(global_rank, 2)]) for t in scene]
-            image, views = render_sharded(*shard, cuda(viewmats), [g.to("cuda") for g in grids], backend="torch")
+            image, views = render_sharded(*shard[:4], cuda(viewmats), [g.to("cuda") for g in grids],
+                                          payload_rows(shard), backend="torch")
             return {"device": image.rgb.device.type, "rgb": image.rgb.cpu(), "sent": views.sent}
 
         def gathered():

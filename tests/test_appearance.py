@@ -51,7 +51,7 @@ def test_fitting_recovers_exposure_white_balance_and_vignetting():
     for _ in range(400):
         opt.zero_grad()
         loss = sum(((model(scene, d, i) - torch.from_numpy(img)) ** 2).mean() for i, img in enumerate(images))
-        (loss + model.regularisation()).backward()
+        (loss + model.regularization()).backward()
         opt.step()
     assert float((model.log_gains.detach() - torch.from_numpy(log_gains)).abs().max()) < 0.02
     falloff = model.vignetting_factor(torch.from_numpy(theta)).detach().numpy()

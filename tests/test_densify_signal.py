@@ -8,9 +8,7 @@ squared error over its supervised pixels, as training's loss is a mean; its grad
 number of pixels (a 180-degree view has ~3.5x the pinhole's) and grows with their angular size. The statistics
 of geer_ns/densify/signal.py undo both: at the same pixel pitch a Gaussian gets the same value in every view up
 to the pixel grids' sampling of its footprint, and at twice the resolution twice the value (its footprint and
-its error are twice as many pixels across: what the supervision resolves, not radians, sets its growth). The
-former statistic (BEAP pixels, gsplat's normalisation by the image size) is reported beside it in the same test
-and differs by the views' size ratios.
+its error are twice as many pixels across: what the supervision resolves, not radians, sets its growth).
 """
 
 from __future__ import annotations
@@ -31,7 +29,7 @@ N = 24
 SCALE = 0.08  # a few pixels across at 1/32 rad
 
 
-def _model(signal: str, rim: bool = False):
+def _model(rim: bool = False):
     """N Gaussians within ~12 degrees of the axis, or (rim) 60-80 degrees off it all around."""
     gen = torch.Generator().manual_seed(4)
     if rim:
@@ -45,7 +43,7 @@ def _model(signal: str, rim: bool = False):
         xyz[:, :2] = (torch.rand(N, 2, generator=gen) - 0.5) * 1.0
         xyz[:, 2] = -2.0 - torch.rand(N, generator=gen)  # nerfstudio's camera looks along world -z
     rgb = (torch.rand(N, 3, generator=gen) * 255).to(torch.uint8)
-    config = GeerModelConfig(background_color="black", sh_degree=0, num_downscales=0, densify_signal=signal)
+    config = GeerModelConfig(background_color="black", sh_degree=0, num_downscales=0)
     box = SceneBox(aabb=torch.tensor([[-2.0, -2.0, -4.0], [2.0, 2.0, 0.0]]))
     model = config.setup(scene_box=box, num_train_data=1, metadata={}, device="cpu", seed_points=(xyz, rgb))
     with torch.no_grad():
@@ -91,11 +89,11 @@ VIEWS = {"pinhole 90": ("pinhole", 1), "pinhole 90, 2x": ("pinhole", 2), "BEAP 1
 RIM_VIEWS = {name: VIEWS[name] for name in ("fisheye 180", "BEAP 180", "fisheye 180, 2x")}  # no pinhole sees there
 
 
-def _statistics(signal: str, rim: bool = False) -> dict:
+def _statistics(rim: bool = False) -> dict:
     """Per view: the gradient statistic and the screen statistic of every Gaussian, from one backward."""
     found = {}
     for name, (kind, scale) in (RIM_VIEWS if rim else VIEWS).items():
-        model = _model(signal, rim)
+        model = _model(rim)
         camera = _camera(kind, scale)
         target = _target(model, camera)
         out = model.get_outputs(camera)
@@ -110,23 +108,21 @@ def _statistics(signal: str, rim: bool = False) -> dict:
 
 @pytest.fixture(scope="module")
 def statistics():
-    return {signal: _statistics(signal) for signal in ("angular", "pixels")}
+    return _statistics()
 
 
 @pytest.fixture(scope="module")
 def rim_statistics():
-    return {signal: _statistics(signal, rim=True) for signal in ("angular", "pixels")}
+    return _statistics(rim=True)
 
 
 def _ratios(found: dict, index: int, reference: str = "pinhole 90") -> dict:
     return {name: values[index] / found[reference][index] for name, values in found.items() if name != reference}
 
 
-def _say(what: str, new: dict, old: dict) -> None:
-    for name in new:
-        print(f"{name:16s} {what}: angular median {float(new[name].median()):.3f} [{float(new[name].min()):.3f}, "
-              f"{float(new[name].max()):.3f}]; former (pixels) median {float(old[name].median()):.3f} "
-              f"[{float(old[name].min()):.3f}, {float(old[name].max()):.3f}]")
+def _say(what: str, ratios: dict) -> None:
+    for name, r in ratios.items():
+        print(f"{name:16s} {what}: median {float(r.median()):.3f} [{float(r.min()):.3f}, {float(r.max()):.3f}]")
 
 
 def _per_pitch(found: dict, ratios: dict, reference: str) -> dict:
@@ -139,52 +135,43 @@ def _per_pitch(found: dict, ratios: dict, reference: str) -> dict:
 def test_the_gradient_statistic_is_the_same_in_every_view(statistics):
     """Per Gaussian, each view's value over the 90-degree pinhole's, divided by the views' resolution ratio:
     within 15 % of 1 at the median and 35 % for every Gaussian (the grids sample a footprint of a few pixels
-    differently; measured 0.75-1.17). The former statistic gives the 180-degree views 0.6x the pinhole's
-    (measured: medians 0.61-0.62 at the same pitch)."""
-    new, old = _ratios(statistics["angular"], 0), _ratios(statistics["pixels"], 0)
-    _say("gradient / 90-degree pinhole's", new, old)
-    for name, relative in _per_pitch(statistics["angular"], new, "pinhole 90").items():
+    differently; measured 0.75-1.17)."""
+    new = _ratios(statistics, 0)
+    _say("gradient / 90-degree pinhole's", new)
+    for name, relative in _per_pitch(statistics, new, "pinhole 90").items():
         assert abs(float(relative.median()) - 1.0) <= 0.15, name
         assert float((relative - 1.0).abs().max()) <= 0.35, name
-    for name in ("BEAP 180", "fisheye 180"):
-        assert float(old[name].median()) < 0.75, name
 
 
 def test_at_the_rim_beap_and_native_fisheye_pixels_agree(rim_statistics):
     """Gaussians 60-80 degrees off-axis, where a BEAP cell is 1/cos(off-axis angle) (up to 5.8x) shorter than
     across the ray than along it: the statistic of the BEAP view over the fisheye's, and of the 2x fisheye over
-    twice the fisheye's, within the same bounds (measured 0.84-1.05 and 0.98-1.03); the former gives each
-    Gaussian BEAP's stretch in its own direction (measured 0.44x to 2.2x the fisheye's)."""
-    new, old = _ratios(rim_statistics["angular"], 0, "fisheye 180"), _ratios(rim_statistics["pixels"], 0, "fisheye 180")
-    _say("gradient / fisheye 180's", new, old)
-    for name, relative in _per_pitch(rim_statistics["angular"], new, "fisheye 180").items():
+    twice the fisheye's, within the same bounds (measured 0.84-1.05 and 0.98-1.03)."""
+    new = _ratios(rim_statistics, 0, "fisheye 180")
+    _say("gradient / fisheye 180's", new)
+    for name, relative in _per_pitch(rim_statistics, new, "fisheye 180").items():
         assert abs(float(relative.median()) - 1.0) <= 0.15, name
         assert float((relative - 1.0).abs().max()) <= 0.35, name
-    assert float(old["BEAP 180"].max()) > 1.8 and float(old["BEAP 180"].min()) < 0.6
 
 
 def test_the_screen_statistic_is_the_same_in_every_view(statistics):
     """The radius in the view's pixels at the Gaussian: the same at the same pitch up to how each projection's
     pitch changes off the axis (within 20 degrees: the pinhole's pixel side shrinks as cos^1.5, the
-    equidistant fisheye's as sqrt(sin/theta): up to 8 % apart), exactly twice at twice the resolution; the former
-    radius (pixels of the image's larger side) changes with the field of view and, in BEAP, with the off-axis
-    stretch."""
-    new, old = _ratios(statistics["angular"], 1), _ratios(statistics["pixels"], 1)
-    _say("screen / 90-degree pinhole's", new, old)
-    for name, relative in _per_pitch(statistics["angular"], new, "pinhole 90").items():
+    equidistant fisheye's as sqrt(sin/theta): up to 8 % apart), exactly twice at twice the resolution."""
+    new = _ratios(statistics, 1)
+    _say("screen / 90-degree pinhole's", new)
+    for name, relative in _per_pitch(statistics, new, "pinhole 90").items():
         assert torch.allclose(relative, torch.ones_like(relative), rtol=0.1), name
-    found = statistics["angular"]
+    found = statistics
     for name, base in (("pinhole 90, 2x", "pinhole 90"), ("fisheye 180, 2x", "fisheye 180")):
         assert torch.allclose(found[name][1], 2.0 * found[base][1], rtol=1e-6), name
     assert torch.allclose(found["BEAP 180"][1], found["fisheye 180"][1], rtol=1e-6)  # the same camera's pixels
-    assert float(old["BEAP 180"].median()) < 0.75
 
 
 def test_at_the_reference_camera_the_statistics_are_gsplats(statistics):
     """For the reference camera, a 60-degree pinhole W_ref pixels across, at its centre the statistic is gsplat's
-    |dL/d(position)| in units of half the image: the former statistic's normalisation, whose BEAP pixels are
-    pinhole pixels at the centre. Checked on the Gaussian nearest the axis of a dedicated view."""
-    model = _model("angular")
+    |dL/d(position)| in units of half the image. Checked on the Gaussian nearest the axis of a dedicated view."""
+    model = _model()
     size = int(REFERENCE_WIDTH_PIXELS)
     f = (size / 2) / math.tan(math.radians(30))
     camera = Cameras(camera_to_worlds=torch.eye(4)[:3][None], fx=f, fy=f, cx=size / 2, cy=size / 2, width=size,

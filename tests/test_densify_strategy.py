@@ -30,9 +30,9 @@ def _stats(grad, radius=None, weight=None, pixels=None):
 
 
 def _refine(strategy, params, optimizers, state, stats, step=200):
-    strategy._update_state(params, state, {"statistics": stats})
-    strategy._grow_gs(params, optimizers, state, step)
-    strategy._prune_gs(params, optimizers, state, step)
+    strategy.update_statistics(params, state, {"statistics": stats})
+    strategy.grow(params, optimizers, state, step)
+    strategy.prune(params, optimizers, state, step)
     return strategy.log[-1]
 
 
@@ -83,11 +83,11 @@ def test_unseen_gaussians_are_pruned_after_a_whole_pass_only():
                                    verbose=False)
     state = strategy.initialize_state()
     for step in range(3):  # 3 images of a 4-image pass: too early to judge
-        strategy._update_state(params, state, {"statistics": _stats(torch.zeros(10), weight=weight)})
-    strategy._prune_gs(params, optimizers, state, 3)
+        strategy.update_statistics(params, state, {"statistics": _stats(torch.zeros(10), weight=weight)})
+    strategy.prune(params, optimizers, state, 3)
     assert len(params["means"]) == 10 and "pruned (unseen)" not in strategy.log[-1]
-    strategy._update_state(params, state, {"statistics": _stats(torch.zeros(10), weight=weight)})
-    strategy._prune_gs(params, optimizers, state, 4)
+    strategy.update_statistics(params, state, {"statistics": _stats(torch.zeros(10), weight=weight)})
+    strategy.prune(params, optimizers, state, 4)
     assert strategy.log[-1]["pruned (unseen)"] == 3 and len(params["means"]) == 7
     assert state["weight_images"] == 0 and float(state["weight"].max()) == 0.0  # a new window starts
 

@@ -263,7 +263,7 @@ def test_the_densification_budget_is_the_scenes_over_shards_with_unequal_candida
     parts = [torch.load(two_processes[0] / f"budget_{r}.pt") for r in range(2)]
     assert [p["candidates"] for p in parts] == [30, 10]
     params, optimizers, state, strategy = harness.budget_case()
-    strategy._grow_gs(params, optimizers, state, step=100)
+    strategy.grow(params, optimizers, state, step=100)
     one = state["id"]
     assert one.numel() == harness.BUDGET  # the budget binds: 40 candidates, room for 15
     assert sum(p["n"] for p in parts) <= harness.BUDGET

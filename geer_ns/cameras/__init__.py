@@ -5,7 +5,7 @@ Conventions
 * Camera frame: OpenCV, x right, y down, z forward (nerfstudio uses OpenGL, x right, y up, z backward;
   :func:`from_nerfstudio` only converts intrinsics, rays from nerfstudio must be flipped as (x, -y, -z)).
 * Pixel coordinates: continuous, (u, v) = (column, row), the top-left image corner is (0, 0) and the
-  bottom-right corner is (width, height); pixel (i, j) (row i, column j) has its centre at
+  bottom-right corner is (width, height); pixel (i, j) (row i, column j) has its center at
   (j + 0.5, i + 0.5). This is COLMAP's convention and nerfstudio's (``get_image_coords`` adds 0.5).
 * ``max_angle`` is the largest angle from the optical axis for which the model is a bijection between
   directions and image points. It is derived from the model alone (where the radial mapping

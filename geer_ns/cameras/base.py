@@ -73,7 +73,7 @@ class CameraModel:
         raise NotImplementedError
 
     def pixel_centers(self, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> Tensor:
-        """``[H, W, 2]`` pixel-centre coordinates (u, v) = (j + 0.5, i + 0.5)."""
+        """``[H, W, 2]`` pixel-center coordinates (u, v) = (j + 0.5, i + 0.5)."""
         v, u = torch.meshgrid(
             torch.arange(self.height, dtype=dtype, device=device) + 0.5,
             torch.arange(self.width, dtype=dtype, device=device) + 0.5,
@@ -84,7 +84,7 @@ class CameraModel:
     def pixel_rays(
         self, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None
     ) -> tuple[Tensor, Tensor]:
-        """Unit rays through all pixel centres: ``dirs [H, W, 3]`` and ``valid [H, W]``.
+        """Unit rays through all pixel centers: ``dirs [H, W, 3]`` and ``valid [H, W]``.
 
         Solved in float64 and cast to ``dtype`` so that float32 callers get accurate rays.
         """

@@ -27,7 +27,7 @@ def from_nerfstudio(cameras, index: int) -> CameraModel:
     * FISHEYE: the same polynomial applied in theta space, i.e. Kannala-Brandt (k1..k4); with p1/p2 != 0
       it is COLMAP's THIN_PRISM_FISHEYE with zero prism terms.
     * FISHEYE624: 12 parameters (k0..k5, p0, p1, s0..s3).
-    * EQUIRECTANGULAR: must have nerfstudio's standard intrinsics (fx = W/2, fy = H, c = image centre).
+    * EQUIRECTANGULAR: must have nerfstudio's standard intrinsics (fx = W/2, fy = H, c = image center).
     """
     from nerfstudio.cameras.cameras import CameraType
 

@@ -1,11 +1,11 @@
 """gsplat 1.4.0's `rasterization` (classic EWA splatting) for a machine without CUDA, for comparisons only.
 
-gsplat's own PyTorch projection (`gsplat.cuda._torch_impl._fully_fused_projection`: pinhole, fisheye, ortho;
-`_quat_scale_to_covar_preci`, `_spherical_harmonics`), then the tiled compositor of geer_ns.compare.ewa_tiles.
-The signature and the returned `info` are gsplat's (unpacked: `radii` [C, N], `means2d` [C, N, 2] in pixels whose
-`.grad` / `.absgrad` DefaultStrategy reads, `width`, `height`, `n_cameras`, `gaussian_ids` None), so splatfacto's
-model, schedule and densification run unchanged. geer-compare installs it in splatfacto's module only for its own
-runs and only where CUDA is absent (geer_ns/compare/splatfacto.py); results are labelled "CPU EWA".
+gsplat's own PyTorch projection, covariances and SH (geer_ns.gsplat_private: pinhole, fisheye, ortho), then the tiled
+compositor of geer_ns.compare.ewa_tiles. The signature and the returned `info` are gsplat's (unpacked: `radii` [C,
+N], `means2d` [C, N, 2] in pixels whose `.grad` / `.absgrad` DefaultStrategy reads, `width`, `height`, `n_cameras`,
+`gaussian_ids` None), so splatfacto's model, schedule and densification run unchanged. geer-compare installs it in
+splatfacto's module only for its own runs and only where CUDA is absent (geer_ns/compare/splatfacto.py); results are
+labeled "CPU EWA".
 """
 
 from __future__ import annotations
@@ -26,11 +26,11 @@ def project(means: Tensor, quats: Optional[Tensor], scales: Optional[Tensor], vi
             covars: Optional[Tensor] = None):
     """gsplat's projection in PyTorch: (radii [C,N] int32, means2d [C,N,2], depths [C,N], conics [C,N,3],
     compensations [C,N] or None)."""
-    from gsplat.cuda._torch_impl import _fully_fused_projection, _quat_scale_to_covar_preci
+    from geer_ns.gsplat_private import fully_fused_projection, quat_scale_to_covar_preci
 
     if covars is None:
-        covars, _ = _quat_scale_to_covar_preci(quats, scales, compute_covar=True, compute_preci=False, triu=False)
-    radii, means2d, depths, conics, compensations = _fully_fused_projection(
+        covars, _ = quat_scale_to_covar_preci(quats, scales, compute_covar=True, compute_preci=False, triu=False)
+    radii, means2d, depths, conics, compensations = fully_fused_projection(
         means, covars, viewmats, Ks, width, height, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane,
         calc_compensations=antialiased, camera_model=camera_model)
     if radius_clip > 0:
@@ -39,16 +39,16 @@ def project(means: Tensor, quats: Optional[Tensor], scales: Optional[Tensor], vi
 
 
 def _colors_of(means: Tensor, colors: Tensor, viewmats: Tensor, radii: Tensor, sh_degree: Optional[int]) -> Tensor:
-    """[C, N, D]: post-activation colours, or gsplat's SH evaluation (+0.5, clamped at 0) toward each camera."""
+    """[C, N, D]: post-activation colors, or gsplat's SH evaluation (+0.5, clamped at 0) toward each camera."""
     C, N = radii.shape
     if sh_degree is None:
         return colors.expand(C, -1, -1) if colors.dim() == 2 else colors
-    from gsplat.cuda._torch_impl import _spherical_harmonics
+    from geer_ns.gsplat_private import spherical_harmonics
 
     camtoworlds = torch.inverse(viewmats)
     dirs = means[None, :, :] - camtoworlds[:, None, :3, 3]
     shs = colors.expand(C, -1, -1, -1) if colors.dim() == 3 else colors
-    rgb = _spherical_harmonics(sh_degree, dirs, shs)
+    rgb = spherical_harmonics(sh_degree, dirs, shs)
     rgb = torch.where((radii > 0)[..., None], rgb, torch.zeros_like(rgb))
     return torch.clamp_min(rgb + 0.5, 0.0)
 

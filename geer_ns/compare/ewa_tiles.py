@@ -4,13 +4,13 @@ Same conventions as gsplat 1.4.0's `isect_tiles` and `rasterize_to_pixels` CUDA 
 
 * a Gaussian lands in the 16 x 16 tiles its square of half-side `radius` (gsplat's 3-sigma radius) touches:
   tiles floor((mean - radius) / 16) .. ceil((mean + radius) / 16) - 1, clamped to the image's tiles;
-* each tile's Gaussians are blended front to back by depth; a pixel's centre is (j + 0.5, i + 0.5);
-* sigma = 0.5 (a dx^2 + c dy^2) + b dx dy with conic (a, b, c) and d = mean2d - centre,
+* each tile's Gaussians are blended front to back by depth; a pixel's center is (j + 0.5, i + 0.5);
+* sigma = 0.5 (a dx^2 + c dy^2) + b dx dy with conic (a, b, c) and d = mean2d - center,
   alpha = min(0.999, opacity exp(-sigma)); a pair with sigma < 0 or alpha < 1/255 is skipped;
 * a pixel stops before the Gaussian that would bring its transmittance to 1e-4 or below;
-* colour = sum alpha T c + T_final background; alpha = 1 - T_final.
+* color = sum alpha T c + T_final background; alpha = 1 - T_final.
 
-Differentiable with respect to means2d, conics, colours and opacities; the discrete decisions (tiles, skips,
+Differentiable with respect to means2d, conics, colors and opacities; the discrete decisions (tiles, skips,
 the stop) carry no gradient, as in gsplat's backward. With `absgrad`, the per-pixel absolute gradients of
 means2d are summed into `means2d.absgrad` (gsplat's AbsGS statistic). Tiles are evaluated in chunks of at most
 `max_pairs` (pixel, Gaussian) pairs, each recomputed in the backward pass (activation checkpointing), so memory
@@ -85,9 +85,9 @@ class _BroadcastWithAbsGrad(torch.autograd.Function):
 
 def _blend_tiles(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, ids: Tensor, valid: Tensor,
                  pixels: Tensor, abs_sum: Optional[Tensor]) -> Tuple[Tensor, Tensor]:
-    """Blend B tiles: ids/valid [B, K] (front to back, padded), pixels [B, P, 2] pixel centres.
+    """Blend B tiles: ids/valid [B, K] (front to back, padded), pixels [B, P, 2] pixel centers.
 
-    Returns (colour sums [B, P, D] without background, final transmittance [B, P])."""
+    Returns (color sums [B, P, D] without background, final transmittance [B, P])."""
     xy, conic, opac, color = means2d[ids], conics[ids], opacities[ids], colors[ids]  # [B, K, ...]
     xy = xy[:, None] if abs_sum is None else _BroadcastWithAbsGrad.apply(xy, pixels.shape[1], ids, abs_sum)
     d = xy - pixels[:, :, None, :]  # [B, P, K, 2]
@@ -131,7 +131,7 @@ def rasterize_to_pixels(means2d: Tensor, conics: Tensor, colors: Tensor, opaciti
         abs_sum = torch.zeros(C * N, 2, dtype=dtype, device=device)
         means2d.absgrad = abs_sum.view(C, N, 2)  # type: ignore[attr-defined]
     flat = (means2d.reshape(C * N, 2), conics.reshape(C * N, 3), colors.reshape(C * N, D), opacities.reshape(C * N))
-    # pixel centres of one tile, [P, 2]
+    # pixel centers of one tile, [P, 2]
     iy, ix = torch.meshgrid(torch.arange(tile_size, device=device), torch.arange(tile_size, device=device),
                             indexing="ij")
     local = torch.stack([ix.reshape(-1), iy.reshape(-1)], dim=-1).to(dtype) + 0.5

@@ -38,7 +38,7 @@ def protocol(capture: Capture, central_half_angle_deg: float, steps: int, lpips_
         "crop circle), the same set for every method. Full-FoV PSNR / SSIM / LPIPS use all of them (SSIM / LPIPS "
         "with the pixels outside set to the ground truth).",
         "A method that renders another camera (the undistorted pinhole) has its render resampled by rays to the "
-        "capture's pixels; the valid pixels it cannot see (lost periphery) keep its background colour and count "
+        "capture's pixels; the valid pixels it cannot see (lost periphery) keep its background color and count "
         "in the full-FoV metrics; `covered` is the share of valid pixels it sees, `PSNR (covered px)` its PSNR on "
         "those alone.",
         f"Central region: rays within +-{central_half_angle_deg:g} degrees of the optical axis horizontally and "
@@ -91,10 +91,10 @@ def _label(image: np.ndarray, text: str, scale: int) -> np.ndarray:
 
 
 def _error_map(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor) -> np.ndarray:
-    """Mean absolute error per pixel, x4, as a colour map (black outside the valid pixels)."""
+    """Mean absolute error per pixel, x4, as a color map (black outside the valid pixels)."""
     err = ((pred - gt).abs().mean(-1) * 4.0).clamp(0, 1)
-    coloured = cv2.applyColorMap(to_uint8(err), cv2.COLORMAP_INFERNO)[..., ::-1]
-    return np.where(valid.numpy()[..., None], coloured, 0).astype(np.uint8)
+    colored = cv2.applyColorMap(to_uint8(err), cv2.COLORMAP_INFERNO)[..., ::-1]
+    return np.where(valid.numpy()[..., None], colored, 0).astype(np.uint8)
 
 
 def picture(capture: Capture, results: List[Result], path: Path, views: int = 3) -> Path:

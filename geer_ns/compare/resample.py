@@ -1,5 +1,5 @@
 """Images moved between two central cameras at the same pose, by rays: a pixel of the destination takes the
-source's colour where its ray lands (bilinear), and is marked uncovered where the source cannot see it.
+source's color where its ray lands (bilinear), and is marked uncovered where the source cannot see it.
 
 Used by geer-compare both ways: the capture undistorted to the widest sensible pinhole (splatfacto's usual
 work-around), and that pinhole's renders brought back to the capture's own pixels to be scored there.
@@ -18,7 +18,7 @@ from geer_ns.cameras import CameraModel, EquidistantCamera, PinholeCamera
 
 
 def landing(src: CameraModel, dst: CameraModel) -> Tuple[Tensor, Tensor]:
-    """Where each destination pixel centre's ray lands in the source: (pixels [H, W, 2] float64, covered [H, W])."""
+    """Where each destination pixel center's ray lands in the source: (pixels [H, W, 2] float64, covered [H, W])."""
     dirs, valid = dst.pixel_rays(torch.float64)
     pixels, ok = src.project(dirs)
     inside = (pixels[..., 0] >= 0) & (pixels[..., 0] <= src.width) & (pixels[..., 1] >= 0) & \
@@ -28,7 +28,7 @@ def landing(src: CameraModel, dst: CameraModel) -> Tuple[Tensor, Tensor]:
 
 def resample(image: Tensor, src: CameraModel, dst: CameraModel, fill: Tensor | float = 0.0) -> Tuple[Tensor, Tensor]:
     """image [h, w, C] seen by `src` -> (image [H, W, C] as `dst` sees it, covered [H, W] bool); uncovered
-    pixels get `fill`. Bilinear, with pixel centres at (j + 0.5, i + 0.5) and edge pixels clamped."""
+    pixels get `fill`. Bilinear, with pixel centers at (j + 0.5, i + 0.5) and edge pixels clamped."""
     pixels, covered = landing(src, dst)
     grid = torch.stack([pixels[..., 0] / src.width * 2 - 1, pixels[..., 1] / src.height * 2 - 1], dim=-1)
     out = torch.nn.functional.grid_sample(image.permute(2, 0, 1)[None].double(), grid[None], mode="bilinear",
@@ -39,7 +39,7 @@ def resample(image: Tensor, src: CameraModel, dst: CameraModel, fill: Tensor | f
 
 
 def widest_pinhole(native: CameraModel, fov_deg: float) -> PinholeCamera:
-    """A pinhole of the native image's size and centre with `fov_deg` across its width (square pixels)."""
+    """A pinhole of the native image's size and center with `fov_deg` across its width (square pixels)."""
     if not 0 < fov_deg < 180:
         raise ValueError(f"--pinhole-fov-deg {fov_deg}: a pinhole's field of view is between 0 and 180 degrees")
     f = 0.5 * native.width / math.tan(math.radians(fov_deg) / 2)
@@ -47,7 +47,7 @@ def widest_pinhole(native: CameraModel, fov_deg: float) -> PinholeCamera:
 
 
 def equidistant_like(native: CameraModel) -> CameraModel:
-    """The ideal equidistant fisheye (gsplat's `camera_model="fisheye"`) with the native focal and centre."""
+    """The ideal equidistant fisheye (gsplat's `camera_model="fisheye"`) with the native focal and center."""
     return EquidistantCamera(native.width, native.height, native.fx, native.fy, native.cx, native.cy)
 
 

@@ -4,7 +4,7 @@ host pitfalls (../shared/HOST-PITFALLS.md) worked around only inside these runs:
 * `.cuda()` hard-coded in splatfacto's `populate_modules` and `get_outputs`: without CUDA, `Tensor.cuda` is the
   identity while those two methods run;
 * gsplat's rasterizer needs CUDA: without it, `nerfstudio.models.splatfacto.rasterization` is
-  geer_ns.compare.ewa_cpu's while `get_outputs` runs (labelled in the results);
+  geer_ns.compare.ewa_cpu's while `get_outputs` runs (labeled in the results);
 * splatfacto never passes `camera_model` to gsplat: `gsplat_camera_model` ("fisheye": gsplat's EWA with the
   equidistant fisheye Jacobian, FisheyeGS-like) is added to its call;
 * torchmetrics' LPIPS downloads AlexNet when the model is built: it is built only from cached weights
@@ -84,7 +84,7 @@ class CompareSplatfactoModelConfig(SplatfactoModelConfig):
 
 
 class CompareSplatfactoModel(SplatfactoModel):
-    """SplatfactoModel with the scoped work-arounds of the module docstring; no behaviour of its own."""
+    """SplatfactoModel with the scoped work-arounds of the module docstring; no behavior of its own."""
 
     config: CompareSplatfactoModelConfig
 

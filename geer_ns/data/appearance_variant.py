@@ -41,7 +41,7 @@ def _linear_to_srgb(x: np.ndarray) -> np.ndarray:
 
 
 def pixel_angles(meta: dict, frame: dict, transforms: Path) -> np.ndarray:
-    """[H, W] angle of each pixel centre's ray from the optical axis, for the frame's camera model."""
+    """[H, W] angle of each pixel center's ray from the optical axis, for the frame's camera model."""
     from nerfstudio.cameras.cameras import CAMERA_MODEL_TO_TYPE, Cameras
 
     from geer_ns.cameras import from_nerfstudio

@@ -6,9 +6,9 @@ frame, z forward):
     theta = atan(d_x / d_z),  phi = atan(d_y / d_z),  both in (-pi/2, pi/2)            (Eq. 6)
     d  ~  (tan theta, tan phi, 1) / |(tan theta, tan phi, 1)|                       (App. E, E.1-E.3)
 
-Cell (i, j) (row i, column j) of a ``BeapGrid`` has its centre at
+Cell (i, j) (row i, column j) of a ``BeapGrid`` has its center at
 ``theta = theta_min + (j + 0.5) * step_theta``, ``phi = phi_min + (i + 0.5) * step_phi``, i.e. the same
-"centre at +0.5" convention as camera pixels. With a symmetric range this is the paper's Eq. 11
+"center at +0.5" convention as camera pixels. With a symmetric range this is the paper's Eq. 11
 (``x = w theta / FoV_x + (w + 1) / 2`` in 1-based cell units). Only directions with d_z > 0 exist in BEAP,
 so every range is kept strictly inside +-90 degrees.
 
@@ -18,7 +18,7 @@ invalid pixel ever bleeds in. Samples in the outer half pixel of an image use ed
 footprint is the edge pixel itself), so the whole image rectangle is usable.
 
 Antialiasing (native -> BEAP): each BEAP cell is supersampled k x k and averaged (box filter over the
-cell), with k = round(median native-pixel distance between neighbouring BEAP cell centres), clamped to
+cell), with k = round(median native-pixel distance between neighboring BEAP cell centers), clamped to
 [1, max_supersample]; i.e. k > 1 only where a BEAP cell spans about two or more source pixels.
 """
 
@@ -84,7 +84,7 @@ class BeapGrid:
     def from_fov(
         cls, width: int, height: int, fov_x: float, fov_y: float, center: tuple[float, float] = (0.0, 0.0)
     ) -> BeapGrid:
-        """Grid of the paper's Eq. 11: FoV (radians) centred on ``center`` = (theta, phi)."""
+        """Grid of the paper's Eq. 11: FoV (radians) centered on ``center`` = (theta, phi)."""
         return cls(
             width,
             height,
@@ -114,10 +114,10 @@ class BeapGrid:
     def angles(
         self, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None, supersample: int = 1
     ) -> Tensor:
-        """(theta, phi) of cell centres, ``[h, w, 2]``; with ``supersample`` = k the k x k sub-cell
-        centres, ``[h, w, k, k, 2]`` (sub-row index before sub-column index)."""
+        """(theta, phi) of cell centers, ``[h, w, 2]``; with ``supersample`` = k the k x k sub-cell
+        centers, ``[h, w, k, k, 2]`` (sub-row index before sub-column index)."""
         k = int(supersample)
-        sub = (torch.arange(k, dtype=torch.float64) + 0.5) / k  # in cell units, 0.5 = cell centre
+        sub = (torch.arange(k, dtype=torch.float64) + 0.5) / k  # in cell units, 0.5 = cell center
         cols = torch.arange(self.width, dtype=torch.float64)[:, None] + sub[None, :]  # [w, k]
         rows = torch.arange(self.height, dtype=torch.float64)[:, None] + sub[None, :]  # [h, k]
         theta = self.theta_min + cols * self.step_theta
@@ -133,14 +133,14 @@ class BeapGrid:
     def directions(
         self, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None, supersample: int = 1
     ) -> Tensor:
-        """Unit camera-frame rays (App. E, Eq. E.1-E.3) at the cell centres, ``[h, w, 3]``
+        """Unit camera-frame rays (App. E, Eq. E.1-E.3) at the cell centers, ``[h, w, 3]``
         (``[h, w, k, k, 3]`` when supersampled)."""
         ang = self.angles(torch.float64, None, supersample)
         v = torch.stack([torch.tan(ang[..., 0]), torch.tan(ang[..., 1]), torch.ones_like(ang[..., 0])], dim=-1)
         return (v / v.norm(dim=-1, keepdim=True)).to(dtype=dtype, device=device)
 
     def angles_to_cells(self, theta: Tensor, phi: Tensor) -> Tensor:
-        """Continuous grid coordinates (x, y) (cell centres at +0.5) of the given angles."""
+        """Continuous grid coordinates (x, y) (cell centers at +0.5) of the given angles."""
         return torch.stack([(theta - self.theta_min) / self.step_theta, (phi - self.phi_min) / self.step_phi], -1)
 
 
@@ -158,7 +158,7 @@ def camera_center_step(camera: CameraModel) -> float:
     vertical angle between rays through points half a pixel either side of it."""
     if hasattr(camera, "cx"):
         cx, cy = float(camera.cx), float(camera.cy)
-    else:  # equirectangular: image centre looks along +z
+    else:  # equirectangular: image center looks along +z
         cx, cy = camera.width / 2, camera.height / 2
     pts = torch.tensor(
         [[cx - 0.5, cy], [cx + 0.5, cy], [cx, cy - 0.5], [cx, cy + 0.5]],
@@ -174,7 +174,7 @@ def camera_center_step(camera: CameraModel) -> float:
 
 
 def _boundary_pixels(width: int, height: int) -> Tensor:
-    """Points on the image border (pixel-centre spacing along each edge, corners included)."""
+    """Points on the image border (pixel-center spacing along each edge, corners included)."""
     us = torch.cat([torch.tensor([0.0]), torch.arange(width, dtype=torch.float64) + 0.5, torch.tensor([float(width)])])
     vs = torch.cat(
         [torch.tensor([0.0]), torch.arange(height, dtype=torch.float64) + 0.5, torch.tensor([float(height)])]
@@ -192,7 +192,7 @@ def camera_angular_extent(
     """(theta_min, theta_max, phi_min, phi_max) spanned by the camera's valid rays, clipped to
     +-``max_half_angle``.
 
-    All pixel centres and points on the image border are unprojected; invalid ones (beyond the model's
+    All pixel centers and points on the image border are unprojected; invalid ones (beyond the model's
     ``max_angle``, non-converged) and, if given, pixels outside ``mask`` are ignored. Rays at or beyond 90
     degrees from the axis give angles beyond +-90 degrees, which the clip maps to the limit.
     """
@@ -220,8 +220,8 @@ def _fit_axis(lo: float, hi: float, step: float, tile: int, lim: float) -> tuple
     n = math.ceil(n / tile) * tile
     span = n * step
     span = min(span, 2 * lim)  # refine the step rather than leave the representable range
-    centre = 0.5 * (lo + hi)
-    a, b = centre - span / 2, centre + span / 2
+    center = 0.5 * (lo + hi)
+    a, b = center - span / 2, center + span / 2
     if a < -lim:
         a, b = -lim, -lim + span
     if b > lim:
@@ -281,7 +281,7 @@ def _as_mask(mask: Tensor | np.ndarray, camera: CameraModel) -> Tensor:
 
 
 def _bilinear(image: Tensor, valid: Tensor, uv: Tensor) -> tuple[Tensor, Tensor]:
-    """Sample ``image [H, W, C]`` at continuous coords ``uv [..., 2]`` (pixel centres at +0.5).
+    """Sample ``image [H, W, C]`` at continuous coords ``uv [..., 2]`` (pixel centers at +0.5).
 
     Returns values ``[..., C]`` and ``ok [...]``: inside the image rectangle and all (edge-clamped) pixels
     of the bilinear footprint valid.
@@ -316,7 +316,7 @@ def _bilinear(image: Tensor, valid: Tensor, uv: Tensor) -> tuple[Tensor, Tensor]
 
 
 def _auto_supersample(px: Tensor, ok: Tensor, max_supersample: int) -> int:
-    """k from the median native-pixel distance between projections of neighbouring BEAP cell centres."""
+    """k from the median native-pixel distance between projections of neighboring BEAP cell centers."""
     dx = (px[:, 1:] - px[:, :-1]).norm(dim=-1)
     dy = (px[1:] - px[:-1]).norm(dim=-1)
     okx = ok[:, 1:] & ok[:, :-1]
@@ -376,7 +376,7 @@ def beap_to_native(
 ) -> tuple[Tensor, Tensor]:
     """Map a BEAP image ``[h, w, C]`` back to the camera's pixels (to score renders natively).
 
-    Each native pixel centre is unprojected, converted to (theta, phi) and sampled bilinearly in the BEAP
+    Each native pixel center is unprojected, converted to (theta, phi) and sampled bilinearly in the BEAP
     image. ``valid [H, W]``: camera-valid, in front of the camera, inside the BEAP grid and (if
     ``beap_valid`` is given) with a fully valid bilinear footprint.
     """

@@ -3,7 +3,7 @@
     python -m geer_ns.data.camera_perturbation SRC OUT [--transforms transforms.json] [--rotation-deg 1]
         [--position-fraction 0.01] [--focal-fraction 0.0] [--k1-offset 0.0] [--seed 0]
 
-Every training frame's camera is turned by --rotation-deg about a random axis through its centre and moved by
+Every training frame's camera is turned by --rotation-deg about a random axis through its center and moved by
 --position-fraction of the scene's extent (the diagonal of the seed points' bounding box) in a random
 direction; frames in val_filenames / test_filenames keep their true pose (they score the scene). The lens
 (top-level intrinsics, all frames) gets its focal lengths scaled by 1 + --focal-fraction and k1 moved by
@@ -31,7 +31,7 @@ def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
 
 
 def scene_extent(root: Path, meta: dict) -> float:
-    """Diagonal of the bounding box of the dataset's seed points (ply_file_path), else of the camera centres."""
+    """Diagonal of the bounding box of the dataset's seed points (ply_file_path), else of the camera centers."""
     from geer_ns.data.ply import read_ply_points
 
     if "ply_file_path" in meta:

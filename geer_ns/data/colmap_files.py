@@ -79,7 +79,7 @@ def _numbers(path: Path, lineno: int, names: Sequence[str], texts: Sequence[str]
     return values
 
 
-def normalise_cameras_txt(path: Path) -> Tuple[str, Dict[int, str]]:
+def normalize_cameras_txt(path: Path) -> Tuple[str, Dict[int, str]]:
     """(strict cameras.txt text, {camera id: model}) or DatasetError at file:line."""
     import pycolmap
 
@@ -115,7 +115,7 @@ def normalise_cameras_txt(path: Path) -> Tuple[str, Dict[int, str]]:
     return "\n".join(out) + "\n", models
 
 
-def normalise_images_txt(path: Path, cameras: Dict[int, str]) -> str:
+def normalize_images_txt(path: Path, cameras: Dict[int, str]) -> str:
     """Strict images.txt text (two lines per image) or DatasetError at file:line."""
     lines = path.read_text(encoding="utf8").splitlines()
     out: List[str] = []
@@ -170,7 +170,7 @@ def normalise_images_txt(path: Path, cameras: Dict[int, str]) -> str:
     return "\n".join(out) + "\n"
 
 
-def normalise_points_txt(path: Path) -> str:
+def normalize_points_txt(path: Path) -> str:
     """points3D.txt with commas turned into spaces (the values are checked by pycolmap)."""
     out = []
     for line in path.read_text(encoding="utf8").splitlines():
@@ -181,11 +181,11 @@ def normalise_points_txt(path: Path) -> str:
 
 def write_strict_text_model(model_dir: Path, dst: Path) -> bool:
     """Strict copies of model_dir's text model in dst; returns whether it has a points3D.txt."""
-    cameras_text, models = normalise_cameras_txt(model_dir / "cameras.txt")
+    cameras_text, models = normalize_cameras_txt(model_dir / "cameras.txt")
     (dst / "cameras.txt").write_text(cameras_text)
-    (dst / "images.txt").write_text(normalise_images_txt(model_dir / "images.txt", models))
+    (dst / "images.txt").write_text(normalize_images_txt(model_dir / "images.txt", models))
     points = model_dir / "points3D.txt"
-    (dst / "points3D.txt").write_text(normalise_points_txt(points) if points.is_file() else "")
+    (dst / "points3D.txt").write_text(normalize_points_txt(points) if points.is_file() else "")
     return points.is_file()
 
 

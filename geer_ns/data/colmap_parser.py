@@ -141,7 +141,7 @@ class GeerColmapDataParserConfig(DataParserConfig):
     check_image_sizes: bool = True
     """Check every image (and mask) file's size against its COLMAP camera (reads only the file headers)."""
     crop_radius: Optional[float] = None
-    """Fisheye image-circle radius in pixels (of the full-resolution images), centred on each camera's
+    """Fisheye image-circle radius in pixels (of the full-resolution images), centered on each camera's
     principal point: pixels outside are not supervised. For fisheye captures without masks."""
 
 

@@ -114,10 +114,10 @@ def native_valid_mask(camera: CameraModel, mask: Optional[torch.Tensor], crop_ra
 
 
 def extend_beyond_mask(image: np.ndarray, valid: np.ndarray, rings: int) -> Tuple[np.ndarray, np.ndarray]:
-    """Grow `valid` by `rings` pixels, filling each new pixel with the mean of its valid 8-neighbours.
+    """Grow `valid` by `rings` pixels, filling each new pixel with the mean of its valid 8-neighbors.
 
     BEAP resampling is bilinear and only keeps cells whose whole footprint is valid; without this the
-    outermost cells of a fisheye circle would be dropped although their centres lie inside it.
+    outermost cells of a fisheye circle would be dropped although their centers lie inside it.
     """
     img = image.astype(np.float32).copy()
     ok = valid.copy()
@@ -215,7 +215,7 @@ class GeerDataManager(FullImageDatamanager):
             return
         ply = self._ply_path()
         if ply is None or not ply.is_file():
-            CONSOLE.print("[yellow]geer: no seed point cloud found; splatfacto's random initialisation is used")
+            CONSOLE.print("[yellow]geer: no seed point cloud found; splatfacto's random initialization is used")
             return
         xyz, rgb = read_ply_points(ply)
         outputs = self.train_dataparser_outputs
@@ -243,7 +243,7 @@ class GeerDataManager(FullImageDatamanager):
         else:
             mask = circle.mask(camera.width, camera.height, self.config.image_circle_margin)
             CONSOLE.log(f"geer: {name} {camera.width}x{camera.height} has no mask and no fisheye_crop_radius: image "
-                        f"circle detected from its images, centre ({circle.cx:.1f}, {circle.cy:.1f}), radius "
+                        f"circle detected from its images, center ({circle.cx:.1f}, {circle.cy:.1f}), radius "
                         f"{circle.radius:.1f} px; the {int((~mask).sum())} pixels outside it (less "
                         f"{self.config.image_circle_margin:g} px) never enter the loss or the metrics")
             circles[camera] = mask

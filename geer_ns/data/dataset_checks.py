@@ -169,11 +169,11 @@ def check_transforms_json(path: Path, auto_scale_poses: bool = True) -> Dict[str
     _check_top_level_files(path, root, meta, seen, problems)
     problems.raise_if_any()
     if auto_scale_poses and len(frames) > 1:
-        centres = np.array([np.asarray(f["transform_matrix"], dtype=np.float64)[:3, 3] for f in frames])
-        if np.ptp(centres, axis=0).max() == 0.0:
+        centers = np.array([np.asarray(f["transform_matrix"], dtype=np.float64)[:3, 3] for f in frames])
+        if np.ptp(centers, axis=0).max() == 0.0:
             raise DatasetError(
                 f"geer: {path}: `transform_matrix`: all {len(frames)} frames have the camera position "
-                f"{centres[0].tolist()}; nerfstudio's pose scaling divides by their spread (zero): fix the poses, "
+                f"{centers[0].tolist()}; nerfstudio's pose scaling divides by their spread (zero): fix the poses, "
                 "or set --pipeline.datamanager.dataparser.auto-scale-poses False for a rotation-only capture"
             )
     return meta

@@ -3,12 +3,12 @@
 Two kinds of file (docs/outputs.md, "Depth supervision"):
 
 * a depth map (.png/.tif/.exr read by OpenCV unchanged, or a 2-D .npy), the image's size, values times the
-  dataparser's `depth_unit_scale_factor` (nerfstudio's convention, default 1e-3: millimetres). A PERSPECTIVE
+  dataparser's `depth_unit_scale_factor` (nerfstudio's convention, default 1e-3: millimeters). A PERSPECTIVE
   camera's map holds camera-space z (nerfstudio's and most depth sensors' convention); every other camera
   model's (fisheye, equirectangular, ...) the radial distance along the pixel's ray, since z is undefined past
   90 degrees. 0, negative or non-finite values mean "no measurement".
 * a point file (.ply, or a .npy of shape [M, 3]): LiDAR points in the frame of transforms.json's poses (as
-  `ply_file_path`), in metres; each point supervises the ray of the view pixel it projects to with its distance
+  `ply_file_path`), in meters; each point supervises the ray of the view pixel it projects to with its distance
   from the camera (the nearest point where several fall on one pixel).
 
 Both become one target per training ray: the radial distance in the dataparser's scaled world units, 0 where

@@ -33,14 +33,14 @@ def frustum_points(
     far: float = 2.0,
     seed: int = 0,
 ) -> Tuple[torch.Tensor, torch.Tensor]:
-    """(xyz float32 [count, 3], rgb uint8 [count, 3] mid-grey) inside the frusta.
+    """(xyz float32 [count, 3], rgb uint8 [count, 3] mid-gray) inside the frusta.
 
     camera_to_worlds [N, 3, 4] are nerfstudio's (OpenGL camera axes); the camera models use OpenCV's.
     """
     gen = torch.Generator().manual_seed(seed)
     c2w = camera_to_worlds.double()
-    centres = c2w[:, :3, 3]
-    extent = max(1.0, float((centres - centres.mean(0)).norm(dim=-1).max()))
+    centers = c2w[:, :3, 3]
+    extent = max(1.0, float((centers - centers.mean(0)).norm(dim=-1).max()))
     per = [count // len(cameras) + (i < count % len(cameras)) for i in range(len(cameras))]
     points = []
     for cam, pose, n in zip(cameras, c2w, per):

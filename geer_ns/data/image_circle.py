@@ -29,14 +29,14 @@ MIN_BORDER_FRACTION = 0.002
 
 @dataclass(frozen=True)
 class ImageCircle:
-    """A circle in pixel coordinates (pixel centres at integer + 0.5, as nerfstudio's cx/cy)."""
+    """A circle in pixel coordinates (pixel centers at integer + 0.5, as nerfstudio's cx/cy)."""
 
     cx: float
     cy: float
     radius: float
 
     def mask(self, width: int, height: int, margin: float = 1.0) -> np.ndarray:
-        """[H, W] bool: pixel centres at least `margin` px inside the circle (the rim pixel is blended)."""
+        """[H, W] bool: pixel centers at least `margin` px inside the circle (the rim pixel is blended)."""
         u = np.arange(width) + 0.5
         v = np.arange(height) + 0.5
         r2 = (u[None, :] - self.cx) ** 2 + (v[:, None] - self.cy) ** 2
@@ -71,7 +71,7 @@ def _fit_circle(u: np.ndarray, v: np.ndarray) -> tuple[float, float, float]:
 
 
 def detect_image_circle(images: Iterable[np.ndarray], tolerance: float = 10.0) -> Optional[ImageCircle]:
-    """The lens's image circle from images of one camera (uint8 or float in [0, 1], gray or colour).
+    """The lens's image circle from images of one camera (uint8 or float in [0, 1], gray or color).
 
     Returns None when the images have no dark border (nothing to mask). `tolerance` is how far above the
     black level (in 8-bit units) a pixel still counts as unlit.
@@ -102,7 +102,7 @@ def detect_image_circle(images: Iterable[np.ndarray], tolerance: float = 10.0) -
     v, u = np.nonzero(rim)
     if len(u) < 16:
         return None
-    # Boundary between a lit pixel centre and an unlit one: half a pixel outwards of the lit centre.
+    # Boundary between a lit pixel center and an unlit one: half a pixel outwards of the lit center.
     u = u + 0.5
     v = v + 0.5
     fit = _ransac_circle(u, v, w, h)

@@ -94,7 +94,7 @@ class GeerNerfstudio(Nerfstudio):
 
     def parse_once(self) -> _Parse:
         """transforms.json checked (geer_ns.data.dataset_checks: one line naming file, frame and field) and
-        parsed, memoised on the parser by the file's resolved path and modification time."""
+        parsed, memoized on the parser by the file's resolved path and modification time."""
         path = self.transforms_path()
         try:
             key = (path.resolve(), path.stat().st_mtime_ns)
@@ -106,11 +106,11 @@ class GeerNerfstudio(Nerfstudio):
         return self._parsed
 
     def _nerfstudio_parse_all(self, meta: dict) -> DataparserOutputs:
-        """nerfstudio's parse of every image. It orients, centres and scales with every pose whatever the split,
+        """nerfstudio's parse of every image. It orients, centers and scales with every pose whatever the split,
         so each split is a subset of this one parse. nerfstudio reads the file itself: it is handed the checked
         contents instead, without the split lists, and a split that keeps every image: eval_mode "fraction" with
         fraction 1.0, or "all" where the user's choice of "all" is what splits the file (no split lists): then,
-        and only then, nerfstudio's warning about "all" (camera optimisation may diverge) is printed, as
+        and only then, nerfstudio's warning about "all" (camera optimization may diverge) is printed, as
         nerfstudio's own parser would."""
         everything = {k: v for k, v in meta.items() if k not in _SPLIT_KEYS}
         own, read = self.config, nerfstudio_dataparser.load_from_json

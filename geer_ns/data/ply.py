@@ -12,7 +12,7 @@ import numpy as np
 
 
 def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(xyz float32 [N,3], rgb uint8 [N,3]) from a PLY point cloud (white where it has no colour)."""
+    """(xyz float32 [N,3], rgb uint8 [N,3]) from a PLY point cloud (white where it has no color)."""
     from plyfile import PlyData
 
     vertex = PlyData.read(str(path))["vertex"]

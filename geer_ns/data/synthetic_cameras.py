@@ -54,28 +54,28 @@ def pinhole_intrinsics(size: int) -> Dict[str, float]:
 
 
 def _pixel_grid(width: int, height: int) -> Tuple[np.ndarray, np.ndarray]:
-    """Pixel-centre coordinates (u = j + 0.5, v = i + 0.5), each [height, width]."""
+    """Pixel-center coordinates (u = j + 0.5, v = i + 0.5), each [height, width]."""
     u, v = np.meshgrid(np.arange(width, dtype=np.float64) + 0.5, np.arange(height, dtype=np.float64) + 0.5,
                        indexing="xy")
     return u, v
 
 
 def fisheye_pixel_dirs(size: int) -> Tuple[np.ndarray, np.ndarray]:
-    """Unit OpenCV-camera directions [size, size, 3] of the equidistant fisheye pixel centres,
+    """Unit OpenCV-camera directions [size, size, 3] of the equidistant fisheye pixel centers,
     and the validity mask (theta <= 90 deg, i.e. inside the 180 deg circle)."""
     k = fisheye_intrinsics(size)
     u, v = _pixel_grid(size, size)
     a = (u - k["cx"]) / k["fl_x"]
     b = (v - k["cy"]) / k["fl_y"]
     theta = np.sqrt(a * a + b * b)
-    # sin(theta)/theta -> 1 at the centre; theta never exactly 0 for pixel centres, but be safe.
+    # sin(theta)/theta -> 1 at the center; theta never exactly 0 for pixel centers, but be safe.
     s = np.where(theta > 1e-12, np.sin(theta) / np.maximum(theta, 1e-12), 1.0)
     dirs = np.stack([a * s, b * s, np.cos(theta)], axis=-1)
     return dirs, theta <= np.pi / 2.0
 
 
 def pinhole_pixel_dirs(size: int) -> np.ndarray:
-    """Unit OpenCV-camera directions [size, size, 3] of the pinhole pixel centres."""
+    """Unit OpenCV-camera directions [size, size, 3] of the pinhole pixel centers."""
     k = pinhole_intrinsics(size)
     u, v = _pixel_grid(size, size)
     d = np.stack([(u - k["cx"]) / k["fl_x"], (v - k["cy"]) / k["fl_y"], np.ones_like(u)], axis=-1)
@@ -83,7 +83,7 @@ def pinhole_pixel_dirs(size: int) -> np.ndarray:
 
 
 def kb220_pixel_dirs(size: int) -> Tuple[np.ndarray, np.ndarray]:
-    """Unit directions [size, size, 3] of the pixel centres and the mask of the 220-degree circle."""
+    """Unit directions [size, size, 3] of the pixel centers and the mask of the 220-degree circle."""
     k = kb220_intrinsics(size)
     u, v = _pixel_grid(size, size)
     a, b = (u - k["cx"]) / k["fl_x"], (v - k["cy"]) / k["fl_y"]
@@ -107,7 +107,7 @@ def equirect_intrinsics(size: int) -> Dict[str, float]:
 
 
 def equirect_pixel_dirs(size: int) -> np.ndarray:
-    """Unit directions [size, 2 size, 3] of the panorama's pixel centres (every pixel is valid)."""
+    """Unit directions [size, 2 size, 3] of the panorama's pixel centers (every pixel is valid)."""
     w, h = 2 * size, size
     u, v = _pixel_grid(w, h)
     lon = 2.0 * np.pi * (u / w - 0.5)

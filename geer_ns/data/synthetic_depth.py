@@ -2,9 +2,9 @@
 
 `write_depth_variant(room, "fisheye")` writes each frame's radial distance map (float32 .npy) beside a
 generated room and `transforms_fisheye_depth.json`, transforms.json with a `depth_file_path` per frame;
-`"pinhole"` writes 16-bit PNG z maps and `transforms_pinhole_depth.json`. Both in millimetres, nerfstudio's
+`"pinhole"` writes 16-bit PNG z maps and `transforms_pinhole_depth.json`. Both in millimeters, nerfstudio's
 default depth unit (depth_unit_scale_factor 1e-3). Distances come from the room's analytic ray caster at the pixel
-centres, not from any Gaussian renderer. The room's own files are not touched.
+centers, not from any Gaussian renderer. The room's own files are not touched.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import numpy as np
 from geer_ns.data.synthetic_cameras import fisheye_pixel_dirs, pinhole_pixel_dirs
 from geer_ns.data.synthetic_room import render_room_rays
 
-# variant: (source transforms, written transforms, folder, unit of the stored values per metre)
+# variant: (source transforms, written transforms, folder, unit of the stored values per meter)
 VARIANTS = {
     "fisheye": ("transforms.json", "transforms_fisheye_depth.json", "depths_fisheye", 1000.0),
     "pinhole": ("transforms_pinhole.json", "transforms_pinhole_depth.json", "depths_pinhole", 1000.0),

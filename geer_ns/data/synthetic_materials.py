@@ -17,7 +17,7 @@ ROOM_MAX = np.array([2.5, 2.0, 2.4])
 
 
 def _mix(c0, c1, w: np.ndarray) -> np.ndarray:
-    """Blend two RGB colours with weights w in [0, 1] (w=1 -> c1)."""
+    """Blend two RGB colors with weights w in [0, 1] (w=1 -> c1)."""
     c0 = np.asarray(c0, dtype=np.float64)
     c1 = np.asarray(c1, dtype=np.float64)
     return c0[None] * (1.0 - w[:, None]) + c1[None] * w[:, None]
@@ -57,14 +57,14 @@ def _room_albedo(p: np.ndarray, axis: np.ndarray, side: np.ndarray) -> np.ndarra
     m = (axis == 0) & (side < 0)
     if m.any():
         out[m] = _mix((0.90, 0.95, 0.88), (0.20, 0.55, 0.25), _checker(y[m], z[m], 0.15))
-    # Wall y = max: smooth horizontal colour gradient + one soft sine band (low frequency).
+    # Wall y = max: smooth horizontal color gradient + one soft sine band (low frequency).
     m = (axis == 1) & (side > 0)
     if m.any():
         t = (x[m] - ROOM_MIN[0]) / (ROOM_MAX[0] - ROOM_MIN[0])
         c = _mix((0.85, 0.35, 0.30), (0.30, 0.40, 0.85), t)
         c *= (0.8 + 0.2 * np.sin(np.pi * z[m] / ROOM_MAX[2]))[:, None]
         out[m] = c
-    # Wall y = min: diagonal orange/grey stripes, 0.4 m period.
+    # Wall y = min: diagonal orange/gray stripes, 0.4 m period.
     m = (axis == 1) & (side < 0)
     if m.any():
         out[m] = _mix((0.55, 0.55, 0.55), (0.95, 0.60, 0.15), _stripes(x[m] + z[m], 0.4))
@@ -72,7 +72,7 @@ def _room_albedo(p: np.ndarray, axis: np.ndarray, side: np.ndarray) -> np.ndarra
 
 
 def _sphere_latlong(p_local: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """Longitude in [-pi, pi] and latitude in [-pi/2, pi/2] of a point relative to a sphere centre."""
+    """Longitude in [-pi, pi] and latitude in [-pi/2, pi/2] of a point relative to a sphere center."""
     r = np.linalg.norm(p_local, axis=-1)
     lon = np.arctan2(p_local[:, 1], p_local[:, 0])
     lat = np.arcsin(np.clip(p_local[:, 2] / np.maximum(r, 1e-12), -1.0, 1.0))

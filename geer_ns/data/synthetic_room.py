@@ -1,11 +1,11 @@
 """Procedural synthetic room rendered by analytic ray casting (numpy only).
 
 The scene is the ground truth for tests and the demo training run. It is independent of any
-Gaussian renderer: a ray's colour is the shaded albedo at its nearest analytic hit, and a pixel is
+Gaussian renderer: a ray's color is the shaded albedo at its nearest analytic hit, and a pixel is
 the mean of SUPERSAMPLE^2 rays spread uniformly over its square (a sensor's box filter), so any
 renderer/camera model can be checked against :func:`render_room_rays` for arbitrary rays.
 
-World frame: metres, +z up. The room is an axis-aligned box seen from the inside; inside it sit
+World frame: meters, +z up. The room is an axis-aligned box seen from the inside; inside it sit
 spheres and boxes (axis-aligned and rotated) with procedural textures mixing high-frequency
 (fine checkers/stripes) and low-frequency (gradients) content so reconstruction quality is
 measurable. Shading is Lambertian, one directional light + ambient, no shadows, deterministic.
@@ -19,7 +19,7 @@ Dataset layout written by :func:`generate_room` (nerfstudio "nerfstudio-data" fo
       transforms_equirect.json   # EQUIRECTANGULAR 2S x S panorama
       transforms_rig.json        # mixed rig: per-frame camera_model, the 220 deg fisheye + the pinhole
       images_fisheye/ images_pinhole/ images_fisheye220/ images_equirect/   frame_XXXXX.png
-      masks/fisheye_mask.png     # 255 where the pixel centre is inside the 180 deg circle
+      masks/fisheye_mask.png     # 255 where the pixel center is inside the 180 deg circle
       masks/fisheye220_mask.png  # the same for the 220 deg circle; masks/pinhole_mask.png: all 255 (rig)
       points3d.ply               # seed point cloud (binary PLY, xyz float + rgb uchar)
       .geer_ns_synthetic_room.json  # marker: proves this directory was made by this generator
@@ -101,13 +101,13 @@ def _rot_zx(yaw_deg: float, tilt_deg: float) -> np.ndarray:
     return rz @ rx
 
 
-# (centre, radius, texture)
+# (center, radius, texture)
 _SPHERES: List[Tuple[np.ndarray, float, Callable]] = [
-    (np.array([0.0, 0.0, 0.5]), 0.5, _tex_sphere_checker),  # centrepiece the orbit looks at
+    (np.array([0.0, 0.0, 0.5]), 0.5, _tex_sphere_checker),  # centerpiece the orbit looks at
     (np.array([1.9, 1.4, 0.35]), 0.35, _tex_sphere_smooth),  # corner ball, low frequency
     (np.array([-1.8, -1.3, 1.6]), 0.3, _tex_sphere_bands),  # floating ball, high frequency
 ]
-# (centre, half extents, R_world_from_local, texture)
+# (center, half extents, R_world_from_local, texture)
 _BOXES: List[Tuple[np.ndarray, np.ndarray, np.ndarray, Callable]] = [
     (np.array([-1.85, 1.35, 0.45]), np.array([0.4, 0.3, 0.45]), np.eye(3), _tex_box_checker),
     (np.array([1.75, -1.25, 0.6]), np.array([0.3, 0.45, 0.5]), _rot_zx(35.0, 12.0), _tex_box_diagonal),
@@ -145,11 +145,11 @@ def render_room_rays(origins: np.ndarray, dirs: np.ndarray, eps: float = 1e-9):
     """Ray-cast the ground-truth scene for arbitrary rays.
 
     Args:
-        origins: [N, 3] ray origins (world frame, metres). Any float array / tensor-like.
-        dirs: [N, 3] ray directions; need not be normalised.
+        origins: [N, 3] ray origins (world frame, meters). Any float array / tensor-like.
+        dirs: [N, 3] ray directions; need not be normalized.
     Returns:
         rgb [N, 3] float64 in [0, 1] (0 where nothing is hit),
-        depth [N] distance from the origin to the hit along the *normalised* direction
+        depth [N] distance from the origin to the hit along the *normalized* direction
         (inf where nothing is hit), hit [N] bool. Rays starting inside the room always hit.
     """
     o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
@@ -161,9 +161,9 @@ def render_room_rays(origins: np.ndarray, dirs: np.ndarray, eps: float = 1e-9):
     best_id = np.full(n_rays, -1, dtype=np.int64)  # 0 = room, 1.. = objects
 
     # Room: seen from the inside, so the visible surface is the slab exit.
-    centre = 0.5 * (ROOM_MIN + ROOM_MAX)
+    center = 0.5 * (ROOM_MIN + ROOM_MAX)
     half_room = 0.5 * (ROOM_MAX - ROOM_MIN)
-    t_in, t_out = _slab(o - centre, d, half_room)
+    t_in, t_out = _slab(o - center, d, half_room)
     ok = (t_out > np.maximum(t_in, eps))
     best_t[ok] = t_out[ok]
     best_id[ok] = 0
@@ -197,7 +197,7 @@ def render_room_rays(origins: np.ndarray, dirs: np.ndarray, eps: float = 1e-9):
 
     sel = best_id == 0
     if sel.any():
-        pl = p[sel] - centre[None]
+        pl = p[sel] - center[None]
         axis, side = _face_axis(pl, half_room)
         rgb[sel] = _room_albedo(p[sel], axis, side)
         nrm = np.zeros((axis.shape[0], 3))
@@ -266,7 +266,7 @@ def _look_rotation(forward: np.ndarray, roll: float) -> np.ndarray:
 
 def camera_poses(n_views: int, seed: int = 0) -> List[np.ndarray]:
     """OpenCV-convention camera-to-world 4x4 poses: a jittered elliptical loop around the room
-    centre with height, yaw (inward / outward / tangential) and pitch variation."""
+    center with height, yaw (inward / outward / tangential) and pitch variation."""
     rng = np.random.default_rng(seed)
     poses = []
     for k in range(n_views):
@@ -307,7 +307,7 @@ def opencv_to_nerfstudio_c2w(c2w_cv: np.ndarray) -> np.ndarray:
 
 
 # Sub-pixel rays per pixel side: a sensor integrates light over each pixel's footprint (a box filter), so
-# each pixel is the mean of SUPERSAMPLE^2 rays on a uniform sub-pixel grid, not one ray through its centre
+# each pixel is the mean of SUPERSAMPLE^2 rays on a uniform sub-pixel grid, not one ray through its center
 # (which would alias the fine checkers into patterns no 3D scene reproduces from another viewpoint).
 SUPERSAMPLE = 4
 
@@ -355,9 +355,9 @@ def _write_ply(path: Path, xyz: np.ndarray, rgb_u8: np.ndarray) -> None:
 
 def _seed_points(poses_cv: List[np.ndarray], n_points: int, rng: np.random.Generator):
     """Surface points visible from the cameras (like an SfM cloud): cast random rays from
-    random camera centres and keep the hits with their exact shaded colours."""
-    centres = np.stack([p[:3, 3] for p in poses_cv])
-    o = centres[rng.integers(0, len(poses_cv), size=n_points)]
+    random camera centers and keep the hits with their exact shaded colors."""
+    centers = np.stack([p[:3, 3] for p in poses_cv])
+    o = centers[rng.integers(0, len(poses_cv), size=n_points)]
     d = rng.normal(size=(n_points, 3))
     rgb, depth, hit = render_room_rays(o, d)
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
@@ -391,8 +391,8 @@ def _write_dataset(root: Path, n_views: int, size: int, seed: int) -> None:
     poses_cv = camera_poses(n_views, seed)
     _, fe_mask = fisheye_pixel_dirs(size)
     _, kb_mask = kb220_pixel_dirs(size)
-    # Every camera's intrinsics scale with the image size, so the pixel-centre rays of the image SUPERSAMPLE
-    # times larger are the uniform sub-pixel rays of this one. The circle masks stay per pixel centre.
+    # Every camera's intrinsics scale with the image size, so the pixel-center rays of the image SUPERSAMPLE
+    # times larger are the uniform sub-pixel rays of this one. The circle masks stay per pixel center.
     s = SUPERSAMPLE
     # (image folder, sub-pixel ray directions, circle mask or None): the 180-degree fisheye, the pinhole, the
     # 220-degree KB fisheye and the panorama, all from the same poses.

@@ -37,11 +37,6 @@ class BeapView:
     downscale: int
 
     @property
-    def steps(self) -> tuple[float, float]:
-        """Angular size of one BEAP cell in theta and phi (radians per pixel): the units of means2d."""
-        return self.grid.step_theta, self.grid.step_phi
-
-    @property
     def size(self) -> tuple[int, int]:
         return self.grid.height, self.grid.width
 
@@ -73,10 +68,6 @@ class NativeView:
     camera: CameraModel
     rays: RayGrid
     step: float  # angular size of a pixel at the principal point (radians per pixel)
-
-    @property
-    def steps(self) -> tuple[float, float]:
-        return self.step, self.step
 
     @property
     def center_solid_angle(self) -> float:

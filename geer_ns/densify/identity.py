@@ -7,7 +7,7 @@ random stream, whose order depends on where each Gaussian sits. The same Gaussia
 in one process, in a replica, or in a shard held by another process (geer_ns/distributed): sharded training
 equals single-process training through its refinements, whatever the shards.
 
-The hash is SplitMix64's finaliser (Steele, Lea, Flood 2014), in torch's wrapping int64 arithmetic with logical
+The hash is SplitMix64's finalizer (Steele, Lea, Flood 2014), in torch's wrapping int64 arithmetic with logical
 shifts; uniforms take its top 53 bits, normals come from the Box-Muller transform.
 """
 
@@ -29,7 +29,7 @@ def _shift_right(x: Tensor, k: int) -> Tensor:
 
 
 def mix(x: Tensor) -> Tensor:
-    """SplitMix64 of int64 values: x + golden ratio, then the finaliser (a bijection of 64-bit words)."""
+    """SplitMix64 of int64 values: x + golden ratio, then the finalizer (a bijection of 64-bit words)."""
     z = x + _GOLDEN
     z = torch.bitwise_xor(z, _shift_right(z, 30)) * _MUL1
     z = torch.bitwise_xor(z, _shift_right(z, 27)) * _MUL2

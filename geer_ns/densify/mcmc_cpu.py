@@ -31,7 +31,7 @@ def relocation_torch(opacities: Tensor, scales: Tensor, ratios: Tensor, binoms: 
 def install_mcmc_cpu_ops() -> None:
     """Route gsplat.strategy.ops' CUDA-only calls to torch implementations for CPU tensors."""
     import gsplat.strategy.ops as ops
-    from gsplat.cuda._torch_impl import _quat_scale_to_covar_preci
+    from geer_ns.gsplat_private import quat_scale_to_covar_preci as torch_covar
 
     if getattr(ops, "_geer_cpu_ops", False):
         return
@@ -43,7 +43,7 @@ def install_mcmc_cpu_ops() -> None:
         return relocation_torch(opacities, scales, ratios, binoms)
 
     def quat_scale_to_covar_preci(quats, scales, compute_covar=True, compute_preci=True, triu=False):
-        fn = cuda_covar if quats.is_cuda else _quat_scale_to_covar_preci
+        fn = cuda_covar if quats.is_cuda else torch_covar
         return fn(F.normalize(quats, dim=-1), scales, compute_covar=compute_covar, compute_preci=compute_preci, triu=triu)
 
     ops.compute_relocation = compute_relocation

@@ -1,29 +1,10 @@
-"""gsplat's DefaultStrategy fed geer's step statistics, with what it adds and a record of why each Gaussian grew.
+"""gsplat's DefaultStrategy fed geer's step statistics, with a record of why each Gaussian grew.
 
-gsplat computes its statistics from `info["means2d"].grad` of one batch of cameras in one process. geer's
-training step renders its views one by one (each its own backward) and may run on several processes, so the
-statistics are summed per view by geer (densify.signal.StepStatistics), reduced over the processes by the
-engine, and handed to the strategy as `info["statistics"]`. When to refine, split / duplicate / prune / reset
-and the optimizer-state surgery are gsplat's (its ops); the growth and prune rules are gsplat's too, written out
-here so that each refinement can say how many Gaussians each rule moved (`log`, one line per refinement), and
-with two additions:
-
-* `min_pixels`: only a Gaussian that some training view resolves grows: its radius (the 1/255 contour) at
-  least this many of that view's pixels (StepStatistics.pixels, the largest over the window's views). Splitting
-  or cloning a Gaussian finer than the supervision's pixels adds nothing the images can show, and on a coarse or
-  wide view (a 96-pixel 180-degree fisheye: 1.9 degrees a pixel) it is what would multiply the count;
-* `max_gaussians`: growth stops at a budget; when the candidates exceed it, those furthest above a threshold
-  (gradient or screen size, relative to it) grow first, ties by id. The budget is the scene's: with the
-  Gaussians sharded over processes, `budget` is the engine's scene-wide rule (distributed.gaussian_parallel.scene_budget:
-  the strongest candidates over every shard), by default this process's (`local_budget`);
-* `prune_unseen`: a Gaussian whose blend weight stayed below 1/255 on every training ray of a whole pass over
-  the training images (too faint everywhere, or hidden behind opaque surfaces in every view) is pruned; the
-  weights come from the renderer's forward (RenderOutput.max_weight).
-
-Splits draw their samples from each Gaussian's identity (densify/identity.py), so they do not depend on where
-the Gaussian's row is: the same in a replica or a shard. A split is a gsplat duplicate whose two copies then
-move: each by a sample of the Gaussian's own distribution, both at 1/1.6 of its scale, both with a fresh
-optimizer state (the 3DGS rule).
+geer sums the statistics per view (densify.signal.StepStatistics) and hands them to the strategy as
+`info["statistics"]`. When to refine and the optimizer-state surgery are gsplat's; the growth and prune rules are
+gsplat's, written out to log each rule's counts per refinement, with three additions: a resolution floor
+(`min_pixels`), a Gaussian budget (`max_gaussians`) and the unseen prune (`prune_unseen`). Splits draw from each
+Gaussian's identity (densify/identity.py). Details: docs/densification.md.
 """
 
 from __future__ import annotations
@@ -33,12 +14,12 @@ from typing import Any, Callable, Dict, List, Optional
 
 import torch
 import torch.nn.functional as F
-from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import duplicate, remove
 from torch import Tensor
 
 from geer_ns.densify.identity import child_ids, normals
 from geer_ns.densify.signal import StepStatistics
+from geer_ns.gsplat_private import DefaultStrategyHooks
 from geer_ns.render.transforms import quat_to_rotmat
 
 VISIBLE_WEIGHT = 1.0 / 255.0  # the renderer's own threshold: a pair below it is skipped
@@ -66,7 +47,10 @@ def local_budget(wanted: Tensor, over: Tensor, ids: Tensor, n: int, budget: int)
 
 
 @dataclass
-class GeerDefaultStrategy(DefaultStrategy):
+class GeerDefaultStrategy(DefaultStrategyHooks):
+    """DefaultStrategy on geer's step statistics, with a per-rule log, a budget, a resolution floor and the unseen
+    prune (module docstring)."""
+
     max_gaussians: int = 0  # 0: no budget
     min_pixels: float = 0.0  # 0: every candidate grows, resolved or not (gsplat's rule)
     prune_unseen: bool = False
@@ -80,7 +64,7 @@ class GeerDefaultStrategy(DefaultStrategy):
     def step_pre_backward(self, params, optimizers, state, step, info) -> None:
         """Nothing to prepare: every view's offsets are leaves, whose gradients autograd keeps."""
 
-    def _update_state(self, params, state: Dict[str, Any], info: Dict[str, Any], packed: bool = False) -> None:
+    def update_statistics(self, params, state: Dict[str, Any], info: Dict[str, Any], packed: bool = False) -> None:
         stats: StepStatistics = info["statistics"]
         n = len(params["means"])
         device = params["means"].device
@@ -98,7 +82,7 @@ class GeerDefaultStrategy(DefaultStrategy):
         state["weight_images"] = int(state.get("weight_images", 0)) + self.images_per_step  # not per Gaussian
 
     @torch.no_grad()
-    def _grow_gs(self, params, optimizers, state: Dict[str, Any], step: int):
+    def grow(self, params, optimizers, state: Dict[str, Any], step: int):
         n = len(params["means"])
         grads = state["grad2d"] / state["count"].clamp_min(1)
         is_grad_high = grads > self.grow_grad2d
@@ -163,7 +147,7 @@ class GeerDefaultStrategy(DefaultStrategy):
                     value[rows] = 0
 
     @torch.no_grad()
-    def _prune_gs(self, params, optimizers, state: Dict[str, Any], step: int) -> int:
+    def prune(self, params, optimizers, state: Dict[str, Any], step: int) -> int:
         entry = getattr(self, "_entry", None) or {"step": step, "before": len(params["means"])}
         entry["after growth"] = len(params["means"])
         rules = {"pruned (opacity)": torch.sigmoid(params["opacities"].flatten()) < self.prune_opa}

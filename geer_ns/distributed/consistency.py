@@ -85,7 +85,7 @@ def check_consistent(world: World, mine: Dict[str, str]) -> None:
 
 
 def broadcast_replica(world: World, model, optimizers) -> None:
-    """Rank 0's model state (parameters, buffers), optimiser state and random-number states on every rank."""
+    """Rank 0's model state (parameters, buffers), optimizer state and random-number states on every rank."""
     if not world.distributed:
         return
     broadcast_([t for t in model.state_dict().values() if isinstance(t, Tensor)])

@@ -1,22 +1,9 @@
 """Gaussian-parallel training (`--pipeline.model.distributed gaussians`): each process holds a shard of the
-Gaussians, its parameters and optimiser state; scenes are limited by the sum of the devices' memory.
+Gaussians with their optimizer state, so scenes are limited by the sum of the devices' memory.
 
-* Shards: at start-up every process builds (or loads) the whole model, takes rank 0's values, and keeps every
-  N-th Gaussian (shards.shard_rows: round robin, so each camera's work is spread evenly).
-* A step is rounds of one camera per process: in round i every process renders its i-th image from every
-  shard (shards.render_sharded) and backpropagates its loss, whose gradients come home by the reverse
-  all-to-all. Every shard's gradients are then complete: no Gaussian gradient is reduced; the few replicated
-  parameters (bilateral grids) are all-reduced as in image-parallel training.
-* Densification per shard on its own Gaussians' statistics, which are complete too (every camera's gradient of
-  a Gaussian reaches its owner); splits draw from each Gaussian's identity, so they equal one process's.
-  After a refinement the shards are rebalanced when their sizes differ by more than REBALANCE_FRACTION.
-  --pipeline.model.max-gaussians is the scene's (scene_budget: the strongest candidates over every shard).
-* Checkpoints are streamed, not gathered (streamed_checkpoint): rank 0 writes one ordinary checkpoint (the
-  shards' rows in rank order) that one process, ns-eval, ns-export and the viewer read, receiving the other
-  shards' rows in bounded messages; resuming keeps every N-th row of it, for any N.
-* Evaluation on rank 0 renders each camera from the rows every shard sends it (collective_renders); the
-  viewer's copy is gathered to host memory every VIEWER_REFRESH_STEPS steps while a viewer runs.
-  docs/distributed.md has the memory of each.
+A step is rounds of one camera per process, each rendered from every shard (sharded_render); densification runs
+per shard on its own complete statistics; checkpoints are one ordinary file written by rank 0; rank 0 evaluates
+from the rows of every shard a camera sees. How and why: docs/distributed.md.
 """
 
 from __future__ import annotations
@@ -27,7 +14,7 @@ from typing import Callable, Dict, Iterator, List, Optional, Tuple
 
 import torch
 import torch.distributed as dist
-from gsplat.strategy.ops import _update_param_with_optimizer, remove
+from gsplat.strategy.ops import remove
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.utils.misc import step_check
 from torch import Tensor
@@ -36,9 +23,10 @@ from geer_ns import resume
 from geer_ns.densify.signal import lateral_basis
 from geer_ns.densify.strategy import PER_GAUSSIAN_STATE, GeerDefaultStrategy, local_budget, strongest_first
 from geer_ns.distributed.consistency import broadcast_replica, check_consistent, fingerprint
-from geer_ns.distributed.reductions import optimised_parameters, reduce_gradients
+from geer_ns.distributed.reductions import optimized_parameters, reduce_gradients
 from geer_ns.distributed.sharded_render import render_sharded, shard_rows
 from geer_ns.distributed.streamed_checkpoint import leaves, replaced, save_rows_streamed
+from geer_ns.gsplat_private import update_param_with_optimizer
 from geer_ns.distributed.world import (
     World,
     all_gather_objects,
@@ -69,8 +57,6 @@ class GaussianParallel:
         problems = []
         if not isinstance(model.strategy, GeerDefaultStrategy):
             problems.append("--pipeline.model.strategy mcmc (MCMC relocates by sampling the whole scene)")
-        if model.config.densify_signal != "angular":
-            problems.append("--pipeline.model.densify-signal pixels (its screen size comes from the render's PBF)")
         if model.config.camera_optimizer.mode != "off":
             problems.append("--pipeline.model.camera-optimizer.mode (pose gradients would reach one shard only)")
         if problems:
@@ -117,7 +103,7 @@ class GaussianParallel:
     def reduce_gradients(self) -> None:
         model, optimizers = self.trainer.pipeline.model, self.trainer.optimizers
         own = {id(p) for p in model.gauss_params.values()}
-        params = optimised_parameters(optimizers)
+        params = optimized_parameters(optimizers)
         reduce_gradients(self.world, [p for p in params if id(p) not in own], self.trainer.batch.images)
         reduce_gradients(World(), [p for p in params if id(p) in own], self.trainer.batch.images)
 
@@ -173,7 +159,7 @@ class GaussianParallel:
 
 def per_gaussian(groups) -> Callable[[Tuple], bool]:
     """Whether a checkpoint entry (its path of keys) is per Gaussian, by its name: the Gaussian parameters, the
-    strategy's per-Gaussian statistics, and their optimisers' moments (`groups`: the Gaussian parameters'
+    strategy's per-Gaussian statistics, and their optimizers' moments (`groups`: the Gaussian parameters'
     names). The same answer on every process, whatever the shards' sizes."""
     def test(path: Tuple) -> bool:
         if path[:1] == ("pipeline",) and len(path) > 1:
@@ -268,7 +254,7 @@ def visible_rows(model, camera, world: World) -> Optional[Dict[str, Tensor]]:
 def sharded_outputs(model, cameras, me: int) -> Dict[str, Tensor]:
     """GeerModel.get_outputs for camera `me` of `cameras` (one per process, this round's), rendered from every
     shard; records the densification view of this shard in every camera. Each camera's rows are made as one
-    process makes a render's Gaussians (displaced, activated, coloured per view), so that every camera's
+    process makes a render's Gaussians (displaced, activated, colored per view), so that every camera's
     gradient reaches the parameters through its own activations: the sums round as one process's do."""
     views = [model._view_for(camera) for camera in cameras]
     params = model._gaussians()
@@ -292,10 +278,10 @@ def sharded_outputs(model, cameras, me: int) -> Dict[str, Tensor]:
 
     absgrad = record and model.config.use_absgrad
     out, seen = render_sharded(
-        means.detach(), params["quats"].detach(), scales, opacities, None, viewmats,
-        [v.rays.to(means.device) for v in views], background=background, lambda_mode=model.config.lambda_mode,
+        means.detach(), params["quats"].detach(), scales, opacities, viewmats, [v.rays.to(means.device) for v in views],
+        rows_of, background=background, lambda_mode=model.config.lambda_mode,
         backend=model.config.renderer_backend, max_pairs=model.config.max_pairs,
-        absgrad_sinks=[p.absgrad for p in probes] if absgrad else None, lateral=lateral_basis, rows_of=rows_of)
+        absgrad_sinks=[p.absgrad for p in probes] if absgrad else None, lateral=lateral_basis)
     for q, probe in enumerate(probes):
         model.views.append(probe.record(seen.seen[q], seen.max_weight[q]))
     return model.view_outputs(out, views[me], background, cameras[me])
@@ -364,7 +350,7 @@ def gather_rows(world: World, tensor: Tensor, device: Optional[torch.device] = N
 def rebalance(world: World, model, optimizers, sizes: List[int]) -> None:
     """Move rows from the largest shards to the smallest until their sizes differ by at most one: each shard
     gives away its last rows (the newest), received rows are appended in rank order; parameters, their
-    optimiser state and the strategy's per-Gaussian state move together."""
+    optimizer state and the strategy's per-Gaussian state move together."""
     total, n = sum(sizes), len(sizes)
     targets = [total // n + (1 if r < total % n else 0) for r in range(n)]
     moves = _moves(sizes, targets)  # (from, to, count)
@@ -384,7 +370,7 @@ def rebalance(world: World, model, optimizers, sizes: List[int]) -> None:
         dist.all_to_all_single(out, sending, recv, send)
         return torch.cat([t[:keep], out.to(t.device)])
 
-    _update_param_with_optimizer(lambda name, p: torch.nn.Parameter(exchange(p.detach())),
+    update_param_with_optimizer(lambda name, p: torch.nn.Parameter(exchange(p.detach())),
                                  lambda key, v: exchange(v), model.gauss_params, optimizers,
                                  names=list(model.gauss_params.keys()))
     state = model.strategy_state

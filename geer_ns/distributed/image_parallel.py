@@ -5,10 +5,12 @@ same random numbers: backgrounds, split samples, MCMC relocation) after a check 
 same dataset and configuration. Each step, after every process's backward over its own images, the gradients and the densification statistics
 are all-reduced (reductions.py), so every replica makes the same densification decisions.
 
-Nothing else is exchanged: the optimisers step identical replicas with identical gradients.
+Nothing else is exchanged: the optimizers step identical replicas with identical gradients.
 """
 
 from __future__ import annotations
+
+from typing import List, Optional
 
 from geer_ns.distributed.consistency import (
     broadcast_replica,
@@ -16,7 +18,7 @@ from geer_ns.distributed.consistency import (
     check_replicas_identical,
     fingerprint,
 )
-from geer_ns.distributed.reductions import optimised_parameters, reduce_gradients, reduce_statistics
+from geer_ns.distributed.reductions import optimized_parameters, reduce_gradients, reduce_statistics
 
 
 class ImageParallel:
@@ -45,7 +47,7 @@ class ImageParallel:
             yield batch, (lambda camera=camera: model.get_outputs(camera))
 
     def reduce_gradients(self) -> None:
-        reduce_gradients(self.world, optimised_parameters(self.trainer.optimizers), self.trainer.batch.images)
+        reduce_gradients(self.world, optimized_parameters(self.trainer.optimizers), self.trainer.batch.images)
 
     def reduce_statistics(self, model) -> None:
         model.use_step_statistics(reduce_statistics(self.world, model.step_statistics()))

@@ -16,9 +16,9 @@ from geer_ns.densify.signal import StepStatistics
 from geer_ns.distributed.world import World, all_reduce_
 
 
-def optimised_parameters(optimizers) -> List[torch.nn.Parameter]:
-    """Every parameter the optimisers step, in one order on every process (nerfstudio's group order).
-    Read from the optimisers, not the model: densification replaces the Parameter objects in both."""
+def optimized_parameters(optimizers) -> List[torch.nn.Parameter]:
+    """Every parameter the optimizers step, in one order on every process (nerfstudio's group order).
+    Read from the optimizers, not the model: densification replaces the Parameter objects in both."""
     return [p for opt in optimizers.optimizers.values() for group in opt.param_groups for p in group["params"]]
 
 

@@ -9,7 +9,7 @@ Rule (applied by default, said once at start-up): a step of kappa = N x B images
 * Adam follows the square-root scaling rule (Malladi et al. 2022, "On the SDEs and Scaling Rules for Adaptive
   Gradient Algorithms", the rule gsplat's trainer uses for its batch size): learning rate x sqrt(kappa),
   epsilon / sqrt(kappa), beta_i ** kappa. The gradient of a kappa-image step is the mean over its images, whose
-  noise is 1/sqrt(kappa) of one image's; the rule keeps the optimiser's trajectory (its SDE) the same.
+  noise is 1/sqrt(kappa) of one image's; the rule keeps the optimizer's trajectory (its SDE) the same.
 * beta ** kappa, not Malladi et al.'s 1 - kappa (1 - beta): both agree to first order in (1 - beta), but a moving
   average that decays by beta per image decays by exactly beta ** kappa over a step of kappa images, so the
   averages' memory, measured in images, is the same at every kappa (and Adam's bias correction 1 - beta ** t
@@ -118,7 +118,7 @@ HYPERPARAMETERS = ("lr", "initial_lr", "betas", "eps", "weight_decay")
 
 
 def optimizer_hyperparameters(optimizers) -> Dict[str, Any]:
-    """This run's optimiser hyper-parameters (nerfstudio's Optimizers: each group's param_groups and its
+    """This run's optimizer hyper-parameters (nerfstudio's Optimizers: each group's param_groups and its
     scheduler's base learning rates), taken before a checkpoint's state replaces them."""
     return {
         "groups": {name: [{k: group[k] for k in HYPERPARAMETERS if k in group} for group in opt.param_groups]

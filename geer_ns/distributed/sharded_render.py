@@ -1,24 +1,14 @@
 """Gaussian-parallel rendering: every process holds a shard of the Gaussians; a camera is rendered by the process
 that supervises it, from every shard's Gaussians the camera can see.
 
-    every process, for every camera   view transform, PBF and the association's tile search on its shard: the
-                                      rows the camera sees (render.associate.seen_by); their colour
-    all-to-all                        each camera's rows to the camera's process (torch.distributed.nn, so
-                                      differentiable: the backward is the reverse all-to-all of the gradients)
-    the camera's process              render() of the received Gaussians, exactly as one process renders a
-                                      scene: the same per-Gaussian stage, the same pairs, the same order
-
-What travels, per (Gaussian, camera): the raw parameters and the evaluated colour, 14 numbers (mean 3,
-quaternion 4, scale 3, opacity 1, RGB 3; + 2 for the absgrad sink). That is the smallest exact representation:
-the per-view frame the render stage reads (W 9, o_u 3, PBF 4, depth 1, colour 3, opacity 1: 21 numbers) is
-larger, and the SH coefficients (48 at degree 3) are evaluated where they live. The receiver recomputes the
-frame from them exactly as a single process does, and receives the shards in rank order, each in its own row
-order: every tile list holds the pairs one process's would, in the same depth order.
+Each process finds the rows of its shard each camera sees (render.associate.seen_by), sends them with their
+evaluated color to the camera's process by a differentiable all-to-all (torch.distributed.nn: the backward is
+the reverse all-to-all of the gradients), and the camera's process renders what it received exactly as one
+process renders a scene. What travels per (Gaussian, camera) and why: docs/distributed.md.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Callable, List, Optional, Sequence, Tuple
 
@@ -32,18 +22,14 @@ from geer_ns.render import RayGrid, render
 from geer_ns.render.associate import seen_by
 from geer_ns.render.outputs import RenderOutput
 from geer_ns.render.rasterize import preprocess
-from geer_ns.render.sh import sh_to_color
-from geer_ns.render.transforms import camera_offsets, view_transform
+from geer_ns.render.transforms import view_transform
 
 PAYLOAD = 14  # mean 3, quaternion 4, scale 3, opacity 1, RGB 3
 
 
 def shard_rows(rank: int, processes: int) -> slice:
-    """Rank `rank`'s rows of a model: every `processes`-th row (round robin). Every region of the scene, seen by
-    whichever camera, is then spread evenly over the processes: each does 1/N of every camera's per-Gaussian
-    work and sends 1/N of its rows (contiguous blocks of a spatially ordered point cloud would leave a camera's
-    work to the few processes holding its region). Row order only decides ties of equal depth, which only
-    exact copies have; a duplicate stays on its original's shard, after it, as in one process."""
+    """Rank `rank`'s rows of a model: every `processes`-th row. Round robin spreads every region of the scene,
+    and so every camera's work, evenly over the processes (docs/distributed.md)."""
     return slice(rank, None, processes)
 
 
@@ -56,62 +42,54 @@ class ShardViews:
     sent: int  # rows sent in all (payload rows: the traffic is sent x (14 or 16) numbers, both ways)
 
 
-def _colours(colors: Tensor, means: Tensor, viewmat: Tensor, sh_degree: Optional[int]) -> Tensor:
-    if colors.ndim == 2:
-        return colors
-    degree = int(math.isqrt(colors.shape[1]) - 1) if sh_degree is None else sh_degree
-    return sh_to_color(colors, camera_offsets(means, viewmat), degree)
-
-
 def render_sharded(
     means: Tensor,
     quats: Tensor,
     scales: Tensor,
     opacities: Tensor,
-    colors: Tensor,
     viewmats: Tensor,
     grids: Sequence[RayGrid],
+    rows_of: Callable[[int, Tensor], Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]],
     *,
-    sh_degree: Optional[int] = None,
     background: Optional[Tensor] = None,
     lambda_mode: str = "opacity",
     backend: str = "auto",
     max_pairs: int = 1 << 20,
     absgrad_sinks: Optional[Sequence[Tensor]] = None,
     lateral: Optional[Callable[[Tensor], Tensor]] = None,
-    rows_of: Optional[Callable[[int, Tensor], Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]]] = None,
 ) -> Tuple[RenderOutput, ShardViews]:
-    """Render this process's camera from every process's shard (a collective: every process calls it with
-    its shard and the same cameras). Shard tensors as render() takes them; means [N,3], or [C,N,3] with the
-    means each camera sees (densification's per-view offsets); viewmats [C,4,4] and grids: every process's
-    camera in rank order (C = the number of processes); absgrad_sinks: per camera a [N,2] leaf (render's
-    absgrad), `lateral` turning the received view-space means into render's absgrad basis. `rows_of(q, rows)`,
-    when given, makes camera q's payload (means, quats, scales, opacities, RGB of those rows, differentiable):
-    a model evaluates its activations per camera, as one process does per image, so that each camera's
-    gradient goes through them on its own (the tensors above then only decide what each camera sees). Returns
-    the render of this process's camera (over the received Gaussians) and what each camera saw of this shard."""
+    """Render this process's camera from every process's shard. A collective: every process calls it with its
+    shard and the same cameras.
+
+    Args:
+        means, quats, scales, opacities: this shard as render() takes them ([N,3], [N,4], [N,3], [N]); they only
+            decide which rows each camera sees.
+        viewmats: [C,4,4] every process's camera in rank order (C = the number of processes); grids: their rays.
+        rows_of: (q, rows) -> camera q's payload of those rows (means, quats, scales, opacities, RGB),
+            differentiable: a model evaluates its activations per camera, as one process does per image.
+        absgrad_sinks: per camera a [N,2] leaf (render's absgrad); `lateral` turns the received view-space
+            means into render's absgrad basis.
+
+    Returns:
+        The render of this process's camera (over the received Gaussians) and what each camera saw of this shard.
+    """
     world = current_world()
     cams = viewmats.shape[0]
     if cams != world.size or len(grids) != world.size:
         raise ValueError(f"render_sharded: one camera per process expected ({world.size}), got {cams} viewmats "
                          f"and {len(grids)} grids")
-    per_camera = means if means.ndim == 3 else means.expand(cams, *means.shape)
     blocks, seen = [], []
     for q in range(cams):
         with torch.no_grad():
-            pre = preprocess(per_camera[q].detach(), quats.detach(), scales.detach(), opacities.detach(),
-                             means.new_zeros(means.shape[-2], 3), viewmats[q], lambda_mode=lambda_mode)
+            pre = preprocess(means.detach(), quats.detach(), scales.detach(), opacities.detach(),
+                             means.new_zeros(means.shape[0], 3), viewmats[q], lambda_mode=lambda_mode)
             rows = torch.nonzero(seen_by(pre.pbf, grids[q])).squeeze(1)
-        if rows_of is not None:
-            m, q_rows, s_rows, o_rows, rgb = rows_of(q, rows)
-        else:
-            m, q_rows, s_rows, o_rows = per_camera[q][rows], quats[rows], scales[rows], opacities[rows]
-            rgb = _colours(colors[rows], m, viewmats[q], sh_degree)
+        m, q_rows, s_rows, o_rows, rgb = rows_of(q, rows)
         columns = [m, q_rows, s_rows, o_rows[:, None], rgb]
         if absgrad_sinks is not None:
             columns.append(absgrad_sinks[q][rows])
         blocks.append(torch.cat(columns, -1))
-        mask = torch.zeros(means.shape[-2], dtype=torch.bool, device=means.device)
+        mask = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
         mask[rows] = True
         seen.append(mask)
     send_counts = [b.shape[0] for b in blocks]
@@ -134,7 +112,7 @@ def render_sharded(
     weights = _weights_home(out, send_counts, recv_counts, world.distributed, payload)
     max_weight = []
     for q, chunk in enumerate(weights.split(send_counts)):
-        w = torch.zeros(means.shape[-2], dtype=chunk.dtype, device=chunk.device)
+        w = torch.zeros(means.shape[0], dtype=chunk.dtype, device=chunk.device)
         w[seen[q]] = chunk
         max_weight.append(w)
     return out, ShardViews(seen, max_weight, sum(send_counts))

@@ -2,7 +2,7 @@
 
 A step renders this process's `images_per_step` training images one at a time (each its own backward, so only
 one image's graph is alive), reduces the gradients and divides them by the step's images (the effective batch),
-adds the regularisers' gradient once, reduces the densification statistics and steps the optimisers;
+adds the regularizers' gradient once, reduces the densification statistics and steps the optimizers;
 nerfstudio's callbacks (densification, the SH schedule) run around it as before. How images and Gaussians are
 shared out is the engine's (`--pipeline.model.distributed`): image_parallel.ImageParallel (every process holds the
 scene, gradients all-reduced) or gaussian_parallel.GaussianParallel (every process a shard, cameras rendered from all
@@ -101,7 +101,7 @@ class GeerTrainer(Trainer):
             self._stop(error)
 
     def _setup(self, test_mode) -> None:
-        super().setup(test_mode)  # pipeline, optimisers, viewer, checkpoint
+        super().setup(test_mode)  # pipeline, optimizers, viewer, checkpoint
         if not self.world.is_main:
             self.pipeline.model.strategy.verbose = False  # rank 0 says what densification did
         engines = {"images": ImageParallel, "gaussians": GaussianParallel}
@@ -128,7 +128,7 @@ class GeerTrainer(Trainer):
     def _load_checkpoint(self) -> None:
         """nerfstudio's (the checkpoint named by --load-dir / --load-step or --load-checkpoint), memory-mapped,
         cut to this process's shard first when the Gaussians are sharded; then steps converted to this run's
-        effective batch, and this run's optimiser hyper-parameters (its kappa's) put back over the saved ones."""
+        effective batch, and this run's optimizer hyper-parameters (its kappa's) put back over the saved ones."""
         path = self._checkpoint_path()
         if path is None:
             CONSOLE.print("No Nerfstudio checkpoint to load, so training from scratch.")

@@ -1,10 +1,10 @@
 """How far a standard (EWA splatting) viewer's image of an exported scene is from geer's exact image.
 
-Viewers that read PLY, glTF KHR_gaussian_splatting or SPZ rasterise each Gaussian as the 2D Gaussian of its
-linearised (EWA) projection; geer trained the scene with the exact ray response. On pinhole views at training
+Viewers that read PLY, glTF KHR_gaussian_splatting or SPZ rasterize each Gaussian as the 2D Gaussian of its
+linearized (EWA) projection; geer trained the scene with the exact ray response. On pinhole views at training
 poses both images are rendered and compared (PSNR of the EWA image against geer's). The EWA image comes from
 gsplat's `rasterization` where a GPU is at hand, else from gsplat's PyTorch projection
-(`_fully_fused_projection`) composited per pixel here, front to back by depth as 3DGS's rasteriser does
+(geer_ns.gsplat_private) composited per pixel here, front to back by depth as 3DGS's rasterizer does
 (alpha capped at 0.999, skipped below 1/255, stop before T < 1e-4). docs/export.md says what the figure means.
 """
 
@@ -30,7 +30,7 @@ class PinholeView:
     height: int
 
     def rays(self) -> RayGrid:
-        """geer's ray grid through this view's pixel centres."""
+        """geer's ray grid through this view's pixel centers."""
         v, u = torch.meshgrid(torch.arange(self.height, dtype=torch.float64) + 0.5,
                               torch.arange(self.width, dtype=torch.float64) + 0.5, indexing="ij")
         k = self.K.double()
@@ -50,20 +50,20 @@ def pinhole_at(camera_to_world: Tensor, width: int, height: int, fov_x_deg: floa
 
 
 def _colors(means: Tensor, sh: Tensor, viewmat: Tensor, degree: int) -> Tensor:
-    """[N, 3] SH colours seen from the view's camera centre (3DGS's: + 0.5, clamped at 0), by gsplat's SH."""
-    from gsplat.cuda._torch_impl import _spherical_harmonics
+    """[N, 3] SH colors seen from the view's camera center (3DGS's: + 0.5, clamped at 0), by gsplat's SH."""
+    from geer_ns.gsplat_private import spherical_harmonics
 
-    centre = -viewmat[:3, :3].T @ viewmat[:3, 3]
-    return (_spherical_harmonics(degree, means - centre.to(means), sh) + 0.5).clamp_min(0.0)
+    center = -viewmat[:3, :3].T @ viewmat[:3, 3]
+    return (spherical_harmonics(degree, means - center.to(means), sh) + 0.5).clamp_min(0.0)
 
 
 def ewa_image_cpu(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor, degree: int,
                   view: PinholeView) -> Tensor:
     """[H, W, 3] the EWA splatting image (black background) from gsplat's PyTorch projection."""
-    from gsplat.cuda._torch_impl import _fully_fused_projection, _quat_scale_to_covar_preci
+    from geer_ns.gsplat_private import fully_fused_projection, quat_scale_to_covar_preci
 
-    covars, _ = _quat_scale_to_covar_preci(quats, scales, compute_preci=False)
-    radii, means2d, depths, conics, _ = _fully_fused_projection(
+    covars, _ = quat_scale_to_covar_preci(quats, scales, compute_preci=False)
+    radii, means2d, depths, conics, _ = fully_fused_projection(
         means, covars, view.viewmat[None].to(means), view.K[None].to(means), view.width, view.height)
     keep = radii[0] > 0
     order = torch.argsort(depths[0][keep], stable=True)

@@ -2,7 +2,7 @@
 Niantic's SPZ (version 3, gzip). Written from the formats' specifications (docs/export.md lists them and what
 each stores, with the round-trip error the tests measure).
 
-Every writer takes a `Splats` in splatfacto's parameterisation (log-scales, opacity logits, SH with the DC term
+Every writer takes a `Splats` in splatfacto's parameterization (log-scales, opacity logits, SH with the DC term
 first) and a metadata dict saying how the scene was trained, which each format keeps where it can.
 """
 
@@ -18,7 +18,7 @@ import numpy as np
 
 SH_C0 = 0.28209479177387814
 SPZ_MAGIC = 0x5053474E  # "NGSP"
-SPZ_COLOR_SCALE = 0.15  # SPZ stores 0.5 + 0.15 * DC in a byte (room for colours beyond [0, 1])
+SPZ_COLOR_SCALE = 0.15  # SPZ stores 0.5 + 0.15 * DC in a byte (room for colors beyond [0, 1])
 SPZ_FRACTIONAL_BITS = 12  # positions in 1/4096 units, up to +-2048 units
 # glTF's +Y up from nerfstudio's +Z up: the node's rotation, -90 degrees about x (x, y, z) -> (x, z, -y), as
 # a quaternion (x, y, z, w). The splats themselves stay in nerfstudio's world frame.
@@ -33,7 +33,7 @@ class Splats:
     log_scales: np.ndarray  # [N, 3]
     quats_wxyz: np.ndarray  # [N, 4] any norm
     opacity_logits: np.ndarray  # [N]
-    sh_dc: np.ndarray  # [N, 3] SH degree-0 coefficients (colour = 0.5 + SH_C0 * dc)
+    sh_dc: np.ndarray  # [N, 3] SH degree-0 coefficients (color = 0.5 + SH_C0 * dc)
     sh_rest: np.ndarray  # [N, K, 3] higher-degree coefficients, K = (degree + 1)^2 - 1
 
     @property
@@ -94,7 +94,7 @@ def _accessor(blob: bytearray, views: list, accessors: list, values: np.ndarray,
 def write_glb(splats: Splats, path: Path, metadata: dict) -> None:
     """Binary glTF with one POINTS primitive carrying KHR_gaussian_splatting: POSITION, linear SCALE, ROTATION
     (unit xyzw), OPACITY (in [0, 1]), SH_DEGREE_l_COEF_n (RGB coefficients, the DC term as trained, 0.5 bias
-    applied by the renderer), COLOR_0 (the diffuse colour and opacity, for viewers without the extension).
+    applied by the renderer), COLOR_0 (the diffuse color and opacity, for viewers without the extension).
     The node rotates nerfstudio's +Z up to glTF's +Y up; the metadata goes into asset.extras."""
     blob: bytearray = bytearray()
     views: list = []
@@ -102,14 +102,14 @@ def write_glb(splats: Splats, path: Path, metadata: dict) -> None:
     prefix = "KHR_gaussian_splatting:"
     quats = splats.unit_quats()
     opacity = splats.opacities()
-    colour = np.clip(0.5 + SH_C0 * splats.sh_dc.astype(np.float64), 0.0, 1.0)
+    color = np.clip(0.5 + SH_C0 * splats.sh_dc.astype(np.float64), 0.0, 1.0)
     attributes = {
         "POSITION": _accessor(blob, views, accessors, splats.means, "VEC3", minmax=True),
         prefix + "SCALE": _accessor(blob, views, accessors, np.exp(splats.log_scales.astype(np.float64)), "VEC3"),
         prefix + "ROTATION": _accessor(blob, views, accessors, quats[:, [1, 2, 3, 0]], "VEC4"),
         prefix + "OPACITY": _accessor(blob, views, accessors, opacity[:, None], "SCALAR"),
         prefix + "SH_DEGREE_0_COEF_0": _accessor(blob, views, accessors, splats.sh_dc, "VEC3"),
-        "COLOR_0": _accessor(blob, views, accessors, np.concatenate([colour, opacity[:, None]], -1), "VEC4"),
+        "COLOR_0": _accessor(blob, views, accessors, np.concatenate([color, opacity[:, None]], -1), "VEC4"),
     }
     index = 0
     for degree in range(1, splats.sh_degree + 1):
@@ -143,7 +143,7 @@ def write_glb(splats: Splats, path: Path, metadata: dict) -> None:
 
 
 # --------------------------------------------------------------------------------------------- SPZ
-def _quantise(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
+def _quantize(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return np.clip(np.rint(values), lo, hi).astype(np.uint8)
 
 
@@ -168,7 +168,7 @@ def _smallest_three(quats_wxyz: np.ndarray) -> np.ndarray:
 def write_spz(splats: Splats, path: Path, metadata: dict) -> None:
     """SPZ version 3: a gzip stream of a 16-byte header (magic, version, count, SH degree, fractional bits,
     flags, reserved) and the attributes in turn: positions (24-bit fixed point), alphas (opacity * 255),
-    colours (0.5 + 0.15 DC, * 255), scales ((log + 10) * 16), rotations (smallest three), SH (coefficient-major,
+    colors (0.5 + 0.15 DC, * 255), scales ((log + 10) * 16), rotations (smallest three), SH (coefficient-major,
     channel inner, 128 + 128 x). Coordinates unconverted (nerfstudio's world frame). SPZ has no metadata field;
     `metadata` is written beside it as `<path>.json`."""
     n = splats.count
@@ -180,14 +180,14 @@ def write_spz(splats: Splats, path: Path, metadata: dict) -> None:
                          "SPZ's 24-bit fixed point at 12 fractional bits")
     fixed = fixed & 0xFFFFFF
     positions = np.stack([(fixed >> s) & 0xFF for s in (0, 8, 16)], -1).astype(np.uint8).reshape(n, 9)
-    alphas = _quantise(splats.opacities() * 255.0, 0, 255)
-    colours = _quantise((0.5 + SPZ_COLOR_SCALE * splats.sh_dc.astype(np.float64)) * 255.0, 0, 255)
-    scales = _quantise((splats.log_scales.astype(np.float64) + 10.0) * 16.0, 0, 255)
+    alphas = _quantize(splats.opacities() * 255.0, 0, 255)
+    colors = _quantize((0.5 + SPZ_COLOR_SCALE * splats.sh_dc.astype(np.float64)) * 255.0, 0, 255)
+    scales = _quantize((splats.log_scales.astype(np.float64) + 10.0) * 16.0, 0, 255)
     rotations = _smallest_three(splats.unit_quats()).astype("<u4").view(np.uint8).reshape(n, 4)
     k = (degree + 1) ** 2 - 1
-    sh = _quantise(splats.sh_rest[:, :k].astype(np.float64) * 128.0 + 128.0, 0, 255).reshape(n, 3 * k)
+    sh = _quantize(splats.sh_rest[:, :k].astype(np.float64) * 128.0 + 128.0, 0, 255).reshape(n, 3 * k)
     header = struct.pack("<IIIBBBB", SPZ_MAGIC, 3, n, degree, SPZ_FRACTIONAL_BITS, 0, 0)
-    payload = b"".join(a.tobytes() for a in (positions, alphas, colours, scales, rotations, sh))
+    payload = b"".join(a.tobytes() for a in (positions, alphas, colors, scales, rotations, sh))
     with gzip.open(path, "wb") as f:
         f.write(header + payload)
     Path(f"{path}.json").write_text(json.dumps(metadata, indent=2) + "\n")

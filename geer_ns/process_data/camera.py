@@ -200,7 +200,7 @@ def setup_cameras(
             circle = detect_image_circle_from_files(paths)
             if circle is not None:
                 keep = circle.mask(group.width, group.height)
-                CONSOLE.print(f"{label}: image circle centre ({circle.cx:.1f}, {circle.cy:.1f}), radius "
+                CONSOLE.print(f"{label}: image circle center ({circle.cx:.1f}, {circle.cy:.1f}), radius "
                               f"{circle.radius:.1f} px; pixels outside it are masked")
             else:
                 CONSOLE.print(f"{label}: no black border around the image: no mask, every pixel is used")

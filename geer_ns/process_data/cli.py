@@ -59,7 +59,7 @@ class ProcessDataConfig:
     num_frames_target: int = 300
     """Video: number of frames to sample."""
     blur_ratio: float = 0.5
-    """Video: skip a sampled frame whose sharpness is below this times its neighbours'."""
+    """Video: skip a sampled frame whose sharpness is below this times its neighbors'."""
     refine_principal_point: bool = False
     """Also refine cx, cy in bundle adjustment."""
     max_image_size: int = 3200

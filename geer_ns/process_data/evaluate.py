@@ -2,7 +2,7 @@
 
 ``python -m geer_ns.process_data.evaluate RECOVERED/transforms.json TRUE/transforms.json`` prints the mean
 rotation error, the mean position error relative to the extent of the true camera path (after the similarity
-of :func:`align_poses`, and for comparison after Umeyama on the centres), and the focal lengths.
+of :func:`align_poses`, and for comparison after Umeyama on the centers), and the focal lengths.
 Frames are paired by image file name.
 """
 
@@ -18,7 +18,7 @@ import numpy as np
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray) -> Tuple[float, np.ndarray, np.ndarray]:
-    """Similarity (s, R, t) minimising sum |s R src_i + t - dst_i|^2 (Umeyama 1991)."""
+    """Similarity (s, R, t) minimizing sum |s R src_i + t - dst_i|^2 (Umeyama 1991)."""
     mu_s, mu_d = src.mean(0), dst.mean(0)
     cov = (dst - mu_d).T @ (src - mu_s) / len(src)
     u, d, vt = np.linalg.svd(cov)
@@ -32,10 +32,10 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> Tuple[float, np.ndarray, np.nda
 
 def align_poses(estimated: Sequence[np.ndarray], truth: Sequence[np.ndarray]) -> Tuple[float, np.ndarray, np.ndarray]:
     """Similarity (s, R, t) from estimated to true camera-to-world poses: R is the rotation closest to the
-    mean of R_true R_est^T (chordal mean), s and t the least-squares fit of the camera centres given R.
+    mean of R_true R_est^T (chordal mean), s and t the least-squares fit of the camera centers given R.
 
-    Why not Umeyama on the centres alone: a camera path that is nearly planar (a walk at head height) fixes
-    the tilt of that plane poorly, so centre noise of a few millimetres tilts the whole alignment by tenths
+    Why not Umeyama on the centers alone: a camera path that is nearly planar (a walk at head height) fixes
+    the tilt of that plane poorly, so center noise of a few millimeters tilts the whole alignment by tenths
     of a degree and shows up as rotation error of every camera (measured: 0.43 vs 0.17 deg on the dev room).
     """
     m = sum(t[:3, :3] @ e[:3, :3].T for e, t in zip(estimated, truth))
@@ -55,7 +55,7 @@ def pose_errors(estimated: Dict[str, np.ndarray], truth: Dict[str, np.ndarray],
                 alignment: str = "poses") -> Tuple[float, float, float]:
     """(mean rotation error in degrees, mean position error / path extent, max rotation error) over the keys of
     ``estimated`` (4x4 camera-to-world, the same camera axes in both; the worlds may differ by a similarity).
-    ``alignment``: "poses" (:func:`align_poses`) or "centres" (Umeyama on the camera centres)."""
+    ``alignment``: "poses" (:func:`align_poses`) or "centers" (Umeyama on the camera centers)."""
     keys = sorted(estimated)
     est = [estimated[k] for k in keys]
     ref = [truth[k] for k in keys]
@@ -84,12 +84,12 @@ def main(argv=None) -> None:
     rec, ref = _frames(rec_path), _frames(true_path)
     missing = sorted(set(ref) - set(rec))
     rot, pos, rot_max = pose_errors(rec, ref)
-    rot_c, pos_c, rot_max_c = pose_errors(rec, ref, alignment="centres")
+    rot_c, pos_c, rot_max_c = pose_errors(rec, ref, alignment="centers")
     meta_r, meta_t = json.loads(rec_path.read_text()), json.loads(true_path.read_text())
     print(f"frames: {len(rec)} recovered of {len(ref)} ({len(missing)} missing: {missing[:5]})")
     print(f"rotation error: mean {rot:.3f} deg, max {rot_max:.3f} deg")
     print(f"position error: mean {100 * pos:.3f} % of the camera path's extent")
-    print(f"(Umeyama on the centres only: rotation mean {rot_c:.3f} deg, max {rot_max_c:.3f} deg, position "
+    print(f"(Umeyama on the centers only: rotation mean {rot_c:.3f} deg, max {rot_max_c:.3f} deg, position "
           f"{100 * pos_c:.3f} %)")
     for key in ("fl_x", "fl_y"):
         if key in meta_r and key in meta_t:

@@ -161,19 +161,19 @@ def sharpness(image: np.ndarray) -> float:
     """Variance of the Laplacian over the central half of the image (inside any fisheye circle)."""
     gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
     h, w = gray.shape
-    centre = gray[h // 4 : h - h // 4, w // 4 : w - w // 4]
-    return float(cv2.Laplacian(centre, cv2.CV_64F).var())
+    center = gray[h // 4 : h - h // 4, w // 4 : w - w // 4]
+    return float(cv2.Laplacian(center, cv2.CV_64F).var())
 
 
 def blurry(scores: Sequence[float], ratio: float, window: int = 5) -> np.ndarray:
-    """Frames whose sharpness is below ``ratio`` times the median of their neighbours (+-window frames):
-    relative to the neighbours, so that a scene with little texture is not mistaken for blur."""
+    """Frames whose sharpness is below ``ratio`` times the median of their neighbors (+-window frames):
+    relative to the neighbors, so that a scene with little texture is not mistaken for blur."""
     s = np.asarray(scores, dtype=np.float64)
     out = np.zeros(len(s), dtype=bool)
     for i in range(len(s)):
         lo, hi = max(0, i - window), min(len(s), i + window + 1)
-        neighbours = np.concatenate([s[lo:i], s[i + 1 : hi]])
-        out[i] = len(neighbours) > 0 and s[i] < ratio * float(np.median(neighbours))
+        neighbors = np.concatenate([s[lo:i], s[i + 1 : hi]])
+        out[i] = len(neighbors) > 0 and s[i] < ratio * float(np.median(neighbors))
     return out
 
 
@@ -183,7 +183,7 @@ def sample_video(
     """Write about ``num_frames`` frames of ``video`` as ``images/frame_XXXXX.png``.
 
     The video is cut into ``num_frames`` equal windows; the sharpest of up to ``candidates_per_frame`` frames of
-    each window is kept, then kept frames far blurrier than their neighbours are dropped. Returns the camera
+    each window is kept, then kept frames far blurrier than their neighbors are dropped. Returns the camera
     group and statistics (frames in the video, written, skipped as blurry).
     """
     if num_frames < 2:
@@ -239,7 +239,7 @@ def sample_video(
             raise ProcessDataError(f"cannot write {images_dir / name}")
         names.append(name)
     if drop.any():
-        CONSOLE.print(f"Skipped {int(drop.sum())} blurry frame(s) (sharpness < {blur_ratio} x their neighbours')")
+        CONSOLE.print(f"Skipped {int(drop.sum())} blurry frame(s) (sharpness < {blur_ratio} x their neighbors')")
     h, w = kept[0][2].shape[:2]
     stats = {"video_frames": total, "frames_written": len(names), "frames_skipped_blurry": int(drop.sum())}
     return CameraGroup("", tuple(names), int(w), int(h)), stats

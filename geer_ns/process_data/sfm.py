@@ -81,7 +81,7 @@ def exhaustive_pairs(names: Sequence[str]) -> Set[Tuple[str, str]]:
 
 def match(db: Path, work_dir: Path, pairs: Set[Tuple[str, str]], num_threads: int,
           vocab_tree: Optional[Path] = None, guided: bool = False) -> None:
-    """Match and geometrically verify ``pairs`` (plus vocabulary-tree neighbours when a tree is given)."""
+    """Match and geometrically verify ``pairs`` (plus vocabulary-tree neighbors when a tree is given)."""
     mo = pycolmap.FeatureMatchingOptions()
     mo.num_threads = num_threads
     mo.guided_matching = guided

@@ -7,9 +7,9 @@ After backward
     sink.grad[n, j] = sum over the view's blended (ray p, Gaussian n) pairs of |dL_p/d offsets[n, j]|,
 
 L_p the part of the loss flowing through ray p's outputs, the offsets' gradient taken through the geometry only
-(o_u = -W means_c; the SH colour's view dependence is left out, as gsplat's means2d leaves it out). With the
+(o_u = -W means_c; the SH color's view dependence is left out, as gsplat's means2d leaves it out). With the
 offset rows A_n = -lateral_n^T W_n^T (2 x 3) and g_p = dL_p/d o_u[n], the pair's gradient w.r.t. the camera
-centre in the Gaussian's canonical frame, that is sum_p |A_n g_p| componentwise: the render backward has every
+center in the Gaussian's canonical frame, that is sum_p |A_n g_p| componentwise: the render backward has every
 pair's g_p (csrc/geer_ray.h ray_backward_step: PairGrad.o; the twin: pair_o_u_grad) and sums |A_n g_p| beside
 the sum of g_p. The sink is an input of the render's autograd Function and this is the gradient its backward returns, so
 it reaches wherever the sink came from (a differentiable all-to-all, say). Nothing else changes: outputs and

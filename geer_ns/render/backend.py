@@ -6,7 +6,7 @@ benchmarks/cpu_training.md). CUDA tensors: `cuda` when the kernels passed their 
 (verdict.py: run once per GPU, driver, torch and build, in a child process, recorded beside the extension
 cache). When auto cannot use them (a failed self-test or build) it renders with the PyTorch twin and says so in
 one line, once. GEER_VERIFY_CPU_BUILD=1 makes auto ask the same of the CPU build. Every backend gives camera pose
-and ray-direction gradients (docs/refinement.md). An explicit `cpu` or `cuda` request that cannot be honoured is
+and ray-direction gradients (docs/refinement.md). An explicit `cpu` or `cuda` request that cannot be honored is
 an error, never a silent fallback; an explicit request runs no self-test.
 """
 

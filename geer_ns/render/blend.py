@@ -66,7 +66,7 @@ def _blend_piece(o_u, whiten, opacities, colors, dirs, r_ok, g_ok, t_start, medi
 
 
 class _BlendLists(torch.autograd.Function):
-    """(o_u, W, opacity, colour per Gaussian) -> (rgb [R,3], depth sum [R], accumulation [R]) per ray,
+    """(o_u, W, opacity, color per Gaussian) -> (rgb [R,3], depth sum [R], accumulation [R]) per ray,
     max_weight [N] and the median distance [R] (neither with a gradient); with absgrad's (rows, sink), the
     sink's gradient is the absgrad sums."""
 

@@ -1,4 +1,4 @@
-"""The association's cone test: a tile test as tight at the fisheye rim as at the centre (docs/association.md).
+"""The association's cone test: a tile test as tight at the fisheye rim as at the center (docs/association.md).
 
 The (theta, phi) box test of the PBF compares intervals of atan(x/z) and atan(y/z); towards 90 degrees from the
 axis a small patch of the sphere spans wide, skewed intervals of both, and box-against-box keeps Gaussians that
@@ -7,7 +7,7 @@ never reach the tile. The cone test does not depend on where the tile sits:
     Gaussian  its alpha >= 1/255 directions lie in the elliptic cone F(d) = (a.d)^2 - |B d|^2 >= 0, exact for the
               lambda-ellipsoid: lambda^2 |W d|^2 - |o_u x W d|^2 written without cancellation
               (gaussian_cone_form);
-    tile      its rays lie within angle beta of its centre ray c (tile_cones, from the rays themselves);
+    tile      its rays lie within angle beta of its center ray c (tile_cones, from the rays themselves);
     test      max of F over the tile's disk on the plane c.d = 1, bounded through the exact Lagrangian dual of that
               trust-region problem (cone_meets_tile, the twin of csrc/geer_associate.h cone_meets_tile).
 
@@ -31,7 +31,7 @@ _NEWTON_STEPS = 3  # geer_associate.h kConeNewtonSteps
 _TOL = {torch.float32: 1e-5, torch.float64: 1e-12}
 # Angular slack (radians) on a tile's radius: far above the rounding of its rays' directions in float32.
 _TILE_RADIUS_SLACK = 1e-5
-# Tiles wider than this (radians from their centre ray) skip the cone test: the disk's tangent plane degenerates.
+# Tiles wider than this (radians from their center ray) skip the cone test: the disk's tangent plane degenerates.
 _MAX_TILE_RADIUS = 1.2
 
 
@@ -73,7 +73,7 @@ def gaussian_cone_form(whiten: Tensor, o_u: Tensor, lam2: Tensor, camera_inside:
 
 
 def tile_cones(grid: RayGrid, dtype: torch.dtype | None = None) -> Tensor:
-    """[n_tiles, 10] each tile's cone (e1, e2, c, tan(beta)), cached on the grid: c the normalised sum of the tile's
+    """[n_tiles, 10] each tile's cone (e1, e2, c, tan(beta)), cached on the grid: c the normalized sum of the tile's
     valid rays, beta the largest angle from c to one of them (plus _TILE_RADIUS_SLACK); tan(beta) = inf (no cone test)
     for inactive tiles and tiles wider than _MAX_TILE_RADIUS."""
     dtype = grid.dirs.dtype if dtype is None else dtype

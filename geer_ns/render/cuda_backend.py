@@ -1,29 +1,9 @@
 """The CUDA backend: csrc/ kernels behind the same API and outputs as the PyTorch twin (rasterize.render).
 
-    preprocess (per Gaussian)   csrc/preprocess.cu           W, o_u, PBF, SH colour
-    associate (per tile)        csrc/associate.cu            count, emit (tile << 32 | rank), radix sort, ranges
-    render (per tile / ray)     csrc/render.cu               shared-memory batches, early termination
-    backward                    csrc/render.cu (per ray), csrc/preprocess_backward.cu (per Gaussian)
-
-Two autograd Functions carry the paper's two-stage backward (App. C.2): `_Rasterize` (RenderCUDA: per-pair
-gradients of o_u, colour and opacity, and of W as the canonical moment K = dL/dW W^T, which stays accurate for
-thin Gaussians in float32: csrc/geer_ray.h pair_canonical_moment) and `_Preprocess` (PreprocessCUDA: to means,
-quats, scales, SH; it takes K in `whiten`'s gradient slot, the only consumer of that slot).
-The view transform means_c = R_c mu + t stays in PyTorch so that `means_c.grad` is the same densification
-signal as the twin's. Background and expected depth are PyTorch ops on the kernel outputs.
-
-The extension is built on first use (extensions.py: JIT, one cached folder per configuration). Importing this
-module never builds anything and works without a GPU.
-
-Every operation also exists on the CPU (csrc/cpu_ops.cpp, same names and signatures, built by
-`load_cpu_ops`), which runs the kernels' math and per-block orchestration (csrc/geer_blocks.h) over ATen's
-threads: `render_cuda(..., ops=load_cpu_ops())` drives
-this whole module on the CPU, which is how tests/test_csrc_math.py checks it against the twin.
-
-Differences from the twin, all by design: the kernels return `tiles=None` (lists live as sorted pairs). The lists themselves are the twin's,
-pair for pair and in the same order: both search the same tile pyramid (raygrid.TilePyramid) with the same
-tests, and the sort key's depth order is the twin's stable depth order (float32: the depth's bits with ties
-kept in index order by the stable sort; float64: the rank from a stable sort).
+Two autograd Functions carry the paper's two-stage backward (App. C.2): `_Preprocess` (per Gaussian) and
+`_Rasterize` (per tile / ray). Every operation also exists on the CPU (csrc/cpu_ops.cpp, `load_cpu_ops`), so
+`render_cuda(..., ops=load_cpu_ops())` runs this whole module without a GPU. Importing it builds nothing.
+Stages, kernels and the differences from the twin: docs/renderer.md.
 """
 
 from __future__ import annotations
@@ -53,7 +33,7 @@ from .transforms import camera_offsets, view_transform
 
 # ----------------------------------------------------------------------------------------- autograd
 class _Preprocess(torch.autograd.Function):
-    """Per Gaussian: (means_c, quats, scales, SH, SH view directions, camera rotation R_c) -> (W, o_u, colour)
+    """Per Gaussian: (means_c, quats, scales, SH, SH view directions, camera rotation R_c) -> (W, o_u, color)
     + PBF (no grad). R_c gets a gradient when it requires one (camera pose refinement)."""
 
     @staticmethod
@@ -77,7 +57,7 @@ class _Preprocess(torch.autograd.Function):
 
 
 class _Rasterize(torch.autograd.Function):
-    """Per tile / ray: (W, o_u, colour, opacity) -> (rgb sum, depth sum, accumulation) per ray, max_weight [N]
+    """Per tile / ray: (W, o_u, color, opacity) -> (rgb sum, depth sum, accumulation) per ray, max_weight [N]
     and the median distance [R] (neither with a gradient); with absgrad's offset rows [N,6] and sink [N,2], the
     sink's gradient is the absgrad sums. The ray directions get their gradient when they require one (lens
     refinement; the cull has none)."""
@@ -113,7 +93,7 @@ class _Rasterize(torch.autograd.Function):
 
 # ----------------------------------------------------------------------------------------- helpers
 def _sh_setup(colors: Tensor, sh_degree: int | None) -> int:
-    """Active SH degree (-1: colours are RGB), with sh.py's errors."""
+    """Active SH degree (-1: colors are RGB), with sh.py's errors."""
     if colors.ndim == 2:
         return -1
     degree = int(math.isqrt(colors.shape[1]) - 1) if sh_degree is None else sh_degree

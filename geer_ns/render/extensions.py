@@ -136,7 +136,7 @@ def _import_built(module_name: str, folder: Path, what: str) -> ModuleType | Non
 def build_and_load(name: str, sources: Sequence[Path], *, cuda: bool, cflags: Sequence[str],
                    include_dir: Path | None = None, verbose: bool = False) -> ModuleType:
     """Load configuration (sources, flags) of extension `name` from its own folder, building it first if that
-    folder holds no build yet (said before and after). Not memoised: see _load."""
+    folder holds no build yet (said before and after). Not memoized: see _load."""
     sources = [Path(s) for s in sources]
     include_dir = sources[0].parent if include_dir is None else include_dir
     cuda_cflags = _cuda_cflags(cuda)

@@ -1,7 +1,7 @@
 """Rendered normals: each Gaussian's shortest axis, turned toward the camera, blended with the render's weights.
 
-The kernels blend three colour channels per Gaussian; a normal is three numbers per Gaussian, so the normal
-image is one more forward render with the normals in place of the colours (any backend, no kernel of its own).
+The kernels blend three color channels per Gaussian; a normal is three numbers per Gaussian, so the normal
+image is one more forward render with the normals in place of the colors (any backend, no kernel of its own).
 What the normal means and why it is oriented per Gaussian: docs/outputs.md.
 """
 
@@ -25,24 +25,24 @@ class NormalImages:
     camera: Tensor  # [H, W, 3] the same normal in camera axes (OpenCV: x right, y down, z forward)
 
 
-def camera_centre(viewmat: Tensor) -> Tensor:
+def camera_center(viewmat: Tensor) -> Tensor:
     """[3] the camera's position in world coordinates from a world-to-camera matrix [4, 4]."""
     rot, trans = viewmat[:3, :3], viewmat[:3, 3]
     return -rot.T @ trans
 
 
-def gaussian_normals(means: Tensor, quats: Tensor, scales: Tensor, centre: Tensor) -> Tensor:
+def gaussian_normals(means: Tensor, quats: Tensor, scales: Tensor, center: Tensor) -> Tensor:
     """[N, 3] unit world-frame normals: the rotation's column of each Gaussian's smallest scale, with its sign
-    chosen so that it points toward `centre` [3] (n . (centre - mean) >= 0). quats [N, 4] wxyz, scales [N, 3]."""
+    chosen so that it points toward `center` [3] (n . (center - mean) >= 0). quats [N, 4] wxyz, scales [N, 3]."""
     rot = quat_to_rotmat(quats)
     shortest = scales.argmin(dim=-1)
     axis = torch.gather(rot, 2, shortest[:, None, None].expand(-1, 3, 1))[..., 0]
-    facing = ((centre.to(means.dtype) - means) * axis).sum(-1, keepdim=True)
+    facing = ((center.to(means.dtype) - means) * axis).sum(-1, keepdim=True)
     return torch.where(facing < 0, -axis, axis)
 
 
 def blended_normals(normal_sum: Tensor, viewmat: Tensor) -> NormalImages:
-    """NormalImages from the blended world normals sum_i w_i n_i [H, W, 3]: normalised per ray (0 where the
+    """NormalImages from the blended world normals sum_i w_i n_i [H, W, 3]: normalized per ray (0 where the
     sum vanishes), and rotated into the camera frame by viewmat [4, 4]."""
     length = normal_sum.norm(dim=-1, keepdim=True)
     world = torch.where(length > 0, normal_sum / length.clamp_min(torch.finfo(normal_sum.dtype).tiny), 0.0)
@@ -63,9 +63,9 @@ def render_normals(
     backend: Backend = "auto",
     max_pairs: int = 1 << 20,
 ) -> NormalImages:
-    """The normal images of one view, inputs as rasterize.render's (no colours). Forward only: no loss of geer
+    """The normal images of one view, inputs as rasterize.render's (no colors). Forward only: no loss of geer
     uses normals."""
-    normals = gaussian_normals(means, quats, scales, camera_centre(viewmat.to(means.dtype)))
+    normals = gaussian_normals(means, quats, scales, camera_center(viewmat.to(means.dtype)))
     out = render(means, quats, scales, opacities, normals, viewmat, grid, background=None, lambda_mode=lambda_mode,
                  backend=backend, max_pairs=max_pairs)
     return blended_normals(out.rgb, viewmat)

@@ -7,7 +7,7 @@ first use), CPU tensors the CPU build. Registered, the kernels take part in torc
 op: FakeTensorMode (shapes and devices without data; a training step on a fake `cuda:0` runs on a machine
 without a GPU, and a CPU tensor among its CUDA tensors raises), torch.compile and opcheck.
 
-    preprocess_forward    per Gaussian: (W, o_u, colour, PBF bounds, alive, inside)
+    preprocess_forward    per Gaussian: (W, o_u, color, PBF bounds, alive, inside)
     associate             per tile: ids sorted by (tile, depth), ranges, counts, tests; len(ids) depends on
                           the data (a fake run needs a ShapeEnv: torch.library.get_ctx().new_dynamic_size)
     render_forward        per ray: rgb, depth, acc, T_final, n_contrib, blended lanes (CPU build), max_weight
@@ -55,7 +55,7 @@ def _one_device(op: str, *tensors: Tensor) -> torch.device:
 @torch.library.custom_op("geer::preprocess_forward", mutates_args=())
 def preprocess_forward(means_c: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor,
                        sh_dirs: Tensor, rot_c: Tensor, sh_degree: int, paper: bool) -> T6:
-    """Per Gaussian -> (W [N,3,3], o_u [N,3], colour [N,3], PBF bounds [N,4], alive [N], inside [N])."""
+    """Per Gaussian -> (W [N,3,3], o_u [N,3], color [N,3], PBF bounds [N,4], alive [N], inside [N])."""
     _one_device("preprocess_forward", means_c, quats, scales, opacities, sh, sh_dirs, rot_c)
     return tuple(_build(means_c).preprocess_forward(means_c, quats, scales, opacities, sh, sh_dirs, rot_c,
                                                     sh_degree, paper))
@@ -172,7 +172,7 @@ def render_backward(whiten: Tensor, o_u: Tensor, rgb: Tensor, opacities: Tensor,
                     width: int, tile_size: int, t_final: Tensor, n_contrib: Tensor, blended_lanes: Tensor,
                     g_rgb: Tensor, g_depth: Tensor, g_acc: Tensor, absgrad_rows: Tensor, dir_grad: bool) -> T3:
     """-> (gradient rows [N,16]: the canonical moment K = dL/dW W^T row-major (what the preprocess backward takes in
-    W's slot), o_u, colour, opacity; absgrad [N,2], empty when absgrad_rows is; dL/d(ray directions) [R,3] when
+    W's slot), o_u, color, opacity; absgrad [N,2], empty when absgrad_rows is; dL/d(ray directions) [R,3] when
     `dir_grad`, else empty)."""
     _one_device("render_backward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
                 ranges, t_final, n_contrib, g_rgb, g_depth, g_acc, absgrad_rows)
@@ -195,7 +195,7 @@ def _(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, va
 
 def render_grads(kernels, saved, layout, g_rgb, g_depth, g_acc, rows: Tensor,
                  dir_grad: bool = False) -> Tuple[Tensor, ...]:
-    """The render stage's backward (missing gradients are zeros): (W's slot (K), o_u, colour, opacity, absgrad or
+    """The render stage's backward (missing gradients are zeros): (W's slot (K), o_u, color, opacity, absgrad or
     None, ray directions or None). saved: the forward's 11 inputs from whiten to ranges, then T_final, n_contrib,
     blended lanes."""
     whiten, dirs = saved[0], saved[5]

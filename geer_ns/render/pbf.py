@@ -1,6 +1,6 @@
 """Stage 2: Particle Bounding Frustum (PBF), paper Sec. 3.2, Eq. 7-10 and App. D.1-D.2.
 
-For each Gaussian we bound the set of ray directions (half-lines from the camera centre) that pass
+For each Gaussian we bound the set of ray directions (half-lines from the camera center) that pass
 through its lambda-ellipsoid {p : (p - mu_c)^T Sigma_c^-1 (p - mu_c) <= lambda^2}. The bound is two
 angular intervals: theta = atan2(x, z) in the xz-plane and phi = atan2(y, z) in the yz-plane.
 
@@ -82,7 +82,7 @@ class PBF:
     phi_lo: Tensor
     phi_hi: Tensor
     alive: Tensor  # [N] alpha can reach 1/255 at all
-    camera_inside: Tensor  # [N] camera centre inside the lambda-ellipsoid
+    camera_inside: Tensor  # [N] camera center inside the lambda-ellipsoid
     cone: Tensor | None = None  # [N, 9] the cone test's form (cones.gaussian_cone_form); None: the box test alone
 
     @property
@@ -134,7 +134,7 @@ def _plane_bounds(
 @torch.no_grad()
 def compute_pbf(means_c: Tensor, cov_factor: Tensor, lam2: Tensor, alive: Tensor, o_u: Tensor) -> PBF:
     """PBF angular bounds from view-space means [N,3], covariance factors M = R_v S [N,3,3] (Sigma_c = M M^T),
-    lambda^2 [N] and the camera centre in each canonical frame o_u [N,3].
+    lambda^2 [N] and the camera center in each canonical frame o_u [N,3].
 
     Complete for the half-line rule (transmittance.py): a ray is visible only where its half-line t >= 0
     meets the lambda-ellipsoid. With the camera outside it, a ray whose line peaks behind the camera has

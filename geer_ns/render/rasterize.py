@@ -1,10 +1,10 @@
 """The 3DGEER pipeline in PyTorch: the specification for the CUDA kernels and the CPU renderer.
 
-    preprocess (per Gaussian)  view transform, whitening, PBF, colour        transforms/pbf/sh
+    preprocess (per Gaussian)  view transform, whitening, PBF, color        transforms/pbf/sh
     associate (per tile)       PBF x CSF overlap, front-to-back lists        associate
     render (per ray)           exact transmittance, front-to-back blending   transmittance/composite/blend
 
-Everything is differentiable with autograd w.r.t. means, quats, scales, opacities and colours; the
+Everything is differentiable with autograd w.r.t. means, quats, scales, opacities and colors; the
 discrete steps (association, skipping, early termination) are piecewise constant.
 """
 
@@ -38,7 +38,7 @@ class Preprocessed:
 
     means_c: Tensor  # [N, 3] view-space means (read .grad after backward for densification)
     whiten: Tensor  # [N, 3, 3] W = S^-1 R_v^T
-    o_u: Tensor  # [N, 3] camera centre in each canonical frame
+    o_u: Tensor  # [N, 3] camera center in each canonical frame
     colors: Tensor  # [N, 3]
     opacities: Tensor  # [N]
     depth: Tensor  # [N] Euclidean distance of the mean, the sort key

@@ -2,7 +2,7 @@
 camera sub-frusta (CSFs) of paper Sec. 3.2, each with the angular bounds of its own rays.
 
 Two constructors: `RayGrid.beap` samples rays uniformly in (theta, phi) = (atan(x/z), atan(y/z))
-(paper Eq. 6 and 11), so image tiles and CSFs share one parameterisation; `RayGrid.from_rays` takes
+(paper Eq. 6 and 11), so image tiles and CSFs share one parameterization; `RayGrid.from_rays` takes
 any camera model's per-pixel rays (fisheye, pinhole, equirectangular, ...). Both derive the tile
 bounds from the tile's rays themselves, so the bounds are exact for the rays that are rendered.
 Invalid rays (outside a fisheye circle, masked) are skipped; a tile without a valid ray is inactive.
@@ -170,7 +170,7 @@ class RayGrid:
         device: torch.device | str = "cpu",
     ) -> "RayGrid":
         """BEAP grid (paper Eq. 11): w x h cells uniform in theta over fov_x and phi over fov_y (radians),
-        centred on `center` = (theta, phi). Angles must stay inside (-pi/2, pi/2)."""
+        centered on `center` = (theta, phi). Angles must stay inside (-pi/2, pi/2)."""
         dirs = beap_directions(width, height, fov_x, fov_y, center, dtype, device)
         return cls.from_rays(dirs, valid, tile_size)
 
@@ -230,7 +230,7 @@ def beap_directions(
     dtype: torch.dtype = torch.float32,
     device: torch.device | str = "cpu",
 ) -> Tensor:
-    """Unit directions [h, w, 3] at BEAP cell centres: theta_j = c_x + fov_x * ((j + 0.5) / w - 0.5)."""
+    """Unit directions [h, w, 3] at BEAP cell centers: theta_j = c_x + fov_x * ((j + 0.5) / w - 0.5)."""
     theta = center[0] + fov_x * ((torch.arange(width, dtype=torch.float64) + 0.5) / width - 0.5)
     phi = center[1] + fov_y * ((torch.arange(height, dtype=torch.float64) + 0.5) / height - 0.5)
     limit = math.pi / 2

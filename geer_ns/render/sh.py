@@ -1,4 +1,4 @@
-"""Stage: view-dependent colour from real spherical harmonics, degrees 0-3.
+"""Stage: view-dependent color from real spherical harmonics, degrees 0-3.
 
 Same basis, ordering and +0.5 offset as 3DGS/gsplat, so splatfacto's `features_dc`/`features_rest`
 are used unchanged. Bands above the active degree are never evaluated (skip what is not needed).
@@ -40,7 +40,7 @@ def num_sh_bases(degree: int) -> int:
 def sh_to_color(coeffs: Tensor, dirs: Tensor, degree: int) -> Tensor:
     """RGB [N, 3] from SH coefficients [N, K, 3] (K >= (degree+1)^2) and view directions [N, 3].
 
-    Directions need not be normalised. Output is clamped at 0 from below (as gsplat does); a colour exactly
+    Directions need not be normalized. Output is clamped at 0 from below (as gsplat does); a color exactly
     at 0 gets no gradient (subgradients.floor_at, as csrc/geer_math.h sh_backward).
     """
     if not 0 <= degree <= 3:

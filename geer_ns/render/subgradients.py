@@ -7,7 +7,7 @@ both sides are valid subgradients, and a tie is a single point of the parameter 
 same comparisons (csrc/geer_math.h sh_backward, preprocess_backward_gaussian; csrc/geer_ray.h eval_pair,
 ray_backward_step). Written as explicit masks here, not left to how a torch version differentiates clamp.
 
-Where the renderer clamps (twin / kernels): the SH colour at 0 and the SH direction's norm at tiny (sh.py /
+Where the renderer clamps (twin / kernels): the SH color at 0 and the SH direction's norm at tiny (sh.py /
 sh_backward), scales at MIN_SCALE (transforms.whitening / preprocess_backward_gaussian), |d_u|^2 at tiny and
 alpha at 0.99 (transmittance.py / eval_pair, ray_backward_step), depth = max(t*, 0) (half_line_sq /
 half_line_backward), the accumulation under the expected depth (outputs.images, shared). normalize_quats' clamps

@@ -1,6 +1,6 @@
 """Stage 1: Gaussians to view space and to each Gaussian's canonical (whitened) frame.
 
-Conventions: quaternions are wxyz and are normalised here; the camera frame is OpenCV's
+Conventions: quaternions are wxyz and are normalized here; the camera frame is OpenCV's
 (x right, y down, z forward); `viewmat` maps world to camera.
 
 A Gaussian is x = R S u + mu with u ~ N(0, I) (paper Eq. B.4). Its canonical frame is reached with
@@ -21,7 +21,7 @@ MIN_SCALE = 1e-12
 
 def normalize_quats(quats: Tensor) -> Tensor:
     """Unit quaternions [..., 4] from any non-zero ones. Dividing by the largest |component| first keeps
-    the norm's squares in range: a float32 quaternion of norm 1e19 (or 1e-25) normalises exactly."""
+    the norm's squares in range: a float32 quaternion of norm 1e19 (or 1e-25) normalizes exactly."""
     tiny = torch.finfo(quats.dtype).tiny
     q = quats / quats.abs().amax(dim=-1, keepdim=True).clamp_min(tiny)
     return q / q.norm(dim=-1, keepdim=True).clamp_min(tiny)
@@ -58,7 +58,7 @@ def view_transform(means: Tensor, viewmat: Tensor) -> Tensor:
 
 
 def camera_offsets(means: Tensor, viewmat: Tensor) -> Tensor:
-    """mu - camera centre [N, 3] in world axes (SH view directions), in float64 for the same reason."""
+    """mu - camera center [N, 3] in world axes (SH view directions), in float64 for the same reason."""
     vm = viewmat.to(torch.float64)
     center = -vm[:3, :3].T @ vm[:3, 3]
     return (means.to(torch.float64) - center).to(means.dtype)

@@ -2,16 +2,16 @@
 
 In a Gaussian's canonical frame the ray is r_u(t) = o_u + t d_u with o_u = W (o - mu), d_u = W d, and the
 integral of the isotropic density along the whole line (the Jacobian absorbed into the measure, Eq. B.5)
-is exp(-D^2 / 2) with D = |o_u x d_u| / |d_u| the distance from the centre to the line. D is evaluated in
-exactly that cross-product form, with d_u normalised first: the expanded |o|^2 |d|^2 - (o.d)^2 (Eq. C.16)
+is exp(-D^2 / 2) with D = |o_u x d_u| / |d_u| the distance from the center to the line. D is evaluated in
+exactly that cross-product form, with d_u normalized first: the expanded |o|^2 |d|^2 - (o.d)^2 (Eq. C.16)
 cancels catastrophically for needles, disks and far-away Gaussians (paper App. C.7), and squaring
-|o_u x d_u| before normalising would overflow float32 for 1e-8 scales at 1e4 m.
+|o_u x d_u| before normalizing would overflow float32 for 1e-8 scales at 1e4 m.
 
 The half-line rule. A ray is the half-line t >= 0, and the paper's closed form is the response at the
 line's closest point t*, which lies behind the camera when t* < 0 (App. B.2 sidesteps this by culling
 Gaussians around the camera, a jump as the camera moves through one). Every pair here responds with the
 peak on the half-line, sigma exp(-q(max(t*, 0)) / 2), q(t) = |o_u + t d_u|^2: q = D^2 where t* > 0 (the
-paper's value, unchanged) and q = |o_u|^2, the response at the camera centre, otherwise. Why this and not
+paper's value, unchanged) and q = |o_u|^2, the response at the camera center, otherwise. Why this and not
 the integral over t >= 0 (the closed form times an erfc factor): it equals the paper's value whenever the
 peak is in front of the camera (the erfc form departs from it for every t* > 0 too), it is continuous in
 the camera position and ray direction (q is even C^1 across t* = 0: both branches are |o_u|^2 with
@@ -48,7 +48,7 @@ def ray_frame(o_u: Tensor, w: Tensor) -> Tensor:
 def canonical_ray_response(o_u: Tensor, w: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
     """Squared canonical distance D^2 of the whole line and the ray parameter of its maximum response t*.
 
-    o_u [..., K, 3] camera centre in each Gaussian's canonical frame, w [..., K, 3, 3] whitening matrices,
+    o_u [..., K, 3] camera center in each Gaussian's canonical frame, w [..., K, 3, 3] whitening matrices,
     dirs [..., P, 3] unit ray directions (camera frame). Returns D^2 and t* of shape [..., P, K]; t* is the
     distance along the unit ray to the point of maximum response (negative: behind the camera).
     """
@@ -57,7 +57,7 @@ def canonical_ray_response(o_u: Tensor, w: Tensor, dirs: Tensor) -> tuple[Tensor
     rows = rows.unflatten(-2, (frame.shape[-3], 7)).transpose(-1, -3)  # [..., P, 7, K]
     d_u, moment, along = rows[..., 0:3, :], rows[..., 3:6, :], rows[..., 6, :]
     inv_norm = torch.rsqrt(floor_at((d_u * d_u).sum(-2), torch.finfo(d_u.dtype).tiny))
-    m_hat = moment * inv_norm[..., None, :]  # normalise before squaring: no overflow for 1e-8 scales
+    m_hat = moment * inv_norm[..., None, :]  # normalize before squaring: no overflow for 1e-8 scales
     dist_sq = (m_hat * m_hat).sum(-2)
     t_star = -along * inv_norm * inv_norm
     return dist_sq, t_star
@@ -66,7 +66,7 @@ def canonical_ray_response(o_u: Tensor, w: Tensor, dirs: Tensor) -> tuple[Tensor
 def half_line_sq(dist_sq: Tensor, t_star: Tensor, o_u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """(q, depth, front) of the half-line rule, from canonical_ray_response's [..., P, K] and o_u [..., K, 3].
 
-    q = q(max(t*, 0)): D^2 where t* > 0 (`front`), |o_u|^2 (the camera centre's own q) otherwise; depth =
+    q = q(max(t*, 0)): D^2 where t* > 0 (`front`), |o_u|^2 (the camera center's own q) otherwise; depth =
     max(t*, 0). Where t* <= 0 neither depends on the ray: no gradient to W, and depth's derivative is 0
     (also at t* = 0 exactly, the kink of max).
     """

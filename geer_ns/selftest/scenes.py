@@ -1,6 +1,6 @@
 """The self-test's scenes and cameras: seeded, made here from numbers alone (no data files), in float64.
 
-Each scene is (means, quats, scales, opacities, colours) in the camera frame of an identity view (the camera at
+Each scene is (means, quats, scales, opacities, colors) in the camera frame of an identity view (the camera at
 the origin looking along +z, OpenCV axes), meant to reach the renderer's rare paths: the stress Gaussians
 (disks, needles, the camera inside one, straddling z = 0, behind the camera, a scale below MIN_SCALE, non-unit
 quaternions, opacities exactly 0 and 1), and `gap_scene`, the randomized case of issue 33 that found a float32
@@ -21,7 +21,7 @@ Scene = tuple[Tensor, Tensor, Tensor, Tensor, Tensor]
 
 
 def random_gaussians(n: int, seed: int, *, around: bool, scale_range=(0.02, 0.4), opacity_range=(0.05, 0.95)) -> Scene:
-    """n random anisotropic Gaussians with RGB colours: in front of the camera (z ~ 4) or on all sides of it."""
+    """n random anisotropic Gaussians with RGB colors: in front of the camera (z ~ 4) or on all sides of it."""
     gen = torch.Generator().manual_seed(seed)
     if around:
         d = torch.randn(n, 3, generator=gen, dtype=F64)
@@ -36,7 +36,7 @@ def random_gaussians(n: int, seed: int, *, around: bool, scale_range=(0.02, 0.4)
 
 
 def _rows(rows, seed: int) -> Scene:
-    """((mean, scales, opacity), ...) -> a scene with random quaternions of norm ~3 and random colours."""
+    """((mean, scales, opacity), ...) -> a scene with random quaternions of norm ~3 and random colors."""
     gen = torch.Generator().manual_seed(seed)
     n = len(rows)
     means, scales, opac = (torch.tensor([r[k] for r in rows], dtype=F64) for k in range(3))
