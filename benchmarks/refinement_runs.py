@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,9 +45,9 @@ def small_dev_room(work: Path, size: int, room: Path = DEV_ROOM) -> Path:
 def train_and_score(name: str, data: Path, steps: int, overrides: dict, out: Path, optimizers: dict | None = None):
     """(ns-eval's averaged metrics of the eval split, seconds of training, the trained pipeline). overrides: model
     options (dotted: camera_optimizer.mode); optimizers: parameter group -> optimizer entry replacing geer's."""
-    from nerfstudio.scripts.train import _set_random_seed
     from nerfstudio.utils import writer
 
+    from geer_ns.compare.run import train_timed
     from geer_ns.config import geer_trainer_config
     from geer_ns.model import GeerModelConfig
 
@@ -67,13 +66,7 @@ def train_and_score(name: str, data: Path, steps: int, overrides: dict, out: Pat
             target = getattr(target, part)
         setattr(target, leaf, value)
     config.optimizers.update(optimizers or {})
-    writer.EVENT_WRITERS.clear()
-    _set_random_seed(config.machine.seed)
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    start = time.perf_counter()
-    trainer.train()
-    seconds = time.perf_counter() - start
+    trainer, seconds = train_timed(config)
     metrics = trainer.pipeline.get_average_eval_image_metrics(step=steps)
     writer.EVENT_WRITERS.clear()
     return metrics, seconds, trainer.pipeline

@@ -33,9 +33,6 @@ class Result:
 
 def train(method: Method, steps: int, out_dir: Path):
     """nerfstudio's Trainer on the method's config with the common schedule; returns (pipeline, seconds)."""
-    from nerfstudio.scripts.train import _set_random_seed
-    from nerfstudio.utils import writer
-
     config = method.config
     config.data = config.pipeline.datamanager.data = method.data
     config.pipeline.datamanager.dataparser.data = method.data
@@ -52,13 +49,23 @@ def train(method: Method, steps: int, out_dir: Path):
         scheduler = optimizer.get("scheduler")
         if scheduler is not None and hasattr(scheduler, "max_steps"):
             scheduler.max_steps = steps
+    trainer, seconds = train_timed(config)
+    return trainer.pipeline, seconds
+
+
+def train_timed(config):
+    """nerfstudio's Trainer on `config` in this process, seeded as ns-train seeds it; returns (the trained
+    trainer, seconds of training). The writers of an earlier run in this process are dropped first."""
+    from nerfstudio.scripts.train import _set_random_seed
+    from nerfstudio.utils import writer
+
     writer.EVENT_WRITERS.clear()
     _set_random_seed(config.machine.seed)
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     start = time.perf_counter()
     trainer.train()
-    return trainer.pipeline, time.perf_counter() - start
+    return trainer, time.perf_counter() - start
 
 
 def _render_camera(kind: str, cameras, index: int) -> CameraModel:
