@@ -71,5 +71,4 @@ print("  metrics    : " + ", ".join(f"{k} {results[k]:.3f}" if k in results else
 EOF
 echo "  tensorboard: .venv/bin/tensorboard --logdir $RUN"
 echo "  viewer     : .venv/bin/ns-viewer --load-config $RUN/config.yml"
-echo "  export     : .venv/bin/ns-export gaussian-splat --load-config $RUN/config.yml --output-dir $RUN/export"
-echo "               (nerfstudio's exporter imports open3d, which needs Debian's libusb-1.0-0 on this kind of machine)"
+echo "  export     : .venv/bin/geer-export --load-config $RUN/config.yml --output-dir $RUN/export"
