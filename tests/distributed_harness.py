@@ -239,6 +239,27 @@ def sharded_fault_main(local_rank: int, world_size: int, config, global_rank: in
     fault_plan(local_rank, world_size, config, global_rank, distributed="gaussians")
 
 
+PAUSE_S = 2.0  # how much longer than --machine.timeout-s rank 0 stays paused
+
+
+def pause_main(local_rank: int, world_size: int, config, global_rank: int = 0):
+    """A launch of its own: rank 0 is paused (as by the viewer's "Pause training") after its step 2 for longer
+    than the timeout, then resumed; each rank that finishes training writes finished_<rank>."""
+    import threading
+
+    def pause_at(trainer, step):
+        if global_rank == 0 and step == 2:
+            trainer.training_state = "paused"
+            resume = lambda: setattr(trainer, "training_state", "training")  # noqa: E731 - the viewer's click
+            threading.Timer(config.machine.timeout_s + PAUSE_S, resume).start()
+
+    data, out = Path(config.pipeline.datamanager.data), Path(config.output_dir)
+    cfg = scenario_config(data, out, "paused", steps=5)
+    cfg.machine.timeout_s = config.machine.timeout_s
+    trainer = train(local_rank, world_size, cfg, global_rank, callbacks=[pause_at])
+    _write(out / f"finished_{global_rank}.json", {"waited_s": trainer.gate.waited_s, "step": trainer.step})
+
+
 # ------------------------------------------------------------------------------------- sharded renders
 SHARD_CASES = ("fisheye180", "equirect360", "beap_other_rank_and_none")
 

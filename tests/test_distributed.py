@@ -48,6 +48,9 @@ def _launch(config, log: Path, main=harness.main) -> None:
     """Two CPU processes through nerfstudio's launcher, their output in `log`."""
     from nerfstudio.scripts.train import launch
 
+    from geer_ns.distributed.trainer import install_run_fixes
+
+    install_run_fixes()  # what ns-train's main does first for a geer config (GeerTrainerConfig.set_timestamp)
     with _output_to(log):
         launch(main, num_devices_per_machine=2, num_machines=1, machine_rank=0, dist_url="auto",
                config=config, device_type="cpu")
@@ -169,6 +172,19 @@ def test_a_killed_process_stops_the_other_with_one_line_within_the_timeout(launc
     print(f"from the kill to the end of the launch: {ended - killed_at:.1f} s (timeout {config.machine.timeout_s} s)")
     assert ended - killed_at < config.machine.timeout_s
     assert not list((out / "killed").rglob("*.partial")) and not list((out / "killed").rglob("*.ckpt"))
+
+
+def test_a_process_paused_in_the_viewer_past_the_timeout_does_not_stop_the_others(room, tmp_path):
+    """Rank 0 paused (the viewer's "Pause training") for longer than --machine.timeout-s: rank 1 waits at the
+    next step's gate, not in a collective that would time out, and both finish."""
+    config = harness.scenario_config(room, tmp_path, "pause")
+    config.machine.timeout_s = 8.0  # above the processes' start-up skew on a loaded machine
+    stop, _ = _killed_launch(config, tmp_path / "log.txt", harness.pause_main)
+    log = tmp_path / "log.txt"
+    assert stop is None or stop.code in (0, None), _text(log)[-2000:]
+    finished = [json.loads((tmp_path / f"finished_{rank}.json").read_text()) for rank in range(2)]
+    assert finished[1]["waited_s"] >= config.machine.timeout_s, finished  # it waited at the gate, past the timeout
+    assert finished[0]["step"] == finished[1]["step"] == 4
 
 
 # ---------------------------------------------------------------------------------- sharded renders

@@ -16,6 +16,8 @@ import os
 
 import torch
 
+from geer_ns.distributed import gate
+
 
 def install_launch_router() -> None:
     """Route nerfstudio's `mp.spawn(_distributed_worker, ...)` for geer configs to `distributed_worker`."""
@@ -61,13 +63,21 @@ def distributed_worker(local_rank, main_func, world_size, num_devices_per_machin
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         torch.set_num_threads(max(1, cores // num_devices_per_machine))
     timeout = timedelta(seconds=float(getattr(config.machine, "timeout_s", timeout.total_seconds())))
+    if device_type == "cuda":
+        # A timed-out NCCL collective raises in the waiting thread (one line, trainer._stop) instead of NCCL's
+        # watchdog tearing the process down; the user's own settings win.
+        os.environ.setdefault("TORCH_NCCL_BLOCKING_WAIT", "1")
+        os.environ.setdefault("TORCH_NCCL_ASYNC_ERROR_HANDLING", "2")
     try:
-        dist.init_process_group(backend="nccl" if device_type == "cuda" else "gloo", init_method=dist_url,
-                                world_size=world_size, rank=global_rank, timeout=timeout)
+        store = rendezvous_store(dist_url, world_size, global_rank, timeout)
+        rendezvous = {"init_method": dist_url} if store is None else {"store": dist.PrefixStore("geer-pg/", store)}
+        dist.init_process_group(backend="nccl" if device_type == "cuda" else "gloo", world_size=world_size,
+                                rank=global_rank, timeout=timeout, **rendezvous)
     except Exception as error:  # noqa: BLE001 - one line: which rank could not join, where, why
         print(f"geer: rank {global_rank} of {world_size} could not join the others at {dist_url} within "
               f"{timeout.total_seconds():g} s: {str(error).strip().splitlines()[0]}", file=sys.stderr, flush=True)
         raise SystemExit(1)
+    gate.use_store(store)
     for machine in range(world_size // num_devices_per_machine):  # nerfstudio's per-machine groups
         ranks = list(range(machine * num_devices_per_machine, (machine + 1) * num_devices_per_machine))
         group = dist.new_group(ranks)
@@ -78,6 +88,19 @@ def distributed_worker(local_rank, main_func, world_size, num_devices_per_machin
         return main_func(local_rank, world_size, config, global_rank)
     finally:
         dist.destroy_process_group()
+
+
+def rendezvous_store(dist_url: str, world_size: int, rank: int, timeout):
+    """The run's TCPStore at `dist_url` (tcp://host:port; rank 0 hosts it), shared by the process group and
+    the step gate (gate.py); None for other URL schemes (the process group then makes its own, no gate)."""
+    from urllib.parse import urlparse
+
+    import torch.distributed as dist
+
+    url = urlparse(dist_url)
+    if url.scheme != "tcp" or url.hostname is None or url.port is None:
+        return None
+    return dist.TCPStore(url.hostname, url.port, world_size, is_master=rank == 0, timeout=timeout)
 
 
 class ReportingContext:

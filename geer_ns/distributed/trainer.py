@@ -28,6 +28,7 @@ from nerfstudio.utils import profiler
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from geer_ns import compat, resume
+from geer_ns.distributed.gate import GateError, StepGate, registered_store
 from geer_ns.distributed.launch import install_launch_router
 from geer_ns.distributed.consistency import ReplicaMismatchError
 from geer_ns.distributed.image_parallel import ImageParallel
@@ -46,9 +47,9 @@ from geer_ns.errors import report_dataset_errors_in_one_line
 @dataclass
 class GeerMachineConfig(MachineConfig):
     timeout_s: float = 600.0
-    """Seconds a process waits for the others (start-up, each gradient reduction) before it stops with an error,
-    so a process that died or hangs ends the run within this time. Rank 0 evaluates and saves while the others
-    wait at the next step: keep it above the longest evaluation (--steps-per-eval-all-images)."""
+    """Seconds a process waits for a late one that is training (at each step's start, and in each collective)
+    before it stops with one line naming it. A process paused in the viewer, evaluating or saving is waited for
+    without limit; one that died is noticed within min(this, 120) s (distributed/gate.py)."""
     check_replicas_every: int = 0
     """Every this many steps, compare the replicas' parameter checksums over the processes and stop if they
     differ (0: never; the replicas are identical by construction)."""
@@ -75,6 +76,7 @@ class GeerTrainerConfig(TrainerConfig):
 
 class GeerTrainer(Trainer):
     config: GeerTrainerConfig
+    gate = None  # StepGate: the processes meet at each step's start (gate.py); None in one process
 
     def __init__(self, config: GeerTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         install_run_fixes()  # also for trainers built without ns-train's main (scripts, tests, spawned processes)
@@ -108,6 +110,10 @@ class GeerTrainer(Trainer):
         self.engine = engines[self.config.pipeline.model.distributed](self)
         self.engine.start()
         self.callbacks.extend(self.engine.callbacks())  # after the model's own: densification included
+        store = registered_store()
+        if self.world.distributed and store is not None:
+            self.gate = StepGate(store, self.world.rank, self.world.size, self.config.machine.timeout_s)
+            self.gate.set_state(self.training_state)
         self._say_start()
 
     def _say_start(self) -> None:
@@ -182,8 +188,25 @@ class GeerTrainer(Trainer):
         self._start_step = start
 
     # --------------------------------------------------------------------------------- the step
+    @property
+    def training_state(self) -> str:
+        return self._training_state
+
+    @training_state.setter
+    def training_state(self, state: str) -> None:
+        """nerfstudio's state ("training", "paused" by the viewer, "completed"), told to the other processes'
+        gate so that they wait for a paused rank 0 without limit."""
+        self._training_state = state
+        if self.gate is not None and state in ("training", "paused"):
+            try:
+                self.gate.set_state(state)
+            except Exception:  # noqa: BLE001 - the viewer's thread must survive; the training loop will say why
+                pass
+
     @profiler.time_function
     def train_iteration(self, step: int):
+        if self.gate is not None:
+            self.gate.wait(step)
         accumulate = self.gradient_accumulation_steps
         self.optimizers.zero_grad_some([g for g in self.optimizers.parameters if step % accumulate[g] == 0])
         device_type = "cpu" if self.device.split(":")[0] in ("cpu", "mps") else self.device.split(":")[0]
@@ -230,13 +253,18 @@ class GeerTrainer(Trainer):
             if not self.world.distributed:
                 raise
             self._stop(error)
+        finally:
+            if self.gate is not None:
+                self.gate.close()
 
     def _stop(self, error: BaseException) -> None:
         """One line naming this rank and the cause, then exit status 1 (the launcher stops the others)."""
         lost = _communication_failure(error)
-        if lost is None and not isinstance(error, ReplicaMismatchError):
+        if lost is None and not isinstance(error, (ReplicaMismatchError, GateError)):
             traceback.print_exc()
-        if lost is not None:
+        if isinstance(error, GateError):
+            what = str(error)
+        elif lost is not None:
             what = (f"lost the other processes ({lost}: one died, hung past --machine.timeout-s or was "
                     "unreachable; the first to fail says why)")
         else:
@@ -247,6 +275,8 @@ class GeerTrainer(Trainer):
 
     def eval_iteration(self, step: int) -> None:
         """On rank 0 (image-parallel: its replica; Gaussian-parallel: the gathered model, every rank helping)."""
+        if self.gate is not None:
+            self.gate.set_state("evaluating")  # the others wait for it at the next step's gate, without limit
         self.engine.evaluate(step, lambda: Trainer.eval_iteration(self, step))
 
     def save_checkpoint(self, step: int) -> None:
@@ -254,6 +284,8 @@ class GeerTrainer(Trainer):
         helping, nothing gathered), written by rank 0 whole or not at all (a temporary file renamed into place)."""
         path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
         partial = self.base_dir / f".{path.name}.partial"  # not in the folder --load-dir lists
+        if self.gate is not None:
+            self.gate.set_state("saving")
         if self.world.is_main:
             self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
         if isinstance(self.engine, GaussianParallel):
