@@ -157,15 +157,15 @@ def test_two_processes_equal_one_process_with_two_images_per_step(two_processes,
 
 @pytest.mark.parametrize("launch", ["two_processes", "sharded_fault"])
 def test_a_killed_process_stops_the_other_with_one_line_within_the_timeout(launch, request):
-    """Image-parallel (rank 0 meets the loss in its gradient all-reduce) and Gaussian-parallel (in its
-    all-to-all): one line from the survivor, one from the launcher, within --machine.timeout-s, nothing
-    half written."""
+    """Image-parallel and Gaussian-parallel: one line from the survivor (naming rank 1 at step 5's gate, or the
+    lost connection in a collective), one from the launcher, within --machine.timeout-s, nothing half written."""
     out, _, stop, ended, config = request.getfixturevalue(launch)
     assert stop is not None and stop.code == 1
     text = _text(out / "log.txt")  # the processes' and the launcher's lines
-    assert re.search(r"geer: rank 0 of 2 stopped at step 5: lost the other processes \(gloo: connection "
-                     r"(reset|closed) by peer: one died, hung past --machine.timeout-s or was unreachable; the first "
-                     r"to fail says why\)", text), text[-2000:]
+    gate = r"rank 1 stopped answering \(its process \d+ has ended\)"  # at step 5's gate (gate.py)
+    collective = (r"lost the other processes \(gloo: connection (reset|closed) by peer: one died, hung past "
+                  r"--machine.timeout-s or was unreachable; the first to fail says why\)")  # in a collective
+    assert re.search(rf"geer: rank 0 of 2 stopped at step 5: ({gate}|{collective})", text), text[-2000:]
     assert re.search(r"geer: training stopped: rank 1 \(pid \d+\) was killed by signal SIGKILL; the other 1 "
                      r"process\(es\) of this machine were stopped", text), text[-2000:]
     killed_at = float((out / "killed_at").read_text())

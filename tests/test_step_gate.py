@@ -129,3 +129,19 @@ def test_geers_nccl_processes_raise_a_timed_out_collective_instead_of_the_watchd
     assert seen["env"] == {"TORCH_NCCL_BLOCKING_WAIT": "1", "TORCH_NCCL_ASYNC_ERROR_HANDLING": "3"}
     assert seen["backend"] == "nccl" and isinstance(seen["store"], dist.PrefixStore)
     gate.use_store(None)
+
+
+def test_a_process_of_this_machine_that_ended_is_named_at_once(stores):
+    import subprocess
+    import sys
+
+    gates = _gates(stores, timeout_s=30.0, dead_after_s=30.0)
+    ended = subprocess.Popen([sys.executable, "-c", "pass"])
+    ended.wait()
+    gates[1].store.set("where/1", f"{socket.gethostname()} {ended.pid}")  # rank 1 was that process
+    started = time.monotonic()
+    with pytest.raises(GateError, match=rf"rank 1 stopped answering \(its process {ended.pid} has ended\)"):
+        gates[0].wait(0)
+    assert time.monotonic() - started < 5.0
+    for g in gates:
+        g.close()

@@ -6,8 +6,9 @@ viewer, evaluating or saving while the others go on) must not look like one that
 at this gate: a process announces its arrival on the store and waits there, polling, until every process has
 arrived. While it waits it watches the others through the store:
 
-- every process beats a counter from a thread (`beat_s`); a counter that stops for `dead_after_s` means the
-  process died or froze: one error naming it;
+- a process on the same machine whose process has ended is named at once; on another machine, every process
+  beats a counter from a thread (`beat_s`), and a counter that stops for `dead_after_s` means the process died
+  or froze: one error naming it;
 - a late process that says it is paused, evaluating or saving is waited for without limit (it beats);
 - a late process that says it is training and does not arrive within `timeout_s` is stuck: one error naming it.
 
@@ -17,6 +18,8 @@ increment and a few reads per step (tens of microseconds on a local store).
 
 from __future__ import annotations
 
+import os
+import socket
 import threading
 import time
 from typing import Dict, Optional
@@ -63,6 +66,7 @@ class StepGate:
         self._stop = threading.Event()
         self._beats: Dict[int, tuple] = {}  # peer -> (last count, when it last changed: monotonic)
         self.set_state("training")
+        self.store.set(f"where/{rank}", f"{socket.gethostname()} {os.getpid()}")
         self.store.add(f"beat/{rank}", 1)
         self._thread = threading.Thread(target=self._beat, name=f"geer-gate-beat-{rank}", daemon=True)
         self._thread.start()
@@ -106,6 +110,9 @@ class StepGate:
         for peer in range(self.size):
             if peer == self.rank or self.store.add(f"arrived/{peer}", 0) >= self.passed:
                 continue
+            host, pid = self.store.get(f"where/{peer}").decode().rsplit(" ", 1)
+            if host == socket.gethostname() and not _process_alive(int(pid)):
+                raise GateError(f"rank {peer} stopped answering (its process {pid} has ended)")
             count = self.store.add(f"beat/{peer}", 0)
             last, changed = self._beats.get(peer, (None, now))
             if count != last:
@@ -121,3 +128,18 @@ class StepGate:
             if now - since > self.timeout_s:
                 raise GateError(f"rank {peer} did not reach step {step} within --machine.timeout-s "
                                 f"{self.timeout_s:g} s (it is alive but stuck in its previous step)")
+
+
+def _process_alive(pid: int) -> bool:
+    """Whether process `pid` of this machine runs (a zombie, ended but not yet reaped, does not)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return True  # no /proc: os.kill's answer

@@ -11,7 +11,8 @@ tests/test_distributed.py emulates NCCL's rule).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, List, Sequence
+from collections import deque
+from typing import Any, Callable, Deque, List, Sequence
 
 import torch
 import torch.distributed as dist
@@ -19,6 +20,7 @@ from torch import Tensor
 
 # Gradient buckets of at most this many bytes (DistributedDataParallel's default bucket_cap_mb is 25).
 BUCKET_BYTES = 25 << 20
+BUCKETS_IN_FLIGHT = 2  # one reducing while the next is copied out: overlap without a second copy of everything
 
 
 @dataclass(frozen=True)
@@ -71,22 +73,41 @@ def exchange_counts(send: Sequence[int]) -> List[int]:
     return received.cpu().tolist()
 
 
-def all_reduce_(tensors: Sequence[Tensor], op: str = "sum", bucket_bytes: int = BUCKET_BYTES) -> None:
-    """Reduce every tensor in place over all processes, flattened into buckets of one dtype and device
-    (one collective per bucket, all in flight at once). op: "sum" or "max". No-op on one process."""
+def all_reduce_(tensors: Sequence[Tensor], op: str = "sum", bucket_bytes: int = BUCKET_BYTES,
+                in_flight: int = BUCKETS_IN_FLIGHT) -> None:
+    """Reduce every tensor in place over all processes, flattened into buckets of one dtype and device, at most
+    `in_flight` buckets' collectives at once (each bucket is a copy: more in flight would hold a second copy of
+    every gradient). op: "sum" or "max". No-op on one process."""
     if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1 or not tensors:
         return
     reduce_op = {"sum": dist.ReduceOp.SUM, "max": dist.ReduceOp.MAX}[op]
-    pending = []
-    for bucket in _buckets(tensors, bucket_bytes):
-        flat = on_backend_device(torch.cat([t.reshape(-1) for t in bucket]))
-        pending.append((bucket, flat, dist.all_reduce(flat, op=reduce_op, async_op=True)))
-    for bucket, flat, work in pending:
+    reduce_in_buckets(tensors, lambda flat: dist.all_reduce(flat, op=reduce_op, async_op=True), bucket_bytes,
+                      in_flight, place=on_backend_device)
+
+
+def reduce_in_buckets(tensors: Sequence[Tensor], start: Callable[[Tensor], Any], bucket_bytes: int,
+                      in_flight: int, place: Callable[[Tensor], Tensor] = lambda t: t) -> None:
+    """all_reduce_'s bucketing: `start(flat)` launches a bucket's collective on its flat copy (`place`d on the
+    backend's device) and returns what to `wait()` for; the oldest bucket is finished (copied back, freed)
+    before another beyond `in_flight` starts."""
+    pending: Deque = deque()
+
+    def finish() -> None:
+        bucket, flat, work = pending.popleft()
         work.wait()
         offset = 0
         for t in bucket:
             t.copy_(flat[offset : offset + t.numel()].view_as(t))
             offset += t.numel()
+
+    for bucket in _buckets(tensors, bucket_bytes):
+        if len(pending) >= max(1, in_flight):
+            finish()
+        flat = place(torch.cat([t.reshape(-1) for t in bucket]))
+        pending.append((bucket, flat, start(flat)))
+        del flat
+    while pending:
+        finish()
 
 
 def _buckets(tensors: Sequence[Tensor], bucket_bytes: int) -> List[List[Tensor]]:
