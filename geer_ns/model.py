@@ -49,7 +49,7 @@ from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angula
 from geer_ns.densify.strategy import GeerDefaultStrategy, build_strategy
 from geer_ns.distributed.engine import EngineState
 from geer_ns.metrics import central_region, downscale_mask, masked_psnr, region_psnr
-from geer_ns.options import IGNORED_OPTIONS, GeerOwnOptions
+from geer_ns.options import GeerOwnOptions, ignored_options_set
 from geer_ns.perceptual import build_lpips_if_cached
 from geer_ns.render import render
 from geer_ns.render.backend import announce_backend
@@ -141,7 +141,9 @@ class GeerModel(SplatfactoModel):
             self.bil_grids = BilateralGrid(num=self.num_train_data, grid_X=shape[0], grid_Y=shape[1], grid_W=shape[2])
         self.appearance = Appearance(self.num_train_data) if self.config.appearance == "exposure" else None
         self.engine_state = EngineState()  # until an engine attaches its own (geer_ns/distributed/engine.py)
-        self._say_ignored_options()
+        changed = ignored_options_set(self.config, GeerModelConfig())
+        if changed:
+            CONSOLE.print(f"[yellow]geer: ignoring splatfacto option(s) {', '.join(changed)} (not used by the 3DGEER renderer)")
         self.strategy, self.strategy_state = build_strategy(self.config, self.num_train_data, self.images_per_step)
         self.views: List[ViewRecord] = []  # this step's rendered training views, for the densification statistics
         self._statistics: Optional[StepStatistics] = None  # the step's statistics, when the engine reduced them
@@ -162,14 +164,6 @@ class GeerModel(SplatfactoModel):
         rgb = self.seed_points[1].float() / 255.0
         dc = RGB2SH(rgb) if self.config.sh_degree > 0 else torch.logit(rgb, eps=1e-10)
         return dc, torch.zeros(n, dim_sh - 1, 3)
-
-    def _say_ignored_options(self) -> None:
-        """One line naming the splatfacto options a user set that geer does not use (see IGNORED_OPTIONS)."""
-        defaults = GeerModelConfig()
-        changed = [f"{name}={getattr(self.config, name)!r}" for name in IGNORED_OPTIONS
-                   if getattr(self.config, name) != getattr(defaults, name)]
-        if changed:
-            CONSOLE.print(f"[yellow]geer: ignoring splatfacto option(s) {', '.join(changed)} (not used by the 3DGEER renderer)")
 
     # ------------------------------------------------------------------------------------- engine
     def attach(self, state: EngineState) -> None:

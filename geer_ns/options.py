@@ -7,7 +7,7 @@ collect fields along the reversed MRO, so these come first in `ns-train geer --h
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Optional, Tuple
+from typing import List, Literal, Optional, Tuple
 
 from geer_ns.render.backend import Backend
 from geer_ns.render.pbf import LambdaMode
@@ -73,10 +73,18 @@ IGNORED_OPTIONS = ("rasterize_mode", "output_depth_during_training", "color_corr
 OWN_OPTIONS_HELP = (
     "geer's own options: --pipeline.model.renderer-backend {auto,torch,cuda,cpu}, --pipeline.model.lambda-mode "
     "{opacity,paper}, --pipeline.model.strategy {default,mcmc}, "
-    "--pipeline.model.max-gaussians, --pipeline.model.densify-min-pixels, --pipeline.model.prune-unseen, --pipeline.model.distributed {images,gaussians}, "
+    "--pipeline.model.max-gaussians, --pipeline.model.densify-min-pixels, --pipeline.model.prune-unseen, "
+    "--pipeline.model.distributed {images,gaussians}, "
     "--pipeline.model.max-pairs, --pipeline.model.kernel-check-every, "
     "--pipeline.model.central-half-angles-deg, --pipeline.datamanager.supervision, "
     "--pipeline.datamanager.mask-edge-fill, --pipeline.datamanager.images-per-step, --machine.timeout-s; resume "
     "with --load-dir <run>/nerfstudio_models. Splatfacto options "
     "marked IGNORED are accepted and not used."
 )
+
+
+def ignored_options_set(config, defaults) -> List[str]:
+    """`name=value` of each IGNORED_OPTIONS entry `config` sets away from `defaults` (a default config), for
+    the one start-up line that says geer does not use them."""
+    return [f"{name}={getattr(config, name)!r}" for name in IGNORED_OPTIONS
+            if getattr(config, name) != getattr(defaults, name)]

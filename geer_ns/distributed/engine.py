@@ -100,7 +100,8 @@ class EngineModel(Protocol):
     def probe(self, view: Any, means: Tensor, viewmat: Tensor, scales: Tensor, opacities: Tensor) -> Any:
         """The densification leaves (densify.signal.ViewProbe) of a training view of these Gaussians."""
 
-    def view_outputs(self, out: Any, view: Any, background: Tensor, camera: Any, normals: Any = None) -> Dict[str, Tensor]:
+    def view_outputs(self, out: Any, view: Any, background: Tensor, camera: Any,
+                     normals: Any = None) -> Dict[str, Tensor]:
         """nerfstudio's outputs of a render of `camera`."""
 
     def step_statistics(self) -> Any:

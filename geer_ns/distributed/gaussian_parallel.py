@@ -89,8 +89,8 @@ class GaussianParallel:
 
     def describe(self) -> List[str]:
         model = self.trainer.pipeline.model
-        return [f"Gaussians sharded over {self.world.size} process(es): {model.num_points} of {self.state.scene_gaussians} "
-                "here; rank 0 evaluates and serves the viewer from the gathered model"]
+        return [f"Gaussians sharded over {self.world.size} process(es): {model.num_points} of "
+                f"{self.state.scene_gaussians} here; rank 0 evaluates and serves the viewer from the gathered model"]
 
     # --------------------------------------------------------------------------------- the step
     def views(self, step: int) -> Iterator[Tuple[Dict, Callable[[], Dict[str, Tensor]]]]:
