@@ -3,7 +3,8 @@
 It keeps splatfacto's `gauss_params` (means, scales, quats, features_dc, features_rest, opacities). Training
 batches are rendered in the view the datamanager cached them in (BEAP or the camera's own rays), evaluation and
 viewer cameras on their own pixel rays; losses and metrics count valid pixels only; densification is gsplat's
-strategy fed geer's statistics (geer_ns/densify). Nothing assumes CUDA.
+strategy fed geer's statistics (geer_ns/densify). Nothing assumes CUDA. A training engine (one or many processes)
+attaches its state and uses the model's public side only (geer_ns/distributed/engine.py).
 
 Why a subclass of SplatfactoModel rather than a model composing what it reuses: nerfstudio decides by
 `isinstance(model, SplatfactoModel)` whether the viewer shows a Gaussian scene (its render state machine, export
