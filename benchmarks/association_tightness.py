@@ -48,7 +48,7 @@ def load_scene(run: Path):
 
 def test_viewmat(run: Path) -> torch.Tensor:
     """World-to-camera (OpenCV) of the dev room's first held-out view, in the run's dataparser frame."""
-    from geer_ns.model import world_to_camera_opencv
+    from geer_ns.render.transforms import world_to_camera_opencv
 
     meta = json.loads((DEV_ROOM / "transforms_fisheye.json").read_text())
     name = meta["test_filenames"][0]

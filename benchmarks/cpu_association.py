@@ -75,7 +75,7 @@ def dev_room_case(room: Path = DATA / "fisheye_room_dev", with_scene: bool = Fal
     from geer_ns.cameras import EquidistantCamera
     from geer_ns.data.views import beap_view
     from geer_ns.data.ply import read_ply_points
-    from geer_ns.model import world_to_camera_opencv
+    from geer_ns.render.transforms import world_to_camera_opencv
 
     meta = json.loads((room / "transforms_fisheye.json").read_text())
     camera = EquidistantCamera(meta["w"], meta["h"], meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"])

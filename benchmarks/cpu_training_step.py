@@ -33,7 +33,7 @@ def dev_room_problem(size: int):
     from geer_ns.data.beap import BeapGrid, resample_to_beap
     from geer_ns.data.views import full_beap_grid
     from geer_ns.data.ply import read_ply_points
-    from geer_ns.model import world_to_camera_opencv
+    from geer_ns.render.transforms import world_to_camera_opencv
     from geer_ns.render import RayGrid
 
     meta = json.loads((ROOM / "transforms_fisheye.json").read_text())

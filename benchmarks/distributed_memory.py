@@ -88,7 +88,7 @@ def grow_to(trainer, n: int) -> None:
             p.data = new[name].to(p)
     model.strategy_state["id"] = torch.arange(n)[rows].clone()
     if model.config.distributed == "gaussians":
-        model.scene_gaussians = n
+        trainer.engine.state.scene_gaussians = n
 
 
 def worker_main(local_rank: int, world_size: int, cfg, global_rank: int = 0) -> None:

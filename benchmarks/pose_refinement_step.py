@@ -45,7 +45,7 @@ class Trainer:
     def step(self) -> float:
         from nerfstudio.utils import poses as pose_utils
 
-        from geer_ns.model import world_to_camera_opencv
+        from geer_ns.render.transforms import world_to_camera_opencv
         from geer_ns.render import render
 
         t0 = time.perf_counter()

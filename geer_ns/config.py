@@ -14,7 +14,8 @@ from nerfstudio.plugins.types import MethodSpecification
 
 from geer_ns.data.datamanager import GeerDataManagerConfig
 from geer_ns.distributed.trainer import GeerMachineConfig, GeerTrainerConfig
-from geer_ns.model import OWN_OPTIONS_HELP, GeerModelConfig
+from geer_ns.model import GeerModelConfig
+from geer_ns.options import OWN_OPTIONS_HELP
 from geer_ns.pipeline import GeerPipelineConfig
 
 MAX_STEPS = 30000

@@ -3,7 +3,8 @@
 It keeps splatfacto's `gauss_params` (means, scales, quats, features_dc, features_rest, opacities). Training
 batches are rendered in the view the datamanager cached them in (BEAP or the camera's own rays), evaluation and
 viewer cameras on their own pixel rays; losses and metrics count valid pixels only; densification is gsplat's
-strategy fed geer's statistics (geer_ns/densify). Nothing assumes CUDA.
+strategy fed geer's statistics (geer_ns/densify). Nothing assumes CUDA. A training engine (one or many processes)
+attaches its state and uses the model's public side only (geer_ns/distributed/engine.py).
 
 Why a subclass of SplatfactoModel rather than a model composing what it reuses: nerfstudio decides by
 `isinstance(model, SplatfactoModel)` whether the viewer shows a Gaussian scene (its render state machine, export
@@ -20,7 +21,6 @@ from dataclasses import dataclass, field
 from typing import Dict, List, Literal, Optional, Tuple, Type, Union
 
 import torch
-import torch.nn.functional as F
 from gsplat.strategy import MCMCStrategy
 from pytorch_msssim import SSIM
 from torch import Tensor
@@ -43,77 +43,24 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from geer_ns import compat, depth_supervision, resume
 from geer_ns import outputs as geer_outputs
 from geer_ns.appearance import Appearance
-from geer_ns.cameras import CameraModel
 from geer_ns.color_metrics import color_corrected_metrics
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, host_camera_model, native_view
-from geer_ns.densify.mcmc_cpu import install_mcmc_cpu_ops
 from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angular_signal
-from geer_ns.densify.strategy import GeerDefaultStrategy
+from geer_ns.densify.strategy import GeerDefaultStrategy, build_strategy
+from geer_ns.distributed.engine import EngineState
+from geer_ns.metrics import central_region, downscale_mask, masked_psnr, region_psnr
+from geer_ns.options import GeerOwnOptions, ignored_options_set
 from geer_ns.perceptual import build_lpips_if_cached
 from geer_ns.render import render
-from geer_ns.render.backend import Backend, announce_backend
+from geer_ns.render.backend import announce_backend
 from geer_ns.render.normals import render_normals
-from geer_ns.render.pbf import LambdaMode, pbf_lambda_sq
-from geer_ns.render.transforms import view_transform
+from geer_ns.render.pbf import pbf_lambda_sq
+from geer_ns.render.transforms import view_transform, world_to_camera_opencv
 from geer_ns.render_guard import RenderGuard, camera_problem, in_viewer_thread, is_viewer_interrupt
-from geer_ns.selftest.sentinel import DEFAULT_EVERY, KernelSentinel, ViewInputs
+from geer_ns.selftest.sentinel import KernelSentinel, ViewInputs
 
 View = Union[BeapView, NativeView]
-
-
-@dataclass
-class GeerOwnOptions:
-    """geer's own model options. GeerModelConfig lists this class after SplatfactoModelConfig among its bases:
-    dataclasses collect fields along the reversed MRO, so these come first in `ns-train geer --help`."""
-
-    strategy: Literal["default", "mcmc"] = "default"
-    """Densification: gsplat's DefaultStrategy (3DGS heuristics) or MCMCStrategy."""
-    max_gaussians: int = 0
-    """Most Gaussians densification may create (0: no limit); the strongest candidates grow first. With
-    strategy=mcmc, the cap of MCMCStrategy when set."""
-    densify_min_pixels: float = 1.0
-    """A Gaussian splits or duplicates only where some training view resolves it: its radius (the 1/255
-    contour) at least this many of that view's pixels. Finer Gaussians add nothing the images can show."""
-    prune_unseen: bool = True
-    """Prune Gaussians whose blend weight stayed below 1/255 on every training ray for a whole pass over the
-    training images (too faint, or hidden behind opaque surfaces in every view)."""
-    distributed: Literal["images", "gaussians"] = "images"
-    """With several processes (--machine.num-devices): "images", every process holds the whole model and trains
-    on its own images; "gaussians", each holds a shard of the Gaussians (scenes larger than one device), and
-    every camera is rendered from the shards' Gaussians it sees (geer_ns/distributed/sharded_render.py)."""
-    renderer_backend: Backend = "auto"
-    """geer_ns.render backend: auto (CPU tensors: the kernels' math compiled for the CPU, JIT-built once, else
-    the PyTorch renderer, said once; CUDA tensors: the kernels once they passed their self-test on this GPU,
-    docs/cuda.md),
-    torch, cuda (opt in to the kernels) or cpu (the compiled CPU build; benchmarks/cpu_training.md)."""
-    kernel_check_every: int = DEFAULT_EVERY
-    """Every this many steps one training view is also rendered by the PyTorch renderer and compared with the
-    compiled renderer; a disagreement switches the run to the PyTorch renderer (0: never; docs/cuda.md)."""
-    lambda_mode: LambdaMode = "opacity"
-    """PBF extent rule of the renderer (geer_ns.render.pbf)."""
-    max_pairs: int = 1 << 22
-    """Renderer memory cap: (ray, Gaussian) pairs evaluated at once."""
-    central_half_angles_deg: Optional[Tuple[float, float]] = None
-    """Half-extents (theta, phi) of the 'central' eval region in degrees; None = the paper's App. G rule
-    (theta in +-w/(2 fx), phi in +-h/(2 fy))."""
-    appearance: Literal["off", "exposure"] = "off"
-    """"exposure": a per-image exposure and white balance and the camera's vignetting (radial falloff in the
-    ray's angle from the optical axis), applied in linear light to each rendered training image; evaluation
-    renders neutral exposure with the learnt vignetting (geer_ns/appearance.py). use-bilateral-grid is the other
-    option."""
-    appearance_reg: float = 0.1
-    """appearance=exposure: weight pulling the images' mean log gain to zero."""
-    mcmc_cap_max: int = 1_000_000
-    """strategy=mcmc: most Gaussians (gsplat MCMCStrategy cap_max)."""
-    mcmc_noise_lr: float = 5e5
-    """strategy=mcmc: learning rate of the sampling noise on the means (gsplat MCMCStrategy noise_lr)."""
-    mcmc_min_opacity: float = 0.005
-    """strategy=mcmc: Gaussians below this opacity are relocated (gsplat MCMCStrategy min_opacity)."""
-    mcmc_opacity_reg: float = 0.01
-    """strategy=mcmc: weight of the mean-opacity loss."""
-    mcmc_scale_reg: float = 0.01
-    """strategy=mcmc: weight of the mean-scale loss."""
 
 
 def _model_config_default(name: str):
@@ -146,50 +93,6 @@ class GeerModelConfig(SplatfactoModelConfig, depth_supervision.DepthSupervisionO
     """IGNORED by geer: metrics are computed over the valid pixels, without color correction."""
     n_split_samples: int = 2
     """IGNORED by geer: gsplat's DefaultStrategy splits a Gaussian into two."""
-    # Set by the training engine (geer_ns.distributed.schedule), not on the command line: the images one
-    # training step sees over all processes. The step-valued options above are then in steps of that many
-    # images, and checkpoints record it so that steps convert when a run is resumed or evaluated with another.
-    images_per_step_total: tyro.conf.Suppress[int] = 1
-
-
-# splatfacto options geer accepts (so that splatfacto command lines still parse) but does not use.
-IGNORED_OPTIONS = ("rasterize_mode", "output_depth_during_training", "color_corrected_metrics", "n_split_samples")
-# geer's own options, listed first in `ns-train geer --help` (the method description).
-OWN_OPTIONS_HELP = (
-    "geer's own options: --pipeline.model.renderer-backend {auto,torch,cuda,cpu}, --pipeline.model.lambda-mode "
-    "{opacity,paper}, --pipeline.model.strategy {default,mcmc}, "
-    "--pipeline.model.max-gaussians, --pipeline.model.densify-min-pixels, --pipeline.model.prune-unseen, --pipeline.model.distributed {images,gaussians}, "
-    "--pipeline.model.max-pairs, --pipeline.model.kernel-check-every, "
-    "--pipeline.model.central-half-angles-deg, --pipeline.datamanager.supervision, "
-    "--pipeline.datamanager.mask-edge-fill, --pipeline.datamanager.images-per-step, --machine.timeout-s; resume "
-    "with --load-dir <run>/nerfstudio_models. Splatfacto options "
-    "marked IGNORED are accepted and not used."
-)
-
-
-# ==================================================================================================
-# Geometry helpers
-# ==================================================================================================
-
-
-def world_to_camera_opencv(camera_to_world: Tensor) -> Tensor:
-    """nerfstudio c2w [3,4] (OpenGL axes) -> world-to-camera [4,4] with OpenCV axes (x right, y down, z fwd)."""
-    rot = camera_to_world[:3, :3] * camera_to_world.new_tensor([1.0, -1.0, -1.0])
-    viewmat = torch.eye(4, dtype=camera_to_world.dtype, device=camera_to_world.device)
-    viewmat[:3, :3] = rot.T
-    viewmat[:3, 3] = -rot.T @ camera_to_world[:3, 3]
-    return viewmat
-
-
-def central_region(camera: CameraModel, dirs: Tensor, half_angles: Optional[Tuple[float, float]]) -> Optional[Tensor]:
-    """[H,W] bool: rays whose (theta, phi) lie inside the central rectangle (paper App. G), None if undefined."""
-    if half_angles is None:
-        if not hasattr(camera, "fx"):
-            return None
-        half_angles = (camera.width / (2.0 * camera.fx), camera.height / (2.0 * camera.fy))
-    theta = torch.atan2(dirs[..., 0], dirs[..., 2])
-    phi = torch.atan2(dirs[..., 1], dirs[..., 2])
-    return (theta.abs() <= half_angles[0]) & (phi.abs() <= half_angles[1])
 
 
 def exact_activation(fn, x: Tensor) -> Tensor:
@@ -197,23 +100,6 @@ def exact_activation(fn, x: Tensor) -> Tensor:
     where it falls in the tensor (vectorized body, scalar tail); a shard or a subset of the Gaussians then gets
     other bits than the whole model. In float64 those differences are below what rounding to float32 keeps."""
     return fn(x.double()).to(x.dtype) if x.dtype == torch.float32 else fn(x)
-
-
-def downscale_mask(mask: Tensor, factor: int) -> Tensor:
-    """[H,W,1] bool -> [H/f,W/f,1]: a coarse cell is valid only if its whole block is."""
-    if factor == 1:
-        return mask.bool()
-    pooled = F.avg_pool2d(mask.float().permute(2, 0, 1)[None], factor, stride=factor)
-    return (pooled[0].permute(1, 2, 0) > 1.0 - 1e-6)
-
-
-def masked_psnr(pred: Tensor, gt: Tensor, mask: Tensor) -> Optional[float]:
-    """PSNR over the pixels where mask [H,W] is set (None when there are none)."""
-    n = int(mask.sum())
-    if n == 0:
-        return None
-    mse = ((pred - gt) ** 2)[mask].mean().clamp_min(1e-10)
-    return float(-10.0 * torch.log10(mse))
 
 
 # ==================================================================================================
@@ -255,13 +141,14 @@ class GeerModel(SplatfactoModel):
             shape = self.config.grid_shape
             self.bil_grids = BilateralGrid(num=self.num_train_data, grid_X=shape[0], grid_Y=shape[1], grid_W=shape[2])
         self.appearance = Appearance(self.num_train_data) if self.config.appearance == "exposure" else None
-        self.strategy, self.strategy_state = self._build_strategy()
+        self.engine_state = EngineState()  # until an engine attaches its own (geer_ns/distributed/engine.py)
+        changed = ignored_options_set(self.config, GeerModelConfig())
+        if changed:
+            CONSOLE.print(f"[yellow]geer: ignoring splatfacto option(s) {', '.join(changed)} (not used by the 3DGEER renderer)")
+        self.strategy, self.strategy_state = build_strategy(self.config, self.num_train_data, self.images_per_step)
         self.views: List[ViewRecord] = []  # this step's rendered training views, for the densification statistics
         self._statistics: Optional[StepStatistics] = None  # the step's statistics, when the engine reduced them
         self._step_background: Optional[Tensor] = None  # one random background per step, for all its views
-        self.scene_gaussians: Optional[int] = None  # Gaussians over every shard (the regularizers' mean)
-        self.display_gaussians: Optional[Dict[str, Tensor]] = None  # what eval / the viewer render, if not these
-        self.loaded_images_per_step = self.config.images_per_step_total  # of the checkpoint loaded, if any
         self.render_guard = RenderGuard()
         self.sentinel = KernelSentinel(self.config.kernel_check_every, say=lambda line: CONSOLE.print(line, markup=False))
 
@@ -279,52 +166,24 @@ class GeerModel(SplatfactoModel):
         dc = RGB2SH(rgb) if self.config.sh_degree > 0 else torch.logit(rgb, eps=1e-10)
         return dc, torch.zeros(n, dim_sh - 1, 3)
 
-    def _say_ignored_options(self) -> None:
-        """One line naming the splatfacto options a user set that geer does not use (see IGNORED_OPTIONS)."""
-        defaults = GeerModelConfig()
-        changed = [f"{name}={getattr(self.config, name)!r}" for name in IGNORED_OPTIONS
-                   if getattr(self.config, name) != getattr(defaults, name)]
-        if changed:
-            CONSOLE.print(f"[yellow]geer: ignoring splatfacto option(s) {', '.join(changed)} (not used by the 3DGEER renderer)")
+    # ------------------------------------------------------------------------------------- engine
+    def attach(self, state: EngineState) -> None:
+        """Be trained by the engine whose state this is (geer_ns/distributed/engine.py): before any checkpoint
+        is loaded, so that its steps convert to this engine's batch; the strategy is rebuilt for that batch."""
+        rebuild = state.images_per_step != self.images_per_step
+        self.engine_state = state
+        if rebuild:
+            self.strategy, self.strategy_state = build_strategy(self.config, self.num_train_data, self.images_per_step)
 
-    def _build_strategy(self):
-        cfg = self.config
-        self._say_ignored_options()
-        if cfg.strategy == "mcmc":
-            install_mcmc_cpu_ops()
-            strategy = MCMCStrategy(
-                cap_max=cfg.max_gaussians if cfg.max_gaussians > 0 else cfg.mcmc_cap_max,
-                noise_lr=cfg.mcmc_noise_lr,
-                refine_start_iter=cfg.warmup_length,
-                refine_stop_iter=cfg.stop_split_at,
-                refine_every=cfg.refine_every,
-                min_opacity=cfg.mcmc_min_opacity,
-                verbose=True,
-            )
-            return strategy, strategy.initialize_state()
-        pause = -(-self.num_train_data // cfg.images_per_step_total)  # one pass over the images, in steps
-        strategy = GeerDefaultStrategy(
-            max_gaussians=cfg.max_gaussians,
-            min_pixels=cfg.densify_min_pixels,
-            prune_unseen=cfg.prune_unseen,
-            images_per_pass=self.num_train_data,
-            images_per_step=cfg.images_per_step_total,
-            prune_opa=cfg.cull_alpha_thresh,
-            grow_grad2d=cfg.densify_grad_thresh,
-            grow_scale3d=cfg.densify_size_thresh,
-            grow_scale2d=cfg.split_screen_size,
-            prune_scale3d=cfg.cull_scale_thresh,
-            prune_scale2d=cfg.cull_screen_size,
-            refine_scale2d_stop_iter=cfg.stop_screen_size_at,
-            refine_start_iter=cfg.warmup_length,
-            refine_stop_iter=cfg.stop_split_at,
-            reset_every=cfg.reset_alpha_every * cfg.refine_every,
-            refine_every=cfg.refine_every,
-            pause_refine_after_reset=pause + cfg.refine_every,
-            revised_opacity=False,
-            verbose=True,
-        )
-        return strategy, strategy.initialize_state(scene_scale=1.0)
+    @property
+    def images_per_step(self) -> int:
+        """Images one training step sees over every process (the engine's effective batch; 1 without one)."""
+        return self.engine_state.images_per_step
+
+    @property
+    def scene_gaussians(self) -> Optional[int]:
+        """Gaussians over every shard where this model holds one shard (Gaussian-parallel), else None."""
+        return self.engine_state.scene_gaussians
 
     # ------------------------------------------------------------------------------------- resume
     # nerfstudio 1.1.5 issue 3554: splatfacto's load_state_dict replaces the Parameters the trainer's
@@ -343,17 +202,15 @@ class GeerModel(SplatfactoModel):
 
     def get_extra_state(self) -> Dict[str, object]:
         return {"step": self.step, "strategy_state": resume.strategy_state(self.strategy_state),
-                "images_per_step": self.config.images_per_step_total}  # RNG states: the trainer's part
+                "images_per_step": self.images_per_step}  # RNG states: the trainer's part
 
     def set_extra_state(self, state: Dict[str, object]) -> None:
-        # A checkpoint's steps are in its own effective batch; this model's are in images_per_step_total.
-        self.loaded_images_per_step = int(state.get("images_per_step", 1))
-        self.step = resume.convert_step(int(state["step"]), self.loaded_images_per_step,
-                                        self.config.images_per_step_total)
+        # A checkpoint's steps are in its own effective batch; this model's are in images_per_step.
+        self.step = resume.convert_step(int(state["step"]), int(state.get("images_per_step", 1)), self.images_per_step)
         resume.restore_strategy_state(self.strategy_state, state["strategy_state"], self.device)
 
     # ---------------------------------------------------------------------------------- rendering
-    def _view_for(self, camera: Cameras) -> View:
+    def view_for(self, camera: Cameras) -> View:
         """The ray grid a camera is rendered on: its cached BEAP view for BEAP-supervised training batches,
         else its own pixel rays (downscaled by splatfacto's resolution schedule while training)."""
         kind = (camera.metadata or {}).get(VIEW_KEY, "native") if self.training else "native"
@@ -365,10 +222,12 @@ class GeerModel(SplatfactoModel):
             camera.rescale_output_resolution(1.0 / factor)
         return native_view(camera_model(camera, 0) if factor > 1 else host_camera_model(camera))
 
-    def _gaussians(self) -> Optional[Dict[str, Tensor]]:
-        """Parameters to render (cropped to the viewer's box when one is set); None if nothing is left."""
+    def render_gaussians(self) -> Optional[Dict[str, Tensor]]:
+        """Parameters to render (the engine's display copy when set, outside training; cropped to the viewer's
+        box when one is set); None if nothing is left."""
         names = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
-        shown = self.display_gaussians if self.display_gaussians is not None and not self.training else None
+        display = self.engine_state.display_gaussians
+        shown = display if display is not None and not self.training else None
         params = {name: (self.gauss_params if shown is None else shown)[name] for name in names}
         if self.crop_box is not None and not self.training:
             keep = self.crop_box.within(self.means).squeeze()
@@ -377,7 +236,8 @@ class GeerModel(SplatfactoModel):
             params = {name: p[keep] for name, p in params.items()}
         return params
 
-    def _colors(self, params: Dict[str, Tensor]) -> Tuple[Tensor, Optional[int]]:
+    def colors(self, params: Dict[str, Tensor]) -> Tuple[Tensor, Optional[int]]:
+        """The renderer's colors of `params` (SH coefficients, or sigmoid RGB) and the SH degree in use (None: RGB)."""
         if self.config.sh_degree > 0:
             colors = torch.cat([params["features_dc"][:, None, :], params["features_rest"]], dim=1)
             return colors, min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
@@ -392,13 +252,13 @@ class GeerModel(SplatfactoModel):
     def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, List]]:
         if not isinstance(camera, Cameras):
             return {}
-        view = self._view_for(camera)
+        view = self.view_for(camera)
         height, width = view.size
-        params = self._gaussians()
+        params = self.render_gaussians()
         if params is None:
             return self.get_empty_outputs(width, height, self.background_color)
         means = params["means"]
-        background = self._get_background_color().to(means)
+        background = self.render_background().to(means)
         c2w = self.camera_optimizer.apply_to_camera(camera)[0] if self.training else camera.camera_to_worlds[0]
         viewmat = self.viewmat(c2w, means.device)
         scales, opacities = self.activated(params)
@@ -406,7 +266,7 @@ class GeerModel(SplatfactoModel):
         if self.training and torch.is_grad_enabled():  # not for viewer renders during training
             probe = self.probe(view, means, viewmat, scales, opacities)
             means = probe.displace(means, viewmat)
-        colors, sh_degree = self._colors(params)
+        colors, sh_degree = self.colors(params)
         announce_backend(self.config.renderer_backend, means.device, say=CONSOLE.log)
         grid = view.rays.to(means.device)
         out = render(
@@ -452,15 +312,18 @@ class GeerModel(SplatfactoModel):
                                 scales, lam2, view.source_project)
         return ViewProbe.zeros(signal, means, self.config.use_absgrad)
 
-    def _get_background_color(self) -> Tensor:
-        """splatfacto's, with one random color per training step (drawn at its first view): every view of
-        a step, on every process, composites over the same color, and the random stream stays the same
-        however a step's views are split over processes."""
+    def render_background(self) -> Tensor:
+        """splatfacto's background color, with one random color per training step (drawn at its first view):
+        every view of a step, on every process, composites over the same color, and the random stream stays
+        the same however a step's views are split over processes."""
         if self.config.background_color == "random" and self.training:
             if self._step_background is None:
                 self._step_background = torch.rand(3, device=self.device)
             return self._step_background
         return super()._get_background_color()
+
+    def _get_background_color(self) -> Tensor:  # splatfacto's name, for its own callers
+        return self.render_background()
 
     def _outputs(self, out, view: View, background: Tensor, normals=None) -> Dict[str, Tensor]:
         height, width = view.size
@@ -627,22 +490,10 @@ class GeerModel(SplatfactoModel):
         lpips = self._lpips()
         if lpips is not None:
             metrics["lpips"] = float(lpips(gt_b.clamp(0, 1), pred_b.clamp(0, 1)))
-        metrics.update(self._region_psnr(pred, gt, valid[..., 0], outputs.get("central_region")))
+        metrics.update(region_psnr(pred, gt, valid[..., 0], outputs.get("central_region")))
         metrics.update(color_corrected_metrics(pred, gt, valid[..., 0], self.ssim))
         metrics["valid_fraction"] = float(valid.float().mean())
         metrics.update(geer_outputs.distance_statistics(outputs, valid[..., 0]))
         metrics.update(depth_supervision.depth_metrics(outputs, batch, valid[..., 0]))
         images = {"img": torch.cat([gt, outputs["rgb"] * valid], dim=1), **geer_outputs.distance_images(outputs)}
         return metrics, images
-
-    def _region_psnr(self, pred: Tensor, gt: Tensor, valid: Tensor, central: Optional[Tensor]) -> Dict[str, float]:
-        """central_psnr / peripheral_psnr, each omitted when its region has no valid pixel in this view."""
-        if central is None:
-            return {}
-        central = central[..., 0].to(valid.device)
-        found = {}
-        for name, region in (("central_psnr", valid & central), ("peripheral_psnr", valid & ~central)):
-            value = masked_psnr(pred, gt, region)
-            if value is not None:
-                found[name] = value
-        return found

@@ -85,6 +85,21 @@ def checkpoint_rng_state(checkpoint: Mapping[str, Any]) -> Optional[Mapping[str,
     return extra.get("rng") if isinstance(extra, Mapping) else None
 
 
+def checkpoint_images_per_step(checkpoint: Mapping[str, Any]) -> int:
+    """The images per step a nerfstudio checkpoint's steps count (the model's extra state; 1 where absent)."""
+    extra = checkpoint.get("pipeline", {}).get("_model._extra_state")
+    return int(extra.get("images_per_step", 1)) if isinstance(extra, Mapping) else 1
+
+
+def trainer_state(trainer, step: int) -> Dict[str, Any]:
+    """nerfstudio's checkpoint of a Trainer at `step` (pipeline, optimizers, schedulers, scaler) with the RNG
+    states (rng_state), as a dict for torch.save."""
+    return {"step": step, "pipeline": trainer.pipeline.state_dict(),
+            "optimizers": {k: v.state_dict() for k, v in trainer.optimizers.optimizers.items()},
+            "schedulers": {k: v.state_dict() for k, v in trainer.optimizers.schedulers.items()},
+            "scalers": trainer.grad_scaler.state_dict(), "rng": rng_state()}
+
+
 def strategy_state(state: Mapping[str, Any]) -> Dict[str, Any]:
     return {k: (v.detach().clone() if isinstance(v, torch.Tensor) else v) for k, v in state.items()}
 

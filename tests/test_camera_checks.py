@@ -73,7 +73,7 @@ def test_the_models_own_viewmats_pass():
     orientation and scaling) and the model's world_to_camera_opencv (float64)."""
     from geer_ns.data.nerfstudio_parser import GeerNerfstudioDataParserConfig
     from geer_ns.data.synthetic_room import default_scene_dir
-    from geer_ns.model import world_to_camera_opencv
+    from geer_ns.render.transforms import world_to_camera_opencv
 
     cameras = GeerNerfstudioDataParserConfig(data=default_scene_dir()).setup().get_dataparser_outputs("train").cameras
     scene = random_scene(5, 0, dtype=torch.float32)

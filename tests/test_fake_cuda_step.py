@@ -97,7 +97,7 @@ def test_a_training_step_on_fake_cuda(trainer, plant, monkeypatch):
     model = copy.deepcopy(trainer.pipeline.model)  # each case moves its own copy
     batches = _batches(trainer)
     for camera, _ in batches:
-        model._view_for(camera)  # the host's part: camera model and ray grids (cached per camera)
+        model.view_for(camera)  # the host's part: camera model and ray grids (cached per camera)
     monkeypatch.setattr(backend, "cuda_extension_available", lambda: True)  # fake kernels need no build
     if plant == "ray grid on the CPU":
         monkeypatch.setattr(RayGrid, "to", lambda grid, device: grid)

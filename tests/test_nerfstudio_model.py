@@ -15,7 +15,8 @@ from nerfstudio.data.scene_box import SceneBox
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import beap_view
 from geer_ns.densify.mcmc_cpu import relocation_torch
-from geer_ns.model import GeerModelConfig, world_to_camera_opencv
+from geer_ns.model import GeerModelConfig
+from geer_ns.render.transforms import world_to_camera_opencv
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -215,7 +216,7 @@ def test_datamanager_and_model_share_one_beap_view():
     camera = fisheye_camera(32)
     model = make_model(n=10)
     model.train()
-    assert model._view_for(camera) is beap_view(camera_model(camera, 0))
+    assert model.view_for(camera) is beap_view(camera_model(camera, 0))
 
 
 def test_no_hard_coded_cuda_calls():

@@ -14,7 +14,8 @@ import torch
 from geer_ns import compat
 from geer_ns.data import colmap_parser
 from geer_ns.data.datamanager import GeerDataManagerConfig, GeerDataOptions
-from geer_ns.model import IGNORED_OPTIONS, OWN_OPTIONS_HELP, GeerModelConfig, GeerOwnOptions
+from geer_ns.model import GeerModelConfig
+from geer_ns.options import IGNORED_OPTIONS, OWN_OPTIONS_HELP, GeerOwnOptions
 from nerfstudio.models.base_model import ModelConfig
 
 from test_nerfstudio_model import make_model

@@ -17,6 +17,7 @@ from torch import Tensor
 
 from geer_ns.cameras import CameraModel, OpenCVFisheyeCamera, PinholeCamera
 from geer_ns.compare.resample import landing, resample, to_uint8
+from geer_ns.metrics import central_region
 
 _SPLITS = ("train_filenames", "val_filenames", "test_filenames")
 _CAMERA_KEYS = ("camera_model", "fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2",
@@ -96,9 +97,7 @@ def central_of(camera: CameraModel, half_angle_deg: float) -> Tensor:
     """Rays within +-half_angle of the optical axis horizontally and vertically (the paper's App. G rectangle)."""
     dirs, _ = camera.pixel_rays(torch.float64)
     half = math.radians(half_angle_deg)
-    theta = torch.atan2(dirs[..., 0], dirs[..., 2])
-    phi = torch.atan2(dirs[..., 1], dirs[..., 2])
-    return (theta.abs() <= half) & (phi.abs() <= half)
+    return central_region(camera, dirs, (half, half))
 
 
 def load_capture(data: Path, central_half_angle_deg: float) -> Capture:

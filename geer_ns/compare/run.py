@@ -12,6 +12,7 @@ from typing import Dict, List, Optional
 import torch
 from torch import Tensor
 
+from geer_ns.metrics import masked_psnr as psnr_where
 from geer_ns.cameras import CameraModel, EquidistantCamera, PinholeCamera
 from geer_ns.compare.capture import Capture
 from geer_ns.compare.methods import Method, schedule
@@ -77,10 +78,9 @@ def _render_camera(kind: str, cameras, index: int) -> CameraModel:
 
 
 def masked_psnr(pred: Tensor, gt: Tensor, mask: Tensor) -> float:
-    if int(mask.sum()) == 0:
-        return float("nan")
-    mse = ((pred - gt) ** 2)[mask].mean().clamp_min(1e-10)
-    return float(-10.0 * torch.log10(mse))
+    """PSNR over the pixels where mask [H,W] is set; NaN where there are none."""
+    psnr = psnr_where(pred, gt, mask)
+    return float("nan") if psnr is None else psnr
 
 
 def score(pred: Tensor, gt: Tensor, valid: Tensor, central: Tensor, covered: Tensor, lpips) -> Dict[str, float]:

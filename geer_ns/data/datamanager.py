@@ -49,7 +49,7 @@ VIEW_KEY = "geer_view"
 
 @dataclass
 class GeerDataOptions:
-    """geer's own datamanager options, listed first in `ns-train geer --help` (see geer_ns.model.GeerOwnOptions:
+    """geer's own datamanager options, listed first in `ns-train geer --help` (see geer_ns.options.GeerOwnOptions:
     a base after FullImageDatamanagerConfig comes first in the reversed MRO dataclasses collect fields along)."""
 
     supervision: Supervision = "auto"

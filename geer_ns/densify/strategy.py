@@ -14,10 +14,12 @@ from typing import Any, Callable, Dict, List, Optional
 
 import torch
 import torch.nn.functional as F
+from gsplat.strategy import MCMCStrategy
 from gsplat.strategy.ops import duplicate, remove
 from torch import Tensor
 
 from geer_ns.densify.identity import child_ids, normals
+from geer_ns.densify.mcmc_cpu import install_mcmc_cpu_ops
 from geer_ns.densify.signal import StepStatistics
 from geer_ns.gsplat_private import DefaultStrategyHooks
 from geer_ns.render.transforms import quat_to_rotmat
@@ -178,3 +180,45 @@ class GeerDefaultStrategy(DefaultStrategyHooks):
             print(f"geer: step {step}: {entry['before']} -> {entry['after']} Gaussians ({said or 'no change'})")
         self._entry = None
         return n_prune
+
+
+def build_strategy(cfg, images_per_pass: int, images_per_step: int):
+    """The densification strategy a model config asks for (cfg.strategy), and its fresh state.
+
+    Args: cfg, a GeerModelConfig; images_per_pass, the training images; images_per_step, the images one step
+    sees over all processes (cfg's step-valued options count steps of that many). Returns (strategy, state)."""
+    if cfg.strategy == "mcmc":
+        install_mcmc_cpu_ops()
+        strategy = MCMCStrategy(
+            cap_max=cfg.max_gaussians if cfg.max_gaussians > 0 else cfg.mcmc_cap_max,
+            noise_lr=cfg.mcmc_noise_lr,
+            refine_start_iter=cfg.warmup_length,
+            refine_stop_iter=cfg.stop_split_at,
+            refine_every=cfg.refine_every,
+            min_opacity=cfg.mcmc_min_opacity,
+            verbose=True,
+        )
+        return strategy, strategy.initialize_state()
+    pause = -(-images_per_pass // images_per_step)  # one pass over the images, in steps
+    strategy = GeerDefaultStrategy(
+        max_gaussians=cfg.max_gaussians,
+        min_pixels=cfg.densify_min_pixels,
+        prune_unseen=cfg.prune_unseen,
+        images_per_pass=images_per_pass,
+        images_per_step=images_per_step,
+        prune_opa=cfg.cull_alpha_thresh,
+        grow_grad2d=cfg.densify_grad_thresh,
+        grow_scale3d=cfg.densify_size_thresh,
+        grow_scale2d=cfg.split_screen_size,
+        prune_scale3d=cfg.cull_scale_thresh,
+        prune_scale2d=cfg.cull_screen_size,
+        refine_scale2d_stop_iter=cfg.stop_screen_size_at,
+        refine_start_iter=cfg.warmup_length,
+        refine_stop_iter=cfg.stop_split_at,
+        reset_every=cfg.reset_alpha_every * cfg.refine_every,
+        refine_every=cfg.refine_every,
+        pause_refine_after_reset=pause + cfg.refine_every,
+        revised_opacity=False,
+        verbose=True,
+    )
+    return strategy, strategy.initialize_state(scene_scale=1.0)

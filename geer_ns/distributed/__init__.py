@@ -4,6 +4,7 @@
     schedule            the effective batch (processes x images per step) and its rule for steps and Adam
     consistency         the start-up check that every process agrees, rank 0's state broadcast, replica checksums
     reductions          each step's gradient and densification-statistics reductions (both engines)
+    engine              what an engine and the model offer each other (Engine, EngineModel, EngineState)
     image_parallel      the engine of image-parallel training: identical replicas
     sharded_render      a camera rendered from the rows of every shard it sees (a differentiable all-to-all)
     gaussian_parallel   the engine of Gaussian-parallel training: a shard per process, the scene-wide budget

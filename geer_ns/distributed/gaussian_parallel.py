@@ -21,8 +21,9 @@ from torch import Tensor
 
 from geer_ns import resume
 from geer_ns.densify.signal import lateral_basis
-from geer_ns.densify.strategy import PER_GAUSSIAN_STATE, GeerDefaultStrategy, local_budget, strongest_first
+from geer_ns.densify.strategy import PER_GAUSSIAN_STATE, local_budget, strongest_first
 from geer_ns.distributed.consistency import broadcast_replica, check_consistent, fingerprint
+from geer_ns.distributed.engine import EngineState
 from geer_ns.distributed.reductions import optimized_parameters, reduce_gradients
 from geer_ns.distributed.sharded_render import render_sharded, shard_rows
 from geer_ns.distributed.streamed_checkpoint import leaves, replaced, save_rows_streamed
@@ -52,12 +53,14 @@ class GaussianParallel:
     name = "gaussians"
 
     def __init__(self, trainer) -> None:
+        """Before the trainer builds its pipeline (the model attaches `state` then)."""
         self.trainer, self.world = trainer, trainer.world
-        model = trainer.pipeline.model
+        self.state = EngineState(images_per_step=trainer.batch.images)
+        config = trainer.config.pipeline.model
         problems = []
-        if not isinstance(model.strategy, GeerDefaultStrategy):
+        if config.strategy != "default":
             problems.append("--pipeline.model.strategy mcmc (MCMC relocates by sampling the whole scene)")
-        if model.config.camera_optimizer.mode != "off":
+        if config.camera_optimizer.mode != "off":
             problems.append("--pipeline.model.camera-optimizer.mode (pose gradients would reach one shard only)")
         if problems:
             raise ValueError("geer: --pipeline.model.distributed gaussians does not support " + "; ".join(problems))
@@ -71,7 +74,7 @@ class GaussianParallel:
             check_consistent(self.world, fingerprint(trainer))
         model.strategy.budget = scene_budget  # --pipeline.model.max-gaussians is the scene's
         model.strategy.totals = scene_totals  # refinement lines count the scene
-        if model.scene_gaussians is not None:  # loaded as a shard
+        if self.state.scene_gaussians is not None:  # loaded as a shard
             return
         if self.world.distributed:
             broadcast_replica(self.world, model, trainer.optimizers)  # one model, then cut into shards
@@ -82,12 +85,12 @@ class GaussianParallel:
         keep = torch.zeros(total, dtype=torch.bool, device=model.device)
         keep[shard_rows(self.world.rank, self.world.size)] = True
         remove(params=model.gauss_params, optimizers=trainer.optimizers.optimizers, state=state, mask=~keep)
-        model.scene_gaussians = total
+        self.state.scene_gaussians = total
 
     def describe(self) -> List[str]:
         model = self.trainer.pipeline.model
-        return [f"Gaussians sharded over {self.world.size} process(es): {model.num_points} of {model.scene_gaussians} "
-                "here; rank 0 evaluates and serves the viewer from the gathered model"]
+        return [f"Gaussians sharded over {self.world.size} process(es): {model.num_points} of "
+                f"{self.state.scene_gaussians} here; rank 0 evaluates and serves the viewer from the gathered model"]
 
     # --------------------------------------------------------------------------------- the step
     def views(self, step: int) -> Iterator[Tuple[Dict, Callable[[], Dict[str, Tensor]]]]:
@@ -117,7 +120,7 @@ class GaussianParallel:
         """After densification: the scene's size, and a rebalance where the shards drifted apart."""
         model = self.trainer.pipeline.model
         sizes = all_gather_objects(model.num_points)
-        model.scene_gaussians = sum(sizes)
+        self.state.scene_gaussians = sum(sizes)
         if max(sizes) > (1.0 + REBALANCE_FRACTION) * max(min(sizes), 1):
             rebalance(self.world, model, self.trainer.optimizers.optimizers, sizes)
 
@@ -126,12 +129,8 @@ class GaussianParallel:
         """This run's checkpoint at `path`, one ordinary file of every shard's rows in rank order, streamed to
         rank 0's file in bounded messages (streamed_checkpoint): nothing is gathered. A collective; True on
         the process that wrote the file (rank 0)."""
-        trainer = self.trainer
-        state = {"step": step, "pipeline": trainer.pipeline.state_dict(),
-                 "optimizers": {k: v.state_dict() for k, v in trainer.optimizers.optimizers.items()},
-                 "schedulers": {k: v.state_dict() for k, v in trainer.optimizers.schedulers.items()},
-                 "scalers": trainer.grad_scaler.state_dict(), "rng": resume.rng_state()}
-        save_rows_streamed(self.world, state, per_gaussian(set(trainer.pipeline.model.gauss_params)), path)
+        state = resume.trainer_state(self.trainer, step)
+        save_rows_streamed(self.world, state, per_gaussian(set(self.trainer.pipeline.model.gauss_params)), path)
         return self.world.is_main
 
     def evaluate(self, step: int, run: Callable[[], None]) -> None:
@@ -144,16 +143,16 @@ class GaussianParallel:
         viewer = config.vis.startswith("viewer") and step_check(step, VIEWER_REFRESH_STEPS)
         model = self.trainer.pipeline.model
         if viewer:
-            model.display_gaussians = None  # the last copy goes before the next is gathered
+            self.state.display_gaussians = None  # the last copy goes before the next is gathered
             gathered = {name: gather_rows(self.world, p.detach(), device=torch.device("cpu"))
                         for name, p in model.gauss_params.items()}
-            model.display_gaussians = gathered if self.world.is_main else None
+            self.state.display_gaussians = gathered if self.world.is_main else None
         if not due:
             return
         if not self.world.is_main:
             serve_renders(model)
             return
-        with collective_renders(model):
+        with collective_renders(model, self.state):
             run()
 
 
@@ -173,21 +172,22 @@ def per_gaussian(groups) -> Callable[[Tuple], bool]:
 
 
 @contextmanager
-def collective_renders(model):
+def collective_renders(model, state: EngineState):
     """On rank 0, while evaluating: each camera the main thread renders is first sent to every process, which
     send the rows of their shard that camera sees (visible_rows); rank 0 renders those (its own first, then
-    rank by rank) and lets them go. The viewer's thread renders what it rendered before."""
-    world, original, shown = current_world(), model.get_outputs_for_camera, model.display_gaussians
+    rank by rank) and lets them go (`state`: the engine's, whose display copy the model renders). The viewer's
+    thread renders what it rendered before."""
+    world, original, shown = current_world(), model.get_outputs_for_camera, state.display_gaussians
 
     def render(camera, obb_box=None):
         if threading.current_thread() is not threading.main_thread():
             return original(camera, obb_box)
         broadcast_object(camera.to("cpu"))
-        model.display_gaussians = visible_rows(model, camera, world)
+        state.display_gaussians = visible_rows(model, camera, world)
         try:
             return original(camera, obb_box)
         finally:
-            model.display_gaussians = shown
+            state.display_gaussians = shown
 
     model.get_outputs_for_camera = render
     try:
@@ -214,7 +214,7 @@ def visible_rows(model, camera, world: World) -> Optional[Dict[str, Tensor]]:
     training = model.training
     model.eval()
     try:
-        view = model._view_for(camera)
+        view = model.view_for(camera)
     finally:
         model.train(training)
     params = {name: p.detach() for name, p in model.gauss_params.items()}
@@ -256,10 +256,10 @@ def sharded_outputs(model, cameras, me: int) -> Dict[str, Tensor]:
     shard; records the densification view of this shard in every camera. Each camera's rows are made as one
     process makes a render's Gaussians (displaced, activated, colored per view), so that every camera's
     gradient reaches the parameters through its own activations: the sums round as one process's do."""
-    views = [model._view_for(camera) for camera in cameras]
-    params = model._gaussians()
+    views = [model.view_for(camera) for camera in cameras]
+    params = model.render_gaussians()
     means = params["means"]
-    background = model._get_background_color().to(means)
+    background = model.render_background().to(means)
     viewmats = torch.stack([model.viewmat(model.camera_optimizer.apply_to_camera(c)[0], means.device) for c in cameras])
     with torch.no_grad():
         scales, opacities = model.activated(params)
@@ -271,7 +271,7 @@ def sharded_outputs(model, cameras, me: int) -> Dict[str, Tensor]:
         moved = probes[q].displace(means, viewmats[q]) if record else means
         part = {name: p[rows] for name, p in params.items()}
         s, o = model.activated(part)
-        colors, sh_degree = model._colors(part)
+        colors, sh_degree = model.colors(part)
         m = moved[rows]
         rgb = colors if colors.ndim == 2 else sh_to_color(colors, camera_offsets(m, viewmats[q]), sh_degree)
         return m, part["quats"], s, o, rgb

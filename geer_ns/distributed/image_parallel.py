@@ -10,14 +10,19 @@ Nothing else is exchanged: the optimizers step identical replicas with identical
 
 from __future__ import annotations
 
-from typing import List, Optional
+from pathlib import Path
+from typing import List
 
+import torch
+
+from geer_ns import resume
 from geer_ns.distributed.consistency import (
     broadcast_replica,
     check_consistent,
     check_replicas_identical,
     fingerprint,
 )
+from geer_ns.distributed.engine import EngineState
 from geer_ns.distributed.reductions import optimized_parameters, reduce_gradients, reduce_statistics
 
 
@@ -27,7 +32,9 @@ class ImageParallel:
     name = "images"
 
     def __init__(self, trainer) -> None:
+        """Before the trainer builds its pipeline (the model attaches `state` then)."""
         self.trainer, self.world = trainer, trainer.world
+        self.state = EngineState(images_per_step=trainer.batch.images)
 
     def start(self) -> None:
         if self.world.distributed:
@@ -62,15 +69,12 @@ class ImageParallel:
                                  lambda step: check_replicas_identical(self.world, self.trainer.pipeline.model, step),
                                  update_every_num_iters=every)]
 
-    def checkpoint_state(self, step: int) -> Optional[dict]:
-        """Rank 0's replica, as nerfstudio saves it (None elsewhere)."""
-        trainer = self.trainer
+    def write_checkpoint(self, step: int, path: Path) -> bool:
+        """Rank 0's replica at `path`, as nerfstudio saves it, with the RNG states; True on rank 0 (which wrote)."""
         if not self.world.is_main:
-            return None
-        return {"step": step, "pipeline": trainer.pipeline.state_dict(),
-                "optimizers": {k: v.state_dict() for k, v in trainer.optimizers.optimizers.items()},
-                "schedulers": {k: v.state_dict() for k, v in trainer.optimizers.schedulers.items()},
-                "scalers": trainer.grad_scaler.state_dict()}
+            return False
+        torch.save(resume.trainer_state(self.trainer, step), path)
+        return True
 
     def evaluate(self, step: int, run) -> None:
         if self.world.is_main:

@@ -68,10 +68,9 @@ class EffectiveBatch:
 
 def scaled_config(config, batch: EffectiveBatch):
     """A copy of the TrainerConfig `config` with its schedule in steps of `batch.images` images (the rule above).
-    The copy's model records the batch (images_per_step_total), which checkpoints keep."""
+    The batch itself is the engine's (engine.EngineState.images_per_step), which checkpoints keep."""
     config = copy.deepcopy(config)
     model = config.pipeline.model
-    model.images_per_step_total = batch.images
     if batch.images == 1:
         return config
     for name in TRAINER_STEP_FIELDS:

@@ -31,6 +31,7 @@ from geer_ns import compat, resume
 from geer_ns.distributed.gate import GateError, StepGate, registered_store
 from geer_ns.distributed.launch import install_launch_router
 from geer_ns.distributed.consistency import ReplicaMismatchError
+from geer_ns.distributed.engine import Engine
 from geer_ns.distributed.image_parallel import ImageParallel
 from geer_ns.distributed.schedule import (
     EffectiveBatch,
@@ -103,11 +104,11 @@ class GeerTrainer(Trainer):
             self._stop(error)
 
     def _setup(self, test_mode) -> None:
-        super().setup(test_mode)  # pipeline, optimizers, viewer, checkpoint
+        engines = {"images": ImageParallel, "gaussians": GaussianParallel}
+        self.engine: Engine = engines[self.config.pipeline.model.distributed](self)
+        super().setup(test_mode)  # pipeline, optimizers, viewer, checkpoint (the model attaches the engine there)
         if not self.world.is_main:
             self.pipeline.model.strategy.verbose = False  # rank 0 says what densification did
-        engines = {"images": ImageParallel, "gaussians": GaussianParallel}
-        self.engine = engines[self.config.pipeline.model.distributed](self)
         self.engine.start()
         self.callbacks.extend(self.engine.callbacks())  # after the model's own: densification included
         store = registered_store()
@@ -132,9 +133,12 @@ class GeerTrainer(Trainer):
             CONSOLE.log(f"geer: {line}")
 
     def _load_checkpoint(self) -> None:
-        """nerfstudio's (the checkpoint named by --load-dir / --load-step or --load-checkpoint), memory-mapped,
-        cut to this process's shard first when the Gaussians are sharded; then steps converted to this run's
-        effective batch, and this run's optimizer hyper-parameters (its kappa's) put back over the saved ones."""
+        """First the model attaches the engine's state (nerfstudio's setup calls this right after it built the
+        pipeline, optimizers and viewer), so that its strategy and a checkpoint's steps are in this run's batch.
+        Then nerfstudio's load (the checkpoint named by --load-dir / --load-step or --load-checkpoint),
+        memory-mapped, cut to this process's shard first when the Gaussians are sharded; steps converted to this
+        run's effective batch, and this run's optimizer hyper-parameters (its kappa's) put back over the saved."""
+        self.pipeline.model.attach(self.engine.state)
         path = self._checkpoint_path()
         if path is None:
             CONSOLE.print("No Nerfstudio checkpoint to load, so training from scratch.")
@@ -154,9 +158,9 @@ class GeerTrainer(Trainer):
         if rng is not None:
             resume.restore_rng_state(rng)
         if self.config.pipeline.model.distributed == "gaussians":
-            self.pipeline.model.scene_gaussians = total
+            self.engine.state.scene_gaussians = total
         CONSOLE.print(f"Done loading Nerfstudio checkpoint from {path}")
-        self._convert_steps(fresh, schedulers)
+        self._convert_steps(fresh, schedulers, resume.checkpoint_images_per_step(state))
 
     def _checkpoint_path(self):
         if self.config.load_dir is not None:
@@ -172,12 +176,12 @@ class GeerTrainer(Trainer):
             raise FileNotFoundError(f"geer: checkpoint {path} does not exist")
         return path
 
-    def _convert_steps(self, fresh, schedulers: bool) -> None:
+    def _convert_steps(self, fresh, schedulers: bool, saved: int) -> None:
         """The loaded state in this run's effective batch: the step, Adam's step counts and the schedulers'
         positions converted (the images seen carry over), and this run's learning rates, betas, epsilon and
         the schedulers' base learning rates (the batch rule's, geer_ns/distributed/schedule.py) in place of
-        the checkpoint's, so that a resume equals a fresh run at this kappa."""
-        saved, now = self.pipeline.model.loaded_images_per_step, self.batch.images
+        the checkpoint's (`saved`: its images per step), so that a resume equals a fresh run at this kappa."""
+        now = self.batch.images
         apply_optimizer_hyperparameters(self.optimizers, fresh, saved, now, schedulers)
         if self._start_step == 0 or saved == now:
             return
@@ -288,15 +292,8 @@ class GeerTrainer(Trainer):
             self.gate.set_state("saving")
         if self.world.is_main:
             self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
-        if isinstance(self.engine, GaussianParallel):
-            if not self.engine.write_checkpoint(step, partial):
-                return
-        else:
-            state = self.engine.checkpoint_state(step)
-            if state is None:
-                return
-            state["rng"] = resume.rng_state()
-            torch.save(state, partial)
+        if not self.engine.write_checkpoint(step, partial):
+            return
         os.replace(partial, path)
         if self.config.save_only_latest_checkpoint:
             for old in self.checkpoint_dir.glob("*.ckpt"):

@@ -57,6 +57,15 @@ def view_transform(means: Tensor, viewmat: Tensor) -> Tensor:
     return out.to(means.dtype)
 
 
+def world_to_camera_opencv(camera_to_world: Tensor) -> Tensor:
+    """nerfstudio c2w [3,4] (OpenGL axes) -> world-to-camera [4,4] with OpenCV axes (x right, y down, z fwd)."""
+    rot = camera_to_world[:3, :3] * camera_to_world.new_tensor([1.0, -1.0, -1.0])
+    viewmat = torch.eye(4, dtype=camera_to_world.dtype, device=camera_to_world.device)
+    viewmat[:3, :3] = rot.T
+    viewmat[:3, 3] = -rot.T @ camera_to_world[:3, 3]
+    return viewmat
+
+
 def camera_offsets(means: Tensor, viewmat: Tensor) -> Tensor:
     """mu - camera center [N, 3] in world axes (SH view directions), in float64 for the same reason."""
     vm = viewmat.to(torch.float64)

@@ -1,0 +1,90 @@
+"""geer's own model options (the `ns-train geer` flags geer adds to splatfacto's), and the lists --help shows.
+
+GeerModelConfig (geer_ns/model.py) lists GeerOwnOptions after SplatfactoModelConfig among its bases: dataclasses
+collect fields along the reversed MRO, so these come first in `ns-train geer --help`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import List, Literal, Optional, Tuple
+
+from geer_ns.render.backend import Backend
+from geer_ns.render.pbf import LambdaMode
+from geer_ns.selftest.sentinel import DEFAULT_EVERY
+
+
+@dataclass
+class GeerOwnOptions:
+    """geer's own model options (first in --help: see the module docstring)."""
+
+    strategy: Literal["default", "mcmc"] = "default"
+    """Densification: gsplat's DefaultStrategy (3DGS heuristics) or MCMCStrategy."""
+    max_gaussians: int = 0
+    """Most Gaussians densification may create (0: no limit); the strongest candidates grow first. With
+    strategy=mcmc, the cap of MCMCStrategy when set."""
+    densify_min_pixels: float = 1.0
+    """A Gaussian splits or duplicates only where some training view resolves it: its radius (the 1/255
+    contour) at least this many of that view's pixels. Finer Gaussians add nothing the images can show."""
+    prune_unseen: bool = True
+    """Prune Gaussians whose blend weight stayed below 1/255 on every training ray for a whole pass over the
+    training images (too faint, or hidden behind opaque surfaces in every view)."""
+    distributed: Literal["images", "gaussians"] = "images"
+    """With several processes (--machine.num-devices): "images", every process holds the whole model and trains
+    on its own images; "gaussians", each holds a shard of the Gaussians (scenes larger than one device), and
+    every camera is rendered from the shards' Gaussians it sees (geer_ns/distributed/sharded_render.py)."""
+    renderer_backend: Backend = "auto"
+    """geer_ns.render backend: auto (CPU tensors: the kernels' math compiled for the CPU, JIT-built once, else
+    the PyTorch renderer, said once; CUDA tensors: the kernels once they passed their self-test on this GPU,
+    docs/cuda.md),
+    torch, cuda (opt in to the kernels) or cpu (the compiled CPU build; benchmarks/cpu_training.md)."""
+    kernel_check_every: int = DEFAULT_EVERY
+    """Every this many steps one training view is also rendered by the PyTorch renderer and compared with the
+    compiled renderer; a disagreement switches the run to the PyTorch renderer (0: never; docs/cuda.md)."""
+    lambda_mode: LambdaMode = "opacity"
+    """PBF extent rule of the renderer (geer_ns.render.pbf)."""
+    max_pairs: int = 1 << 22
+    """Renderer memory cap: (ray, Gaussian) pairs evaluated at once."""
+    central_half_angles_deg: Optional[Tuple[float, float]] = None
+    """Half-extents (theta, phi) of the 'central' eval region in degrees; None = the paper's App. G rule
+    (theta in +-w/(2 fx), phi in +-h/(2 fy))."""
+    appearance: Literal["off", "exposure"] = "off"
+    """"exposure": a per-image exposure and white balance and the camera's vignetting (radial falloff in the
+    ray's angle from the optical axis), applied in linear light to each rendered training image; evaluation
+    renders neutral exposure with the learnt vignetting (geer_ns/appearance.py). use-bilateral-grid is the other
+    option."""
+    appearance_reg: float = 0.1
+    """appearance=exposure: weight pulling the images' mean log gain to zero."""
+    mcmc_cap_max: int = 1_000_000
+    """strategy=mcmc: most Gaussians (gsplat MCMCStrategy cap_max)."""
+    mcmc_noise_lr: float = 5e5
+    """strategy=mcmc: learning rate of the sampling noise on the means (gsplat MCMCStrategy noise_lr)."""
+    mcmc_min_opacity: float = 0.005
+    """strategy=mcmc: Gaussians below this opacity are relocated (gsplat MCMCStrategy min_opacity)."""
+    mcmc_opacity_reg: float = 0.01
+    """strategy=mcmc: weight of the mean-opacity loss."""
+    mcmc_scale_reg: float = 0.01
+    """strategy=mcmc: weight of the mean-scale loss."""
+
+
+# splatfacto options geer accepts (so that splatfacto command lines still parse) but does not use.
+IGNORED_OPTIONS = ("rasterize_mode", "output_depth_during_training", "color_corrected_metrics", "n_split_samples")
+# geer's own options, listed first in `ns-train geer --help` (the method description).
+OWN_OPTIONS_HELP = (
+    "geer's own options: --pipeline.model.renderer-backend {auto,torch,cuda,cpu}, --pipeline.model.lambda-mode "
+    "{opacity,paper}, --pipeline.model.strategy {default,mcmc}, "
+    "--pipeline.model.max-gaussians, --pipeline.model.densify-min-pixels, --pipeline.model.prune-unseen, "
+    "--pipeline.model.distributed {images,gaussians}, "
+    "--pipeline.model.max-pairs, --pipeline.model.kernel-check-every, "
+    "--pipeline.model.central-half-angles-deg, --pipeline.datamanager.supervision, "
+    "--pipeline.datamanager.mask-edge-fill, --pipeline.datamanager.images-per-step, --machine.timeout-s; resume "
+    "with --load-dir <run>/nerfstudio_models. Splatfacto options "
+    "marked IGNORED are accepted and not used."
+)
+
+
+def ignored_options_set(config, defaults) -> List[str]:
+    """`name=value` of each IGNORED_OPTIONS entry `config` sets away from `defaults` (a default config), for
+    the one start-up line that says geer does not use them."""
+    return [f"{name}={getattr(config, name)!r}" for name in IGNORED_OPTIONS
+            if getattr(config, name) != getattr(defaults, name)]
