@@ -86,7 +86,8 @@ def test_the_image_made_of_bands_is_the_whole_images_render(model, monkeypatch):
     for name, value in reference.items():
         if value.is_floating_point():
             atol = 1e-6 if name == "rgb" else 0.0
-            assert torch.allclose(outputs[name], value, rtol=0, atol=atol), (name, float((outputs[name] - value).abs().max()))
+            error = float((outputs[name] - value).abs().max())
+            assert torch.allclose(outputs[name], value, rtol=0, atol=atol), (name, error)
         else:
             assert torch.equal(outputs[name], value), name
     assert float(reference["rgb"].std()) > 0.05  # an image, not a blank
