@@ -6,6 +6,7 @@ start) and leaves their results (checkpoints, JSON) under the config's output_di
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -350,9 +351,12 @@ def sharded_training_plan(local_rank, world_size, config, global_rank):
     trainer = train(local_rank, world_size, cfg, global_rank, callbacks=[lambda t, step: per_step.append(
         (step, t.pipeline.model.num_points, t.pipeline.model.scene_gaussians))])
     image = sharded_render_of(trainer)
+    counts = scene_counts(trainer, global_rank)
     evaluated = {}
     trainer.config.steps_per_eval_all_images = 1  # due now: rank 0 evaluates, rendering from both shards
-    trainer.engine.evaluate(1, lambda: evaluated.update(trainer.pipeline.get_average_eval_image_metrics(step=1)))
+    with held_rows() as held:
+        trainer.engine.evaluate(1, lambda: evaluated.update(trainer.pipeline.get_average_eval_image_metrics(step=1)))
+    held_save = small_message_save(trainer, out / "small_messages.ckpt")
     back = sharded_config(data, out, "from_one_process")
     back.pipeline.model.distributed = "gaussians"
     back.load_dir = Path((out / "reference_checkpoints.txt").read_text())
@@ -366,7 +370,75 @@ def sharded_training_plan(local_rank, world_size, config, global_rank):
     rebalanced = rebalance_plan(resumed, global_rank)
     if global_rank == 0:
         torch.save({"per_step": per_step, "image": image, "image_back": image_back, "shard_back": shard_back,
-                    "evaluated": evaluated, **rebalanced}, out / "sharded.pt")
+                    "evaluated": evaluated, "eval_rows_held": max(held), "save_bytes_held": held_save, **counts,
+                    **rebalanced}, out / "sharded.pt")
+
+
+def scene_counts(trainer, rank: int) -> dict:
+    """What rank 0 logs: the refinement lines' counts (after each refinement) and the `gaussian_count` metric of
+    a training image rendered from both shards."""
+    from geer_ns.distributed.gaussian_parallel import sharded_outputs
+
+    model = trainer.pipeline.model
+    camera, batch = trainer.pipeline.datamanager.train_view(0)
+    with torch.no_grad():
+        outputs = sharded_outputs(model, [camera, camera], rank)
+    return {"gaussian_count": int(model.get_metrics_dict(outputs, batch)["gaussian_count"]),
+            "refined_to": [entry["after"] for entry in model.strategy.log]}
+
+
+@contextlib.contextmanager
+def held_rows():
+    """The Gaussians of every render this process makes meanwhile (each module's `render` an evaluation can go
+    through: the model's, the normals', the split evaluation's), as a list."""
+    import importlib
+
+    held, patched = [0], []
+    for name in ("geer_ns.model", "geer_ns.render.normals", "geer_ns.distributed.split_eval"):
+        try:
+            module = importlib.import_module(name)
+        except ImportError:
+            continue
+        original = module.render
+        patched.append((module, original))
+        module.render = lambda means, *a, _original=original, **k: (held.append(int(means.shape[0])),
+                                                                    _original(means, *a, **k))[1]
+    try:
+        yield held
+    finally:
+        for module, original in patched:
+            module.render = original
+
+
+def small_message_save(trainer, path: Path) -> int:
+    """The engine's checkpoint written again at `path` with 1 KiB messages: the most bytes one message, gather
+    or broadcast brought this process meanwhile."""
+    import torch.distributed as dist
+
+    from geer_ns.distributed import streamed_checkpoint
+
+    largest, originals = [0], {name: getattr(dist, name) for name in ("recv", "gather", "all_gather", "broadcast")}
+
+    def watched(name):
+        def call(tensor, *args, **kwargs):
+            out = originals[name](tensor, *args, **kwargs)
+            tensors = tensor if isinstance(tensor, list) else [tensor]
+            tensors += [t for a in list(args) + list(kwargs.values()) if isinstance(a, list) for t in a
+                        if isinstance(t, torch.Tensor)]
+            largest[0] = max([largest[0]] + [t.numel() * t.element_size() for t in tensors])
+            return out
+        return call
+
+    chunk, streamed_checkpoint.CHUNK_BYTES = streamed_checkpoint.CHUNK_BYTES, 1024
+    for name in originals:
+        setattr(dist, name, watched(name))
+    try:
+        trainer.engine.write_checkpoint(trainer.pipeline.model.step, path)
+    finally:
+        streamed_checkpoint.CHUNK_BYTES = chunk
+        for name, original in originals.items():
+            setattr(dist, name, original)
+    return largest[0]
 
 
 def rebalance_plan(trainer, rank: int) -> dict:

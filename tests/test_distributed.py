@@ -373,6 +373,42 @@ def test_gaussian_parallel_evaluation_scores_as_one_process_holding_the_checkpoi
         assert run["evaluated"][key] == pytest.approx(one[key], abs=1e-4), key
 
 
+def test_rank_0_logs_and_scores_the_scenes_gaussian_count_not_its_shards(two_processes):
+    run = torch.load(two_processes[0] / "sharded.pt")
+    counts = [count for _, count, _ in run["per_step"]]
+    totals = [total for _, _, total in run["per_step"]]
+    assert run["gaussian_count"] == totals[-1] > counts[-1]
+    assert run["refined_to"] and all(after in totals for after in run["refined_to"])
+    assert max(run["refined_to"]) > max(counts)
+
+
+def test_rank_0_holds_a_part_of_the_scene_while_it_evaluates_and_saves(two_processes, room, tmp_path, monkeypatch):
+    """While rank 0 evaluates, no render it makes holds half the Gaussians one process's render of the same
+    camera sees (the evaluation is split by pixels); while it saves with 1 KiB messages, no message brings it
+    more than 1 KiB, and the file is the checkpoint written with 32 MiB ones."""
+    import geer_ns.model as model_module
+    from geer_ns.distributed.streamed_checkpoint import leaves
+
+    out = two_processes[0]
+    run = torch.load(out / "sharded.pt")
+    seen, render = [], model_module.render
+    monkeypatch.setattr(model_module, "render", lambda *a, **k: (lambda o: (seen.append(int(o.visible.sum())), o)[1])(
+        render(*a, **k)))
+    _pipeline_from(tmp_path, _checkpoint(out, "sharded"), room).get_average_eval_image_metrics(step=1)
+    assert len(seen) == 1 and seen[0] > 1000
+    assert 0 < run["eval_rows_held"] < seen[0] / 2, (run["eval_rows_held"], seen)
+    assert 0 < run["save_bytes_held"] <= 1024
+    small, usual = torch.load(out / "small_messages.ckpt"), _checkpoint(out, "sharded")
+    tensors = [(path, t) for path, t in leaves({k: usual[k] for k in ("pipeline", "optimizers")})
+               if isinstance(t, torch.Tensor)]
+    assert sum(t.numel() for _, t in tensors) > 100_000
+    for path, t in tensors:
+        other = small[path[0]]
+        for key in path[1:]:
+            other = other[key]
+        assert torch.equal(other, t), path
+
+
 def test_a_one_process_checkpoint_resharded_over_two_renders_the_same(two_processes, one_process, room, tmp_path):
     run = torch.load(two_processes[0] / "sharded.pt")
     single = one_process["sharded"][1]

@@ -2,8 +2,8 @@
 Gaussians with their optimizer state, so scenes are limited by the sum of the devices' memory.
 
 A step is rounds of one camera per process, each rendered from every shard (sharded_render); densification runs
-per shard on its own complete statistics; checkpoints are one ordinary file written by rank 0; rank 0 evaluates
-from the rows of every shard a camera sees. How and why: docs/distributed.md.
+per shard on its own complete statistics; checkpoints are one ordinary file written by rank 0; rank 0 runs the
+evaluation, every process rendering bands of each image's pixels (split_eval). How and why: docs/distributed.md.
 """
 
 from __future__ import annotations
@@ -26,24 +26,21 @@ from geer_ns.distributed.consistency import broadcast_replica, check_consistent,
 from geer_ns.distributed.engine import EngineState
 from geer_ns.distributed.reductions import optimized_parameters, reduce_gradients
 from geer_ns.distributed.sharded_render import render_sharded, shard_rows
+from geer_ns.distributed.split_eval import split_outputs
 from geer_ns.distributed.streamed_checkpoint import leaves, replaced, save_rows_streamed
 from geer_ns.gsplat_private import update_param_with_optimizer
 from geer_ns.distributed.world import (
     World,
     all_gather_objects,
-    backend_device,
     broadcast_object,
     current_world,
     on_backend_device,
 )
-from geer_ns.render.associate import seen_by
-from geer_ns.render.rasterize import preprocess
 from geer_ns.render.sh import sh_to_color
 from geer_ns.render.transforms import camera_offsets
 
 REBALANCE_FRACTION = 0.1  # rebalance when the largest shard exceeds the smallest by more than this
 VIEWER_REFRESH_STEPS = 100
-SEARCH_ROWS = 1 << 18  # an evaluation camera's visibility search goes through a shard this many rows at a time
 PIPELINE_GAUSS_PREFIX = "_model." + resume.GAUSS_PREFIX  # a Gaussian parameter's key in the pipeline's state
 
 
@@ -90,7 +87,8 @@ class GaussianParallel:
     def describe(self) -> List[str]:
         model = self.trainer.pipeline.model
         return [f"Gaussians sharded over {self.world.size} process(es): {model.num_points} of "
-                f"{self.state.scene_gaussians} here; rank 0 evaluates and serves the viewer from the gathered model"]
+                f"{self.state.scene_gaussians} here; evaluation images rendered in bands by every process; the "
+                "viewer renders a gathered copy"]
 
     # --------------------------------------------------------------------------------- the step
     def views(self, step: int) -> Iterator[Tuple[Dict, Callable[[], Dict[str, Tensor]]]]:
@@ -134,8 +132,8 @@ class GaussianParallel:
         return self.world.is_main
 
     def evaluate(self, step: int, run: Callable[[], None]) -> None:
-        """Rank 0 evaluates (nerfstudio's eval_iteration, on the scaled schedule) rendering every camera from
-        the rows of every shard that camera sees (collective_renders); the viewer's copy of the model is
+        """Rank 0 evaluates (nerfstudio's eval_iteration, on the scaled schedule), every process rendering bands
+        of each camera's pixels (collective_renders, split_eval); the viewer's copy of the model is
         gathered to host memory every VIEWER_REFRESH_STEPS steps while a viewer runs."""
         config = self.trainer.config  # the scaled schedule, the one nerfstudio's loop evaluates on
         due = any(step_check(step, n) for n in (config.steps_per_eval_batch, config.steps_per_eval_image,
@@ -152,7 +150,7 @@ class GaussianParallel:
         if not self.world.is_main:
             serve_renders(model)
             return
-        with collective_renders(model, self.state):
+        with collective_renders(model):
             run()
 
 
@@ -172,83 +170,33 @@ def per_gaussian(groups) -> Callable[[Tuple], bool]:
 
 
 @contextmanager
-def collective_renders(model, state: EngineState):
-    """On rank 0, while evaluating: each camera the main thread renders is first sent to every process, which
-    send the rows of their shard that camera sees (visible_rows); rank 0 renders those (its own first, then
-    rank by rank) and lets them go (`state`: the engine's, whose display copy the model renders). The viewer's
-    thread renders what it rendered before."""
-    world, original, shown = current_world(), model.get_outputs_for_camera, state.display_gaussians
+def collective_renders(model):
+    """On rank 0, while evaluating: each camera the main thread renders is first sent to every process, and
+    all render it together, band by band of its pixels from the rows of every shard each band sees
+    (split_eval). The viewer's thread renders what it rendered before."""
+    original = model.get_outputs
 
-    def render(camera, obb_box=None):
-        if threading.current_thread() is not threading.main_thread():
-            return original(camera, obb_box)
+    def get_outputs(camera):
+        if threading.current_thread() is not threading.main_thread() or model.training:
+            return original(camera)
         broadcast_object(camera.to("cpu"))
-        state.display_gaussians = visible_rows(model, camera, world)
-        try:
-            return original(camera, obb_box)
-        finally:
-            state.display_gaussians = shown
+        return split_outputs(model, camera)
 
-    model.get_outputs_for_camera = render
+    model.get_outputs = get_outputs
     try:
         yield
     finally:
-        del model.get_outputs_for_camera
+        del model.get_outputs
         broadcast_object(None)  # the others stop serving
 
 
 def serve_renders(model) -> None:
-    """Rank > 0 while rank 0 evaluates: the rows of this shard each of its cameras sees, until it says stop."""
-    world = current_world()
+    """Rank > 0 while rank 0 evaluates: its part of each camera rank 0 renders, until it says stop."""
     while True:
         camera = broadcast_object(None)
         if camera is None:
             return
-        visible_rows(model, camera, world)
-
-
-@torch.no_grad()
-def visible_rows(model, camera, world: World) -> Optional[Dict[str, Tensor]]:
-    """The Gaussians `camera` sees (evaluation's view of it: the association's tile search on each shard), every
-    shard's in rank order, on rank 0 (None elsewhere): point-to-point messages into one tensor per parameter."""
-    training = model.training
-    model.eval()
-    try:
-        view = model.view_for(camera)
-    finally:
-        model.train(training)
-    params = {name: p.detach() for name, p in model.gauss_params.items()}
-    device = params["means"].device
-    viewmat, grid = model.viewmat(camera.camera_to_worlds[0], device), view.rays.to(device)
-    found = []
-    for start in range(0, params["means"].shape[0], SEARCH_ROWS):  # the search's temporaries: a chunk's
-        part = {name: p[start : start + SEARCH_ROWS] for name, p in params.items()}
-        scales, opacities = model.activated(part)
-        pre = preprocess(part["means"], part["quats"], scales, opacities, part["means"].new_zeros(len(scales), 3),
-                         viewmat, lambda_mode=model.config.lambda_mode)
-        found.append(torch.nonzero(seen_by(pre.pbf, grid)).squeeze(1) + start)
-        del pre, part
-    rows = torch.cat(found) if found else torch.zeros(0, dtype=torch.long, device=device)
-    if not world.distributed:
-        return {name: p[rows] for name, p in params.items()}
-    counts = all_gather_objects(int(rows.numel()))
-    if not world.is_main:
-        for name in sorted(params):
-            if counts[world.rank]:
-                dist.send(params[name][rows].to(backend_device(params[name])), dst=0)
-        return None
-    out = {}
-    for name in sorted(params):
-        p = params[name]
-        out[name] = p.new_empty((sum(counts),) + tuple(p.shape[1:]), device=backend_device(p))
-        out[name][: counts[0]] = p[rows]
-        start = counts[0]
-        for rank in range(1, world.size):
-            if counts[rank]:
-                dist.recv(out[name][start : start + counts[rank]], src=rank)
-            start += counts[rank]
-        out[name] = out[name].to(p.device)
-    return out
+        split_outputs(model, camera.to(model.device))
 
 
 def sharded_outputs(model, cameras, me: int) -> Dict[str, Tensor]:
