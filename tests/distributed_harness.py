@@ -258,7 +258,9 @@ def pause_main(local_rank: int, world_size: int, config, global_rank: int = 0):
     cfg = scenario_config(data, out, "paused", steps=5)
     cfg.machine.timeout_s = config.machine.timeout_s
     trainer = train(local_rank, world_size, cfg, global_rank, callbacks=[pause_at])
-    _write(out / f"finished_{global_rank}.json", {"waited_s": trainer.gate.waited_s, "step": trainer.step})
+    dm = trainer.pipeline.datamanager
+    _write(out / f"finished_{global_rank}.json", {"waited_s": trainer.gate.waited_s, "step": trainer.step,
+                                                   "cached_eval": "cached_eval" in dm.__dict__})
 
 
 # ------------------------------------------------------------------------------------- sharded renders

@@ -176,7 +176,8 @@ def test_a_killed_process_stops_the_other_with_one_line_within_the_timeout(launc
 
 def test_a_process_paused_in_the_viewer_past_the_timeout_does_not_stop_the_others(room, tmp_path):
     """Rank 0 paused (the viewer's "Pause training") for longer than --machine.timeout-s: rank 1 waits at the
-    next step's gate, not in a collective that would time out, and both finish."""
+    next step's gate, not in a collective that would time out, and both finish. Rank 1 never cached the eval
+    images (rank 0 alone evaluates)."""
     config = harness.scenario_config(room, tmp_path, "pause")
     config.machine.timeout_s = 8.0  # above the processes' start-up skew on a loaded machine
     stop, _ = _killed_launch(config, tmp_path / "log.txt", harness.pause_main)
@@ -185,6 +186,7 @@ def test_a_process_paused_in_the_viewer_past_the_timeout_does_not_stop_the_other
     finished = [json.loads((tmp_path / f"finished_{rank}.json").read_text()) for rank in range(2)]
     assert finished[1]["waited_s"] >= config.machine.timeout_s, finished  # it waited at the gate, past the timeout
     assert finished[0]["step"] == finished[1]["step"] == 4
+    assert not finished[1]["cached_eval"]  # rank 0 alone evaluates: the others never load the eval images
 
 
 # ---------------------------------------------------------------------------------- sharded renders

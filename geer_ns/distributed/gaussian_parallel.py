@@ -31,6 +31,7 @@ from geer_ns.distributed.streamed_checkpoint import leaves, replaced, save_rows_
 from geer_ns.gsplat_private import update_param_with_optimizer
 from geer_ns.distributed.world import (
     World,
+    all_gather_counts,
     all_gather_objects,
     broadcast_object,
     current_world,
@@ -117,7 +118,7 @@ class GaussianParallel:
     def _after_step(self, step: int) -> None:
         """After densification: the scene's size, and a rebalance where the shards drifted apart."""
         model = self.trainer.pipeline.model
-        sizes = all_gather_objects(model.num_points)
+        sizes = all_gather_counts(model.num_points)
         self.state.scene_gaussians = sum(sizes)
         if max(sizes) > (1.0 + REBALANCE_FRACTION) * max(min(sizes), 1):
             rebalance(self.world, model, self.trainer.optimizers.optimizers, sizes)
@@ -254,7 +255,7 @@ def scene_budget(wanted: Tensor, over: Tensor, ids: Tensor, n: int, budget: int)
     world = current_world()
     if not world.distributed:
         return local_budget(wanted, over, ids, n, budget)
-    scene = sum(all_gather_objects(int(n)))
+    scene = sum(all_gather_counts(n))
     mine = torch.nonzero(wanted > 0).squeeze(1)
     every = [all_gather_rows(world, t[mine]) for t in (wanted, over, ids)]
     allowed = strongest_first(*every, room=max(budget - scene, 0))
@@ -272,7 +273,7 @@ def all_gather_rows(world: World, tensor: Tensor) -> Tensor:
     """Every shard's rows of `tensor`, in rank order, on every process (padded for the collective)."""
     if not world.distributed:
         return tensor
-    sizes = all_gather_objects(int(tensor.shape[0]))
+    sizes = all_gather_counts(tensor.shape[0])
     padded = on_backend_device(tensor.new_zeros((max(max(sizes), 1),) + tuple(tensor.shape[1:])))
     padded[: tensor.shape[0]] = tensor.detach()
     parts = [torch.empty_like(padded) for _ in sizes]
@@ -285,7 +286,7 @@ def gather_rows(world: World, tensor: Tensor, device: Optional[torch.device] = N
     process), on `device` (default: the tensor's). Uneven shards are padded for the collective and cut back."""
     if not world.distributed:
         return tensor if device is None else tensor.to(device)
-    sizes = all_gather_objects(int(tensor.shape[0]))
+    sizes = all_gather_counts(tensor.shape[0])
     padded = on_backend_device(tensor.new_zeros((max(sizes),) + tuple(tensor.shape[1:])))
     padded[: tensor.shape[0]] = tensor.detach()
     parts = [torch.empty_like(padded) for _ in sizes] if world.is_main else None

@@ -126,6 +126,17 @@ def _buckets(tensors: Sequence[Tensor], bucket_bytes: int) -> List[List[Tensor]]
     return buckets
 
 
+def all_gather_counts(count: int) -> List[int]:
+    """[count of rank 0, count of rank 1, ...]: one small tensor collective (no pickling, unlike
+    all_gather_objects: what runs every step); [count] on one process."""
+    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+        return [int(count)]
+    mine = on_backend_device(torch.tensor([int(count)], dtype=torch.int64))
+    every = mine.new_empty(dist.get_world_size())
+    dist.all_gather_into_tensor(every, mine)
+    return every.cpu().tolist()
+
+
 def all_gather_objects(obj: Any) -> List[Any]:
     """[obj of rank 0, obj of rank 1, ...] (picklable objects); [obj] on one process."""
     if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
