@@ -36,6 +36,18 @@ ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
 
 
+def _cells(x0: Tensor, y0: Tensor, w: Tensor, h: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+    """Every cell of M integer boxes (corner x0, y0, sizes w, h; a size <= 0 is an empty box), box by box, rows
+    in order: (owner [K] index of the box, x [K], y [K])."""
+    w, h = w.clamp_min(0), h.clamp_min(0)
+    count = w * h
+    owner = torch.repeat_interleave(torch.arange(count.numel(), device=count.device), count)
+    start = torch.cumsum(count, 0) - count
+    offset = torch.arange(owner.numel(), device=count.device) - start[owner]
+    wo = w[owner].clamp_min(1)
+    return owner, x0[owner] + offset % wo, y0[owner] + offset // wo
+
+
 def tile_intersections(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int,
                        tile_height: int) -> Tuple[Tensor, Tensor]:
     """The (tile, Gaussian) pairs of gsplat's isect_tiles, sorted by camera, tile, then depth.
@@ -56,13 +68,7 @@ def tile_intersections(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size
     xmax = torch.ceil(m[:, 0] + r).clamp(0, tile_width).long()
     ymin = torch.floor(m[:, 1] - r).clamp(0, tile_height).long()
     ymax = torch.ceil(m[:, 1] + r).clamp(0, tile_height).long()
-    w = (xmax - xmin).clamp_min(0)
-    count = w * (ymax - ymin).clamp_min(0)
-    owner = torch.repeat_interleave(torch.arange(cam.numel(), device=radii.device), count)
-    start = torch.cumsum(count, 0) - count
-    offset = torch.arange(owner.numel(), device=radii.device) - start[owner]
-    wo = w[owner].clamp_min(1)
-    tx, ty = xmin[owner] + offset % wo, ymin[owner] + offset // wo
+    owner, tx, ty = _cells(xmin, ymin, xmax - xmin, ymax - ymin)
     tile_ids = cam[owner] * (tile_width * tile_height) + ty * tile_width + tx
     flat_ids = cam[owner] * N + gid[owner]
     order = torch.argsort(depths.detach().reshape(-1)[flat_ids], stable=True)
@@ -108,13 +114,7 @@ def block_intersections(tile_ids: Tensor, flat_ids: Tensor, means2d: Tensor, con
     bx1 = torch.minimum(hi_x.nan_to_num(bw, bw, -1.0).clamp(-1, bw), (tx0 + per - 1).double()).long()
     by0 = torch.maximum(lo_y.nan_to_num(-1.0, -1.0, -1.0).clamp(-1, bh), ty0.double()).long()
     by1 = torch.minimum(hi_y.nan_to_num(bh, bh, -1.0).clamp(-1, bh), (ty0 + per - 1).double()).long()
-    w = (bx1 - bx0 + 1).clamp_min(0)
-    count = w * (by1 - by0 + 1).clamp_min(0)
-    owner = torch.repeat_interleave(torch.arange(count.numel(), device=count.device), count)
-    start = torch.cumsum(count, 0) - count
-    offset = torch.arange(owner.numel(), device=count.device) - start[owner]
-    wo = w[owner].clamp_min(1)
-    bx, by = bx0[owner] + offset % wo, by0[owner] + offset // wo
+    owner, bx, by = _cells(bx0, by0, bx1 - bx0 + 1, by1 - by0 + 1)
     block_ids = cam[owner] * (bw * bh) + by * bw + bx
     order = torch.argsort(block_ids, stable=True)  # the tile's depth order within each block
     return block_ids[order], flat_ids[owner][order]
