@@ -67,7 +67,8 @@ def random_conics(n, width, height, seed):
 
 
 @pytest.mark.parametrize("max_pairs", [1 << 21, 700])  # one chunk; many small recomputed chunks
-def test_forward_and_gradients_match_brute_force(max_pairs):
+@pytest.mark.parametrize("block", [16, 4, 1])  # whole tiles; the blocks whose pairs are culled
+def test_forward_and_gradients_match_brute_force(max_pairs, block):
     width, height = 37, 21  # not a multiple of the tile size
     means2d, conics, colors, opacities, radii, depths = random_conics(40, width, height, seed=3)
     background = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
@@ -78,7 +79,8 @@ def test_forward_and_gradients_match_brute_force(max_pairs):
 
     mine = [t.clone()[None].requires_grad_(True) for t in (means2d, conics, colors, opacities)]
     rgb, alpha = rasterize_to_pixels(*mine, radii[None], depths[None], width, height, TILE,
-                                     background[None], max_pairs=max_pairs, recompute_above=max_pairs)
+                                     background[None], max_pairs=max_pairs, recompute_above=max_pairs,
+                                     block=block)
     assert rgb.shape == (1, height, width, 3) and alpha.shape == (1, height, width, 1)
     torch.testing.assert_close(rgb[0], ref_rgb, rtol=1e-9, atol=1e-10)
     torch.testing.assert_close(alpha[0], ref_alpha, rtol=1e-9, atol=1e-10)
