@@ -48,6 +48,7 @@ from geer_ns.color_metrics import color_corrected_metrics
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, host_camera_model, native_view
 from geer_ns.densify.mcmc_cpu import install_mcmc_cpu_ops
+from geer_ns.lens_refinement import LensMode, LensRefinement
 from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angular_signal
 from geer_ns.densify.strategy import GeerDefaultStrategy
 from geer_ns.perceptual import build_lpips_if_cached
@@ -104,6 +105,13 @@ class GeerOwnOptions:
     option."""
     appearance_reg: float = 0.1
     """appearance=exposure: weight pulling the images' mean log gain to zero."""
+    lens_refinement: LensMode = "off"
+    """Refine each training camera's intrinsics (per distinct camera, not per image): "focal" (focal lengths),
+    "focal+principal" (and the principal point) or "full" (and every distortion coefficient), through the rays
+    they define (geer_ns/lens_refinement.py; optimizer lens_opt). The refined cameras go to
+    <run>/cameras_refined.json and cameras.txt with every checkpoint."""
+    lens_refinement_start: int = 500
+    """lens-refinement: the step from which renders use (and train) the refined intrinsics."""
     mcmc_cap_max: int = 1_000_000
     """strategy=mcmc: most Gaussians (gsplat MCMCStrategy cap_max)."""
     mcmc_noise_lr: float = 5e5
@@ -160,7 +168,7 @@ OWN_OPTIONS_HELP = (
     "{opacity,paper}, --pipeline.model.strategy {default,mcmc}, "
     "--pipeline.model.max-gaussians, --pipeline.model.densify-min-pixels, --pipeline.model.prune-unseen, --pipeline.model.distributed {images,gaussians}, "
     "--pipeline.model.max-pairs, --pipeline.model.kernel-check-every, "
-    "--pipeline.model.central-half-angles-deg, --pipeline.datamanager.supervision, "
+    "--pipeline.model.central-half-angles-deg, --pipeline.model.lens-refinement {off,focal,focal+principal,full}, --pipeline.datamanager.supervision, "
     "--pipeline.datamanager.mask-edge-fill, --pipeline.datamanager.images-per-step, --machine.timeout-s; resume "
     "with --load-dir <run>/nerfstudio_models. Splatfacto options "
     "marked IGNORED are accepted and not used."
@@ -255,6 +263,7 @@ class GeerModel(SplatfactoModel):
             shape = self.config.grid_shape
             self.bil_grids = BilateralGrid(num=self.num_train_data, grid_X=shape[0], grid_Y=shape[1], grid_W=shape[2])
         self.appearance = Appearance(self.num_train_data) if self.config.appearance == "exposure" else None
+        self.lens: Optional[LensRefinement] = None  # set with the training cameras (lens_refinement.attach)
         self.strategy, self.strategy_state = self._build_strategy()
         self.views: List[ViewRecord] = []  # this step's rendered training views, for the densification statistics
         self._statistics: Optional[StepStatistics] = None  # the step's statistics, when the engine reduced them
@@ -393,6 +402,8 @@ class GeerModel(SplatfactoModel):
         if not isinstance(camera, Cameras):
             return {}
         view = self._view_for(camera)
+        if self.lens is not None:
+            view = self.lens.refine_view(view, host_camera_model(camera), self.step)
         height, width = view.size
         params = self._gaussians()
         if params is None:
@@ -441,7 +452,9 @@ class GeerModel(SplatfactoModel):
         if self.config.use_bilateral_grid and self.training and cam_idx is not None:
             outputs["rgb"] = self._apply_bilateral_grid(outputs["rgb"][None], cam_idx, height, width)[0]
         if self.appearance is not None:
-            outputs["rgb"] = self.appearance(outputs["rgb"], view.rays.dirs, cam_idx if self.training else None)
+            image = cam_idx if self.training else None
+            outputs["rgb"] = self.appearance(outputs["rgb"], view.rays.dirs, image,
+                                             self.appearance.camera_of(image, host_camera_model(camera)))
         return outputs
 
     def probe(self, view: View, means: Tensor, viewmat: Tensor, scales: Tensor, opacities: Tensor) -> ViewProbe:
@@ -594,6 +607,8 @@ class GeerModel(SplatfactoModel):
         groups = super().get_param_groups()
         if self.appearance is not None:
             groups["appearance"] = list(self.appearance.parameters())
+        if self.lens is not None:
+            groups["lens_opt"] = [self.lens.deltas]
         return groups
 
     def _scale_regularization(self) -> Tensor:
