@@ -156,3 +156,45 @@ def test_refinement_pulls_a_perturbed_focal_towards_the_truth(ops, supervision):
     before, after = abs(wrong.fx / truth.fx - 1), abs(refined.fx / truth.fx - 1)
     assert after < before / 3, (before, after)
     assert abs(refined.fy / truth.fy - 1) < before / 3
+
+
+@pytest.mark.parametrize("kind", ["beap", "native"])
+def test_model_trains_each_cameras_lens_and_vignetting(ops, kind):
+    """A tiny geer model with lens refinement and appearance: two distinct training cameras (four images) get
+    one lens and one vignetting each; a training step of image 2 (camera 1) gives camera 1's lens deltas a
+    gradient and camera 0's none; an evaluation camera with camera 1's intrinsics (no image index) is rendered
+    through camera 1's refined lens."""
+    from nerfstudio.cameras.cameras import Cameras as NsCameras
+
+    from geer_ns.lens_refinement import attach
+    from test_nerfstudio_model import fisheye_camera, make_model
+
+    model = make_model(n=60, appearance="exposure", lens_refinement="focal+principal", lens_refinement_start=0)
+    cams = [fisheye_camera(24, kind=kind) for _ in range(4)]
+    for i in (2, 3):
+        cams[i].fx[:] = cams[i].fy[:] = float(cams[i].fx) * 1.1
+    train = NsCameras(camera_to_worlds=torch.cat([c.camera_to_worlds for c in cams]),
+                      fx=torch.cat([c.fx for c in cams]), fy=torch.cat([c.fy for c in cams]),
+                      cx=torch.cat([c.cx for c in cams]), cy=torch.cat([c.cy for c in cams]), width=24, height=24,
+                      camera_type=cams[0].camera_type.expand(4, 1), distortion_params=torch.zeros(4, 6))
+    attach(model, train)
+    assert model.lens.image_camera == [0, 0, 1, 1] and model.appearance.vignetting.shape[0] == 2
+    assert model.get_param_groups()["lens_opt"] == [model.lens.deltas]
+    camera = cams[2]
+    camera.metadata = {**camera.metadata, "cam_idx": 2}
+    model.train()
+    with torch.no_grad():
+        model.lens.deltas[1, 0] = 0.01
+    out = model.get_outputs(camera)
+    out["rgb"].sum().backward()
+    grad = model.lens.deltas.grad
+    assert float(grad[1].abs().sum()) > 0 and float(grad[0].abs().sum()) == 0
+    assert float(model.appearance.vignetting.grad[1].abs().sum()) > 0
+    assert model.lens.refined_camera(1).fx == pytest.approx(24 / math.pi * 1.1 * math.exp(0.01), rel=1e-6)
+    model.eval()
+    viewer = fisheye_camera(24, kind="native")
+    viewer.fx[:] = viewer.fy[:] = float(cams[2].fx)
+    refined = model.get_outputs(viewer)["rgb"]
+    with torch.no_grad():
+        model.lens.deltas.zero_()
+    assert float((model.get_outputs(viewer)["rgb"] - refined).abs().max()) > 1e-4
