@@ -364,15 +364,19 @@ class GeerModel(SplatfactoModel):
     # ---------------------------------------------------------------------------------- rendering
     def _view_for(self, camera: Cameras) -> View:
         """The ray grid a camera is rendered on: its cached BEAP view for BEAP-supervised training batches,
-        else its own pixel rays (downscaled by splatfacto's resolution schedule while training)."""
+        else its own pixel rays (downscaled by splatfacto's resolution schedule while training); through the
+        refined lens when lens refinement is on (geer_ns/lens_refinement.py)."""
         kind = (camera.metadata or {}).get(VIEW_KEY, "native") if self.training else "native"
         factor = self._get_downscale_factor()
         if kind == "beap":
-            return beap_view(host_camera_model(camera), factor)
-        if factor > 1:
-            camera = deepcopy(camera)
-            camera.rescale_output_resolution(1.0 / factor)
-        return native_view(camera_model(camera, 0) if factor > 1 else host_camera_model(camera))
+            view = beap_view(host_camera_model(camera), factor)
+        elif factor > 1:
+            camera_small = deepcopy(camera)
+            camera_small.rescale_output_resolution(1.0 / factor)
+            view = native_view(camera_model(camera_small, 0))
+        else:
+            view = native_view(host_camera_model(camera))
+        return view if self.lens is None else self.lens.refine_view(view, host_camera_model(camera), self.step)
 
     def _gaussians(self) -> Optional[Dict[str, Tensor]]:
         """Parameters to render (cropped to the viewer's box when one is set); None if nothing is left."""
@@ -402,8 +406,6 @@ class GeerModel(SplatfactoModel):
         if not isinstance(camera, Cameras):
             return {}
         view = self._view_for(camera)
-        if self.lens is not None:
-            view = self.lens.refine_view(view, host_camera_model(camera), self.step)
         height, width = view.size
         params = self._gaussians()
         if params is None:
