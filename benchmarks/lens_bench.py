@@ -47,7 +47,7 @@ def _report(args, record: dict, rows: list) -> str:
 - scored on the test split (6 views, true poses, the run's lens: refined where refined) as ns-eval does
 - device: CPU, 2 cores shared with other jobs (load average {load_average()} when written; one run each)
 - commit: {record['commit']} (+ the working tree that adds this file)
-- command: `nice -n 10 python benchmarks/lens_bench.py --size {args.size} --steps {args.steps}`
+- command: `nice -n 10 python benchmarks/lens_bench.py --size {args.size} --steps {args.steps} --lens-lr {args.lens_lr:g}`
 
 | run | test PSNR | test SSIM | rotation deg (mean / max) | position % (mean / max) | focal % | k1 | cx, cy px | training s |
 | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |
@@ -60,7 +60,8 @@ def main() -> None:
 
     extra = argparse.ArgumentParser(add_help=False)
     extra.add_argument("--lens-lr", type=float, default=2e-3)
-    extra.add_argument("--only", default="")
+    extra.add_argument("--only", default="", help="run only the runs whose name contains this")
+    extra.add_argument("--suffix", default="", help="appended to the report's file names")
     known, rest = extra.parse_known_args()
     sys.argv = [sys.argv[0], *rest]
     args = bench_args(__doc__, 1000, "/tmp/geer_lens")
@@ -110,8 +111,8 @@ def main() -> None:
             errors = "0 | 0 | 0 | 0 | 0"
         rows.append(f"| {name} | {metrics['psnr']:.2f} | {metrics['ssim']:.3f} | {errors} | {seconds:.0f} |")
         print(rows[-1], flush=True)
-        dump(ROOT / "benchmarks" / "lens_refinement_runs.json", record)
-        (ROOT / "benchmarks" / "lens_refinement.md").write_text(_report(args, record, rows))
+        dump(ROOT / "benchmarks" / f"lens_refinement_runs{known.suffix}.json", record)
+        (ROOT / "benchmarks" / f"lens_refinement{known.suffix}.md").write_text(_report(args, record, rows))
     print(_report(args, record, rows))
 
 

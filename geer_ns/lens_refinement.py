@@ -11,8 +11,8 @@ one zero-initialised delta per refined parameter:
 Rays of refined cameras. A pixel position x (a native pixel centre, or the source position of a BEAP cell,
 below) sees the ray d(p) with project(d(p); p) = x. Each render refreshes the ray of every such x from its
 last value by Newton steps on the unit sphere, d <- normalize(d - J^+ (project(d; p) - x)), J = d project / d d
-(2x3, its pseudo-inverse maps into the tangent plane); the last step is taken with the intrinsics as tensors
-that require grad, so that d(d)/d(p) = -J^+ d project / d p, the implicit-function gradient (its value moves by
+(2x3, by float64 central differences; its pseudo-inverse maps into the tangent plane): three detached chord steps,
+then one more with J at the result and the intrinsics as tensors that require grad, so that d(d)/d(p) = -J^+ d project / d p, the implicit-function gradient (its value moves by
 the converged residual only). The renderer returns dL/d(ray direction) (both compiled backends), which autograd
 carries to the deltas. A refresh whose residual stays above a thousandth of a pixel (a large jump of the
 intrinsics) is redone by the camera model's own unprojection.
