@@ -34,7 +34,9 @@ def _report(args, record: dict, rows: list) -> str:
     return f"""# Lens and pose refinement with perturbed training cameras
 
 - data: the dev fisheye room at {args.size}x{args.size} (`benchmarks/refinement_runs.small_dev_room`, 180-degree
-  equidistant fisheye, native-ray supervision: its rays reach 90 degrees), every training camera turned by 1
+  equidistant fisheye; BEAP supervision, the crop circle keeps its rays within 84 degrees, so every BEAP target
+  is resampled once through the perturbed lens and its cells rendered along the refined lens's rays), every
+  training camera turned by 1
   degree about a random axis and moved by 1 % of the scene's extent, the lens (all images) with focal lengths
   +2 % and k1 + 0.02 (`geer_ns/data/camera_perturbation.py`, seed 0; test poses true)
 - runs: {args.steps} steps each, warm-up 300, refinement every 100 until step 1000, full resolution, same seed.
@@ -45,7 +47,7 @@ def _report(args, record: dict, rows: list) -> str:
   max over the training cameras), position in % of the scene's extent; focal in % (mean of fx and fy), k1
   absolute, principal point in pixels
 - scored on the test split (6 views, true poses, the run's lens: refined where refined) as ns-eval does
-- device: CPU, 2 cores shared with other jobs (load average {load_average()} when written; one run each)
+- device: CPU, 2 cores shared with other jobs (training seconds vary with the other jobs: not a speed measure; load average {load_average()} when written; one run each)
 - commit: {record['commit']} (+ the working tree that adds this file)
 - command: `nice -n 10 python benchmarks/lens_bench.py --size {args.size} --steps {args.steps} --lens-lr {args.lens_lr:g}`
 
