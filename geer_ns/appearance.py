@@ -16,7 +16,7 @@ their camera's vignetting. docs/refinement.md says how to use it.
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import Dict, Optional, Sequence
 
 import torch
 from torch import Tensor, nn
@@ -46,6 +46,22 @@ class Appearance(nn.Module):
         super().__init__()
         self.log_gains = nn.Parameter(torch.zeros(num_images, 3))
         self.vignetting = nn.Parameter(torch.zeros(num_cameras, vignetting_terms))
+        self.image_camera: Sequence[int] = ()  # camera of each training image (set_cameras)
+        self.camera_index: Dict[object, int] = {}  # camera model -> its vignetting
+
+    def set_cameras(self, cameras: Sequence[object], image_camera: Sequence[int]) -> None:
+        """One vignetting per distinct camera (`cameras`, hashable models), `image_camera[i]` the camera of
+        training image i. Called before the optimizers are made (the vignetting Parameter is replaced)."""
+        terms = self.vignetting.shape[1]
+        self.vignetting = nn.Parameter(torch.zeros(max(1, len(cameras)), terms, device=self.vignetting.device))
+        self.image_camera = [int(i) for i in image_camera]
+        self.camera_index = {cam: i for i, cam in enumerate(cameras)}
+
+    def camera_of(self, image: Optional[int], camera: object) -> int:
+        """The vignetting of training image `image`, else of camera model `camera` (the first if unknown)."""
+        if image is not None and 0 <= image < len(self.image_camera):
+            return self.image_camera[image]
+        return self.camera_index.get(camera, 0)
 
     def vignetting_factor(self, theta: Tensor, camera: int = 0) -> Tensor:
         """vignetting_k(theta), same shape as theta."""

@@ -46,6 +46,7 @@ from geer_ns.appearance import Appearance
 from geer_ns.color_metrics import color_corrected_metrics
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, host_camera_model, native_view
+from geer_ns.lens_refinement import LensRefinement
 from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angular_signal
 from geer_ns.densify.strategy import GeerDefaultStrategy, build_strategy
 from geer_ns.distributed.engine import EngineState
@@ -145,6 +146,7 @@ class GeerModel(SplatfactoModel):
         changed = ignored_options_set(self.config, GeerModelConfig())
         if changed:
             CONSOLE.print(f"[yellow]geer: ignoring splatfacto option(s) {', '.join(changed)} (not used by the 3DGEER renderer)")
+        self.lens: Optional[LensRefinement] = None  # set with the training cameras (lens_refinement.attach)
         self.strategy, self.strategy_state = build_strategy(self.config, self.num_train_data, self.images_per_step)
         self.views: List[ViewRecord] = []  # this step's rendered training views, for the densification statistics
         self._statistics: Optional[StepStatistics] = None  # the step's statistics, when the engine reduced them
@@ -212,15 +214,19 @@ class GeerModel(SplatfactoModel):
     # ---------------------------------------------------------------------------------- rendering
     def view_for(self, camera: Cameras) -> View:
         """The ray grid a camera is rendered on: its cached BEAP view for BEAP-supervised training batches,
-        else its own pixel rays (downscaled by splatfacto's resolution schedule while training)."""
+        else its own pixel rays (downscaled by splatfacto's resolution schedule while training); through the
+        refined lens when lens refinement is on (geer_ns/lens_refinement.py)."""
         kind = (camera.metadata or {}).get(VIEW_KEY, "native") if self.training else "native"
         factor = self._get_downscale_factor()
         if kind == "beap":
-            return beap_view(host_camera_model(camera), factor)
-        if factor > 1:
-            camera = deepcopy(camera)
-            camera.rescale_output_resolution(1.0 / factor)
-        return native_view(camera_model(camera, 0) if factor > 1 else host_camera_model(camera))
+            view = beap_view(host_camera_model(camera), factor)
+        elif factor > 1:
+            camera_small = deepcopy(camera)
+            camera_small.rescale_output_resolution(1.0 / factor)
+            view = native_view(camera_model(camera_small, 0))
+        else:
+            view = native_view(host_camera_model(camera))
+        return view if self.lens is None else self.lens.refine_view(view, host_camera_model(camera), self.step)
 
     def render_gaussians(self) -> Optional[Dict[str, Tensor]]:
         """Parameters to render (the engine's display copy when set, outside training; cropped to the viewer's
@@ -301,7 +307,9 @@ class GeerModel(SplatfactoModel):
         if self.config.use_bilateral_grid and self.training and cam_idx is not None:
             outputs["rgb"] = self._apply_bilateral_grid(outputs["rgb"][None], cam_idx, height, width)[0]
         if self.appearance is not None:
-            outputs["rgb"] = self.appearance(outputs["rgb"], view.rays.dirs, cam_idx if self.training else None)
+            image = cam_idx if self.training else None
+            outputs["rgb"] = self.appearance(outputs["rgb"], view.rays.dirs, image,
+                                             self.appearance.camera_of(image, host_camera_model(camera)))
         return outputs
 
     def probe(self, view: View, means: Tensor, viewmat: Tensor, scales: Tensor, opacities: Tensor) -> ViewProbe:
@@ -457,6 +465,8 @@ class GeerModel(SplatfactoModel):
         groups = super().get_param_groups()
         if self.appearance is not None:
             groups["appearance"] = list(self.appearance.parameters())
+        if self.lens is not None:
+            groups["lens_opt"] = [self.lens.deltas]
         return groups
 
     def _scale_regularization(self) -> Tensor:

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import List, Literal, Optional, Tuple
 
+from geer_ns.lens_refinement import LensMode
 from geer_ns.render.backend import Backend
 from geer_ns.render.pbf import LambdaMode
 from geer_ns.selftest.sentinel import DEFAULT_EVERY
@@ -55,6 +56,13 @@ class GeerOwnOptions:
     option."""
     appearance_reg: float = 0.1
     """appearance=exposure: weight pulling the images' mean log gain to zero."""
+    lens_refinement: LensMode = "off"
+    """Refine each training camera's intrinsics (per distinct camera, not per image): "focal" (focal lengths),
+    "focal+principal" (and the principal point) or "full" (and every distortion coefficient), through the rays
+    they define (geer_ns/lens_refinement.py; optimizer lens_opt). The refined cameras go to
+    <run>/cameras_refined.json and colmap/cameras.txt with every checkpoint."""
+    lens_refinement_start: int = 500
+    """lens-refinement: the step from which renders use (and train) the refined intrinsics."""
     mcmc_cap_max: int = 1_000_000
     """strategy=mcmc: most Gaussians (gsplat MCMCStrategy cap_max)."""
     mcmc_noise_lr: float = 5e5
@@ -76,7 +84,8 @@ OWN_OPTIONS_HELP = (
     "--pipeline.model.max-gaussians, --pipeline.model.densify-min-pixels, --pipeline.model.prune-unseen, "
     "--pipeline.model.distributed {images,gaussians}, "
     "--pipeline.model.max-pairs, --pipeline.model.kernel-check-every, "
-    "--pipeline.model.central-half-angles-deg, --pipeline.datamanager.supervision, "
+    "--pipeline.model.central-half-angles-deg, --pipeline.model.lens-refinement {off,focal,focal+principal,full}, "
+    "--pipeline.datamanager.supervision, "
     "--pipeline.datamanager.mask-edge-fill, --pipeline.datamanager.images-per-step, --machine.timeout-s; resume "
     "with --load-dir <run>/nerfstudio_models. Splatfacto options "
     "marked IGNORED are accepted and not used."

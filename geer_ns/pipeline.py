@@ -20,6 +20,7 @@ import torchvision.utils as vutils
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 
 from geer_ns.data.views import camera_kind
+from geer_ns.lens_refinement import attach
 
 # Per-image timings are not split by camera kind (ns-eval's fps is not a render speed anyway).
 _NOT_SPLIT = ("num_rays_per_sec", "fps")
@@ -63,6 +64,7 @@ class GeerPipeline(VanillaPipeline):
         super().__init__(config, device, test_mode=test_mode, world_size=1, local_rank=local_rank,
                          grad_scaler=grad_scaler)
         self.world_size = world_size
+        attach(self.model, self.datamanager.train_dataset.cameras)  # per-camera state: lens, vignetting
 
     def get_average_image_metrics(
         self,

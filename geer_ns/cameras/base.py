@@ -21,6 +21,12 @@ def _safe_norm(v: Tensor) -> Tensor:
     return torch.sqrt(torch.clamp((v * v).sum(-1), min=torch.finfo(v.dtype).tiny))
 
 
+def _is_zero(value) -> bool:
+    """True for a coefficient that is exactly 0 and fixed; a tensor (a coefficient being refined, maybe 0 now)
+    is never 'zero', so that the terms it scales stay in the graph (geer_ns/lens_refinement.py)."""
+    return not isinstance(value, Tensor) and value == 0
+
+
 def _tol_px(dtype: torch.dtype) -> float:
     """Residual (pixels) below which an inversion counts as converged."""
     return 1e-5 if dtype == torch.float64 else 2e-2

@@ -14,7 +14,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from geer_ns.cameras.base import CameraModel, _float_dtype, _safe_norm, _tol_px
+from geer_ns.cameras.base import CameraModel, _float_dtype, _is_zero, _safe_norm, _tol_px
 
 # Samples used by the dense scan that locates the end of the monotonic part of theta -> radius.
 _SCAN_SAMPLES = 20001
@@ -76,14 +76,14 @@ class _CentralLens(CameraModel):
         """Radial factor and its derivative w.r.t. s (closed form: the 1-D solver's hot loop)."""
         num, den = self._radial_coeffs()
         f, df = _poly_even_grad(s, num)
-        if any(c != 0 for c in den):
+        if not all(_is_zero(c) for c in den):
             g, dg = _poly_even_grad(s, den)
             f, df = f / g, (df * g - f * dg) / (g * g)
         return f, df
 
     @cached_property
     def _radial_identity(self) -> bool:
-        return not any(c != 0 for part in self._radial_coeffs() for c in part)
+        return all(_is_zero(c) for part in self._radial_coeffs() for c in part)
 
     def _distort(self, q: Tensor) -> Tensor:
         return q * self._radial_factor(_safe_norm(q)).unsqueeze(-1)

@@ -9,7 +9,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from geer_ns.cameras.base import _safe_norm
+from geer_ns.cameras.base import _is_zero, _safe_norm
 from geer_ns.cameras.lens import _CentralLens, _radtan
 
 
@@ -38,9 +38,9 @@ class FOVCamera(_CentralLens):
         return math.pi if self.omega > 0 else math.pi / 2
 
     def _ideal_radius(self, theta: Tensor) -> Tensor:
-        if self.omega == 0:
+        if _is_zero(self.omega):
             return torch.tan(theta)
-        a = 2 * math.tan(self.omega / 2)
+        a = 2 * torch.tan(torch.as_tensor(self.omega / 2, dtype=theta.dtype))  # a tensor while refined
         return torch.atan2(a * torch.sin(theta), torch.cos(theta)) / self.omega
 
     def _ideal_inverse(self, s: Tensor) -> Tensor:
@@ -80,7 +80,7 @@ class MeiCamera(_CentralLens):
 
     @property
     def _nonradial(self) -> bool:  # type: ignore[override]
-        return self.p1 != 0 or self.p2 != 0
+        return not (_is_zero(self.p1) and _is_zero(self.p2))
 
     def _cap(self) -> float:
         return math.acos(-self.xi) if self.xi < 1 else math.pi

@@ -9,7 +9,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from geer_ns.cameras.base import _safe_norm
+from geer_ns.cameras.base import _is_zero, _safe_norm
 from geer_ns.cameras.lens import _CentralLens, _radtan
 
 
@@ -40,7 +40,7 @@ class PinholeCamera(_CentralLens):
 
     @property
     def _nonradial(self) -> bool:  # type: ignore[override]
-        return self.p1 != 0 or self.p2 != 0
+        return not (_is_zero(self.p1) and _is_zero(self.p2))
 
     def _ideal_radius(self, theta: Tensor) -> Tensor:
         return torch.tan(theta)

@@ -1,0 +1,122 @@
+"""Lens and pose refinement on the dev fisheye room with perturbed training poses and a perturbed lens.
+
+The dev room at --size^2; every training camera turned by 1 degree about a random axis and moved by 1 % of the
+scene's extent, and the lens (every image's, test images' too) with its focal lengths 2 % long and k1 moved by
+0.02 (geer_ns/data/camera_perturbation.py, seed 0). Runs of --steps steps from the same seed: the true cameras,
+the perturbed ones without refinement, with pose refinement only (SO3xR3), and with pose and lens refinement
+(`lens_refinement full`). Scored on the test split as ns-eval does (test images: true poses, the run's lens);
+the refined training cameras are compared with the truth. Writes benchmarks/lens_refinement.md (+ .json).
+
+    python benchmarks/lens_bench.py [--size 64] [--steps 1000] [--work /tmp/geer_lens]
+"""
+
+from __future__ import annotations
+
+from pose_bench import camera_errors
+from refinement_runs import ROOT, bench_args, dump, fresh, git_commit, load_average, small_dev_room, train_and_score
+
+
+def lens_errors(pipeline, truth: dict) -> dict:
+    """Relative focal error (%, mean of fx and fy) and the k1 error of the (first) training camera."""
+    from geer_ns.refined_cameras import refined_cameras
+
+    cam = refined_cameras(pipeline)[0][0]
+    scale = float(pipeline.datamanager.train_dataparser_outputs.cameras.width[0, 0]) / truth["intrinsics"]["w"] \
+        if "w" in truth["intrinsics"] else 1.0
+    true = truth["intrinsics"]
+    focal = 50.0 * (abs(cam.fx / (true["fl_x"] * scale) - 1) + abs(cam.fy / (true["fl_y"] * scale) - 1))
+    return {"focal_pct": float(focal), "k1_abs": float(abs(cam.k1 - true.get("k1", 0.0))),
+            "cx_px": float(cam.cx - true["cx"] * scale), "cy_px": float(cam.cy - true["cy"] * scale),
+            "fx": cam.fx, "k1": cam.k1}
+
+
+def _report(args, record: dict, rows: list) -> str:
+    return f"""# Lens and pose refinement with perturbed training cameras
+
+- data: the dev fisheye room at {args.size}x{args.size} (`benchmarks/refinement_runs.small_dev_room`, 180-degree
+  equidistant fisheye; BEAP supervision, the crop circle keeps its rays within 84 degrees, so every BEAP target
+  is resampled once through the perturbed lens and its cells rendered along the refined lens's rays), every
+  training camera turned by 1
+  degree about a random axis and moved by 1 % of the scene's extent, the lens (all images) with focal lengths
+  +2 % and k1 + 0.02 (`geer_ns/data/camera_perturbation.py`, seed 0; test poses true)
+- runs: {args.steps} steps each, warm-up 300, refinement every 100 until step 1000, full resolution, same seed.
+  SO3xR3: nerfstudio's camera optimizer, Adam lr 5e-4 after a 200-step warm-up, decaying to 1e-5. Lens:
+  `--pipeline.model.lens-refinement full --pipeline.model.lens-refinement-start 200`, Adam (lens_opt) lr
+  {args.lens_lr:g} after a 200-step warm-up, decaying to 1e-5; gradients from the CPU build of the kernels
+- camera errors: training cameras against the truth mapped into the dataparser's frame (no re-alignment; mean /
+  max over the training cameras), position in % of the scene's extent; focal in % (mean of fx and fy), k1
+  absolute, principal point in pixels
+- scored on the test split (6 views, true poses, the run's lens: refined where refined) as ns-eval does
+- device: CPU, 2 cores shared with other jobs (training seconds vary with the other jobs: not a speed measure; load average {load_average()} when written; one run each)
+- commit: {record['commit']} (+ the working tree that adds this file)
+- command: `nice -n 10 python benchmarks/lens_bench.py --size {args.size} --steps {args.steps} --lens-lr {args.lens_lr:g}`
+
+| run | test PSNR | test SSIM | rotation deg (mean / max) | position % (mean / max) | focal % | k1 | cx, cy px | training s |
+| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |
+""" + "\n".join(rows) + "\n"
+
+
+def main() -> None:
+    import argparse
+    import sys
+
+    extra = argparse.ArgumentParser(add_help=False)
+    extra.add_argument("--lens-lr", type=float, default=2e-3)
+    extra.add_argument("--only", default="", help="run only the runs whose name contains this")
+    extra.add_argument("--suffix", default="", help="appended to the report's file names")
+    known, rest = extra.parse_known_args()
+    sys.argv = [sys.argv[0], *rest]
+    args = bench_args(__doc__, 1000, "/tmp/geer_lens")
+    args.lens_lr = known.lens_lr
+    from nerfstudio.engine.optimizers import AdamOptimizerConfig
+    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+
+    from geer_ns.data.camera_perturbation import perturb_cameras
+
+    clean = small_dev_room(args.work, args.size)
+    noisy = fresh(args.work / f"lens_{args.size}")
+    truth = perturb_cameras(clean.parent, noisy, transforms=clean.name, rotation_deg=1.0, position_fraction=0.01,
+                            focal_fraction=0.02, k1_offset=0.02)
+    schedule = {"warmup_length": 300, "refine_every": 100, "stop_split_at": 1000, "num_downscales": 0}
+
+    def adam(lr):
+        return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=args.steps, warmup_steps=200,
+                                                             lr_pre_warmup=0.0)}
+
+    optimizers = {"camera_opt": adam(5e-4), "lens_opt": adam(args.lens_lr)}
+    poses = {"camera_optimizer.mode": "SO3xR3"}
+    lens = {**poses, "lens_refinement": "full", "lens_refinement_start": 200}
+    runs = {"perturbed, no refinement": (noisy / clean.name, {}),
+            "perturbed, SO3xR3 poses + lens full": (noisy / clean.name, lens),
+            "true cameras": (clean, {}),
+            "perturbed, SO3xR3 poses": (noisy / clean.name, poses)}
+    if known.only:
+        runs = {k: v for k, v in runs.items() if known.only in k}
+    record = {"commit": git_commit(), "size": args.size, "steps": args.steps, "lens_lr": args.lens_lr, "runs": {}}
+    rows = []
+    for name, (data, overrides) in runs.items():
+        tag = name.replace(" ", "_").replace(",", "").replace("+", "")
+        metrics, seconds, pipeline = train_and_score(tag, data, args.steps, {**schedule, **overrides}, args.work,
+                                                     optimizers)
+        entry = {"seconds": seconds, "psnr": metrics["psnr"], "ssim": metrics["ssim"]}
+        if data != clean:
+            entry["cameras"] = camera_errors(pipeline, truth, refined="camera_optimizer.mode" in overrides)
+            entry["lens"] = lens_errors(pipeline, truth)
+        record["runs"][name] = entry
+        cam, lens_e = entry.get("cameras"), entry.get("lens")
+        if cam:
+            errors = (f"{cam['rotation_deg_mean']:.3f} / {cam['rotation_deg_max']:.3f} | "
+                      f"{cam['position_pct_mean']:.3f} / {cam['position_pct_max']:.3f} | {lens_e['focal_pct']:.3f} | "
+                      f"{lens_e['k1_abs']:.4f} | {lens_e['cx_px']:+.2f}, {lens_e['cy_px']:+.2f}")
+        else:
+            errors = "0 | 0 | 0 | 0 | 0"
+        rows.append(f"| {name} | {metrics['psnr']:.2f} | {metrics['ssim']:.3f} | {errors} | {seconds:.0f} |")
+        print(rows[-1], flush=True)
+        dump(ROOT / "benchmarks" / f"lens_refinement_runs{known.suffix}.json", record)
+        (ROOT / "benchmarks" / f"lens_refinement{known.suffix}.md").write_text(_report(args, record, rows))
+    print(_report(args, record, rows))
+
+
+if __name__ == "__main__":
+    main()
