@@ -8,7 +8,7 @@ all around a 360-degree (equirectangular) camera; the camera's rows (sharded_ren
 parameters, the probe (model.probe), the displaced means and the record (ViewProbe.record), with the two leaves'
 gradients a backward leaves (zeros of their size). Figures: the bytes of what stays until the step's backward
 (the record, the lateral basis autograd saves, the leaves' gradients), the peak RSS growth while building it
-(the float64 temporaries of angular_signal included), and the times. Writes its section of
+(the float64 temporaries of angular_signal and the rows' gathered parameters included, both), and the times. Writes its section of
 benchmarks/distributed_memory.md.
 
     .venv/bin/python benchmarks/probe_memory.py [--rows 1000000]
@@ -124,11 +124,12 @@ def measure(n: int, kind: str, fraction: float, sparse: bool) -> dict:
         probe = model.probe(view, part["means"], viewmat, scales, opacities, rows=rows)
         moved = probe.displace(part["means"], viewmat)
         record = probe.record(torch.ones(rows.shape[0], dtype=torch.bool), torch.zeros(rows.shape[0]))
-    else:  # before: over the whole shard, then the rows
+    else:  # before: over the whole shard, then the rows (their parameters gathered as rows_of did)
         with torch.no_grad():
             scales, opacities = model.activated(params)
         probe = model.probe(view, params["means"], viewmat, scales, opacities)
         moved = probe.displace(params["means"], viewmat)[rows]
+        part = {name: p[rows] for name, p in params.items()}
         seen = torch.zeros(n, dtype=torch.bool)
         seen[rows] = True
         weight = torch.zeros(n)
@@ -139,7 +140,7 @@ def measure(n: int, kind: str, fraction: float, sparse: bool) -> dict:
     build_s = time.perf_counter() - start
     peak = peak_kib() - before
     lateral = probe.signal.lateral
-    del probe
+    del probe, part
     return {"kind": kind, "fraction": fraction, "sparse": sparse, "n": n, "rows": int(rows.shape[0]),
             "held_bytes": held_bytes(record, lateral), "peak_kib": peak, "search_s": search_s,
             "build_s": build_s, "moved": int(moved.shape[0])}
@@ -157,7 +158,8 @@ def section(results, args, commit: str) -> str:
              f"- one camera of a round on one process whose shard holds {args.rows:,} Gaussians (SH degree 3): "
              "its probe, displaced rows and record, now over the rows it sees, before (764e106) over the whole "
              "shard. held: the record, the lateral basis autograd keeps and the two leaves' gradients, until "
-             "the step's backward; peak: RSS growth while building them (float64 temporaries included); "
+             "the step's backward; peak: RSS growth while building them (float64 temporaries and the rows' gathered "
+             "parameters, 236 bytes a row, included); "
              "search: sharded_render.visible_rows over the shard (both)", "",
              "| camera | visible | rows seen | held now MiB | held before MiB | now/before | peak now MiB "
              "| peak before MiB | search s | build now s | build before s |",
