@@ -103,6 +103,7 @@ def measure(n: int, kind: str, fraction: float, sparse: bool) -> dict:
     """One case in this process (see the module docstring)."""
     import torch
 
+    from geer_ns.distributed.gaussian_parallel import probe_rows
     from geer_ns.distributed.sharded_render import visible_rows
     from peak_rss import peak_kib, peak_reset
 
@@ -118,10 +119,10 @@ def measure(n: int, kind: str, fraction: float, sparse: bool) -> dict:
     search_s = time.perf_counter() - start
     before = peak_reset()
     start = time.perf_counter()
-    if sparse:  # sharded_outputs now: the rows' parameters, probe, displacement and record
+    if sparse:  # sharded_outputs now: the probe over the rows, then their parameters, displacement and record
+        probe = probe_rows(model, view, params, viewmat, rows)
         part = {name: torch.index_select(p, 0, rows) for name, p in params.items()}
         scales, opacities = model.activated(part)
-        probe = model.probe(view, part["means"], viewmat, scales, opacities, rows=rows)
         moved = probe.displace(part["means"], viewmat)
         record = probe.record(torch.ones(rows.shape[0], dtype=torch.bool), torch.zeros(rows.shape[0]))
     else:  # before: over the whole shard, then the rows (their parameters gathered as rows_of did)

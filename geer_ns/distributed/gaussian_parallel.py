@@ -216,14 +216,13 @@ def sharded_outputs(model, cameras, me: int) -> Dict[str, Tensor]:
     grids = [v.rays.to(means.device) for v in views]
     rows = [visible_rows(params, viewmats[q], grid, model.config.lambda_mode, model.activated)
             for q, grid in enumerate(grids)]
+    record = model.training and torch.is_grad_enabled()
+    probes = [probe_rows(model, view, params, viewmats[q], rows[q]) for q, view in enumerate(views)] if record else []
     counts = [int(r.shape[0]) for r in rows]
     every = torch.cat(rows)
     gathered = {name: torch.index_select(p, 0, every).split(counts) for name, p in params.items()}
     parts = [{name: chunks[q] for name, chunks in gathered.items()} for q in range(len(cameras))]
     activated = [model.activated(part) for part in parts]
-    record = model.training and torch.is_grad_enabled()
-    probes = [model.probe(view, parts[q]["means"], viewmats[q], *activated[q], rows=rows[q])
-              for q, view in enumerate(views)] if record else []
 
     def rows_of(q: int, _rows: Tensor):
         part, (s, o) = parts[q], activated[q]
@@ -241,6 +240,15 @@ def sharded_outputs(model, cameras, me: int) -> Dict[str, Tensor]:
     for q, probe in enumerate(probes):
         model.views.append(probe.record(torch.ones_like(seen.rows[q], dtype=torch.bool), seen.max_weight[q]))
     return model.view_outputs(out, views[me], background, cameras[me])
+
+
+def probe_rows(model, view, params: Dict[str, Tensor], viewmat: Tensor, rows: Tensor):
+    """A camera's densification probe (model.probe) over the `rows` of the shard `params` it sees, made from
+    detached copies of their values before the rows are gathered for the render (so that the probe's float64
+    temporaries and the gathered rows are not held together)."""
+    seen = {name: params[name].detach()[rows] for name in ("means", "scales", "opacities")}
+    scales, opacities = model.activated(seen)
+    return model.probe(view, seen["means"], viewmat, scales, opacities, rows=rows)
 
 
 # ----------------------------------------------------------------------------------------- rows
