@@ -23,6 +23,7 @@ import os
 import platform
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -174,11 +175,14 @@ def section(results, args, commit: str) -> str:
             f"{old['held_bytes'] / 2**20:,.1f} | {now['held_bytes'] / old['held_bytes']:.2f} | "
             f"{now['peak_kib'] / 1024:,.0f} | {old['peak_kib'] / 1024:,.0f} | {now['search_s']:.2f} | "
             f"{now['build_s']:.2f} | {old['build_s']:.2f} |")
-    per_row = results[0]["held_bytes"] / max(results[0]["rows"], 1) if results[0]["sparse"] else None
-    lines += ["", f"Held per camera now: {per_row:.0f} bytes a row the camera sees (before: the same per row of the "
-              "shard, whatever it sees). A round of R cameras holds the sum over its cameras; a 360-degree camera "
-              "sees every row, so there it is the shard (the limit: docs/distributed.md, Limits).", ""]
-    return "\n".join(lines)
+    now, old = results[0], results[1]
+    lines += ["", f"Held per camera now: {now['held_bytes'] / max(now['rows'], 1):.0f} bytes a row the camera sees "
+              f"(before: {old['held_bytes'] / old['n']:.0f} bytes a row of the shard, whatever the camera sees). A "
+              "step holds the sum over its cameras; a 360-degree camera sees every row, so there it is the shard's "
+              "size (the limit: docs/distributed.md, Limits).", ""]
+    return "\n".join(wrapped for line in lines for wrapped in (
+        textwrap.wrap(line, 115, subsequent_indent="  " if line.startswith("- ") else "", break_on_hyphens=False)
+        if not line.startswith("|") else [line]) or [""])
 
 
 def main() -> None:
