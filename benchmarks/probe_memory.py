@@ -8,8 +8,8 @@ all around a 360-degree (equirectangular) camera; the camera's rows (sharded_ren
 parameters, the probe (model.probe), the displaced means and the record (ViewProbe.record), with the two leaves'
 gradients a backward leaves (zeros of their size). Figures: the bytes of what stays until the step's backward
 (the record, the lateral basis autograd saves, the leaves' gradients), the peak RSS growth while building it
-(the float64 temporaries of angular_signal and the rows' gathered parameters included, both), and the times. Writes its section of
-benchmarks/distributed_memory.md.
+(the float64 temporaries of angular_signal and the rows' gathered parameters included, both), and the times.
+Writes its section of benchmarks/distributed_memory.md.
 
     .venv/bin/python benchmarks/probe_memory.py [--rows 1000000]
 """
