@@ -312,13 +312,16 @@ class GeerModel(SplatfactoModel):
                                              self.appearance.camera_of(image, host_camera_model(camera)))
         return outputs
 
-    def probe(self, view: View, means: Tensor, viewmat: Tensor, scales: Tensor, opacities: Tensor) -> ViewProbe:
-        """The densification leaves of a training view of these Gaussians (geer_ns/densify/signal.py)."""
+    def probe(self, view: View, means: Tensor, viewmat: Tensor, scales: Tensor, opacities: Tensor,
+              rows: Optional[Tensor] = None) -> ViewProbe:
+        """The densification leaves of a training view of these Gaussians (geer_ns/densify/signal.py): the
+        model's `rows` (the ones the view sees: a sharded render's probe is as large as that), or all of them
+        (None). means, scales, opacities: those Gaussians' ([K,3], [K,3] activated, [K])."""
         means_c = view_transform(means.detach(), viewmat)
         lam2, _ = pbf_lambda_sq(opacities.detach(), self.config.lambda_mode)
         signal = angular_signal(view.project, view.rays.num_valid, view.center_solid_angle, means_c,
                                 scales, lam2, view.source_project)
-        return ViewProbe.zeros(signal, means, self.config.use_absgrad)
+        return ViewProbe.zeros(signal, means, self.config.use_absgrad, rows)
 
     def render_background(self) -> Tensor:
         """splatfacto's background color, with one random color per training step (drawn at its first view):

@@ -315,7 +315,9 @@ def sharded_render_plan(rank: int, out: Path) -> None:
             image, views = render_sharded(*shard[:4], viewmats, grids, payload_rows(shard))
             shard_loss(image, weights[rank]).backward()
             torch.save({"rgb": image.rgb.detach(), "depth": image.depth.detach(), "acc": image.accumulation.detach(),
-                        "grads": [t.grad for t in shard], "seen": views.seen, "sent": views.sent},
+                        "grads": [t.grad for t in shard], "sent": views.sent,
+                        "seen": [torch.zeros(len(shard[0]), dtype=torch.bool).index_fill_(0, r, True)
+                                 for r in views.rows]},
                        out / f"shards_{name}_{str(dtype)[6:]}_{rank}.pt")
 
 

@@ -104,44 +104,48 @@ def lateral_basis(means_c: Tensor) -> Tensor:
 @dataclass
 class ViewProbe:
     """A training view's densification leaves before its render: zero offsets that move the means laterally
-    (`displace`), and the sink the renderer fills with the per-pixel absolute gradients (absgrad)."""
+    (`displace`), and the sink the renderer fills with the per-pixel absolute gradients (absgrad). Over the
+    model's `rows` the view sees (a sharded render: memory O(what the view sees)), or all of them (None)."""
 
     signal: ViewSignal
-    offsets: Tensor  # [N, 2] zero leaf
-    absgrad: Optional[Tensor]  # [N, 2] zero leaf, or None (the summed gradient is the statistic)
+    offsets: Tensor  # [K, 2] zero leaf
+    absgrad: Optional[Tensor]  # [K, 2] zero leaf, or None (the summed gradient is the statistic)
+    rows: Optional[Tensor] = None  # [K] the model's rows these are, or None: all of them, in order
 
     @staticmethod
-    def zeros(signal: ViewSignal, like: Tensor, absgrad: bool) -> "ViewProbe":
+    def zeros(signal: ViewSignal, like: Tensor, absgrad: bool, rows: Optional[Tensor] = None) -> "ViewProbe":
         offsets = torch.zeros(like.shape[0], 2, dtype=like.dtype, device=like.device, requires_grad=True)
-        return ViewProbe(signal, offsets, torch.zeros_like(offsets, requires_grad=True) if absgrad else None)
+        return ViewProbe(signal, offsets, torch.zeros_like(offsets, requires_grad=True) if absgrad else None, rows)
 
     def displace(self, means: Tensor, viewmat: Tensor) -> Tensor:
-        """means + the offsets' move, in world axes (zero: the same means, with a gradient path to the offsets)."""
+        """means ([K,3], the probe's rows) + the offsets' move, in world axes (zero: the same means, with a
+        gradient path to the offsets)."""
         move = torch.einsum("nij,nj->ni", self.signal.lateral, self.offsets)
         return means + move @ viewmat[:3, :3].to(means.dtype)
 
     def record(self, visible: Tensor, weight: Tensor) -> "ViewRecord":
-        """The view's record once rendered: `visible` [N] bool, `weight` [N] largest blend weight."""
+        """The view's record once rendered: `visible` [K] bool, `weight` [K] largest blend weight."""
         radius, pixels = self.signal.radius, self.signal.pixels
         zero = torch.zeros_like(radius)
         return ViewRecord(self.offsets, self.absgrad, visible, self.signal.scale, torch.where(visible, radius, zero),
-                          weight, torch.where(visible, pixels.to(zero), zero))
+                          weight, torch.where(visible, pixels.to(zero), zero), self.rows)
 
 
 @dataclass
 class ViewRecord:
-    """One rendered training view's part of the densification statistics."""
+    """One rendered training view's part of the densification statistics, over its probe's rows (K of them)."""
 
-    offsets: Tensor  # [N, 2] zero leaf; .grad after backward: dL/d(offsets)
-    absgrad: Optional[Tensor]  # [N, 2] zero leaf whose .grad the renderer fills with sum_pixels |dL_p/d(offsets)|
-    visible: Tensor  # [N] bool: the view rendered the Gaussian
-    scale: Tensor  # [N, 1]: offsets' gradient -> the statistic's units (ViewSignal.scale)
-    radius: Tensor  # [N] screen-size statistic; 0 where not visible
-    weight: Tensor  # [N] the largest blend weight (transmittance x alpha) over the view's rays
-    pixels: Tensor  # [N] the Gaussian's radius in this view's pixels; 0 where not visible
+    offsets: Tensor  # [K, 2] zero leaf; .grad after backward: dL/d(offsets)
+    absgrad: Optional[Tensor]  # [K, 2] zero leaf whose .grad the renderer fills with sum_pixels |dL_p/d(offsets)|
+    visible: Tensor  # [K] bool: the view rendered the Gaussian
+    scale: Tensor  # [K, 1]: offsets' gradient -> the statistic's units (ViewSignal.scale)
+    radius: Tensor  # [K] screen-size statistic; 0 where not visible
+    weight: Tensor  # [K] the largest blend weight (transmittance x alpha) over the view's rays
+    pixels: Tensor  # [K] the Gaussian's radius in this view's pixels; 0 where not visible
+    rows: Optional[Tensor] = None  # [K] the model's rows of these values, or None: all of them, in order
 
     def gradient_norms(self) -> Tensor:
-        """[N] the gradient statistic (AbsGS's per-pixel absolute sums where recorded); 0 where not visible."""
+        """[K] the gradient statistic (AbsGS's per-pixel absolute sums where recorded); 0 where not visible."""
         leaf = self.absgrad if self.absgrad is not None else self.offsets
         if leaf.grad is None:
             return torch.zeros_like(self.radius)
@@ -162,16 +166,19 @@ class StepStatistics:
     @staticmethod
     def of_views(records: Sequence[ViewRecord], n: int, device) -> "StepStatistics":
         """The sums over `records` (view by view, in order: the same bits however views are split over
-        processes whose partial sums are then added, for two processes or two views)."""
+        processes whose partial sums are then added, for two processes or two views). Each record's values
+        go to its rows: a Gaussian outside them gets nothing (where a dense record adds 0.0 exactly)."""
         grad = torch.zeros(n, device=device)
         views = torch.zeros(n, device=device)
         radius = torch.zeros(n, device=device)
         weight = torch.zeros(n, device=device)
         pixels = torch.zeros(n, device=device)
         for record in records:
-            grad = grad + record.gradient_norms().to(grad)
-            views = views + record.visible.to(views.dtype)
-            radius = torch.maximum(radius, record.radius.to(radius))
-            weight = torch.maximum(weight, record.weight.to(weight))
-            pixels = torch.maximum(pixels, record.pixels.to(pixels))
+            rows = record.rows if record.rows is not None else torch.arange(n, device=device)
+            rows = rows.to(device)
+            grad.index_add_(0, rows, record.gradient_norms().to(grad))
+            views.index_add_(0, rows, record.visible.to(views.dtype))
+            radius.scatter_reduce_(0, rows, record.radius.to(radius), reduce="amax")
+            weight.scatter_reduce_(0, rows, record.weight.to(weight), reduce="amax")
+            pixels.scatter_reduce_(0, rows, record.pixels.to(pixels), reduce="amax")
         return StepStatistics(grad, views, radius, weight, pixels)

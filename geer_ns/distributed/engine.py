@@ -97,8 +97,10 @@ class EngineModel(Protocol):
     def viewmat(self, camera_to_world: Tensor, device: Any) -> Tensor:
         """The world-to-camera matrix (OpenCV axes, float64) of a nerfstudio pose."""
 
-    def probe(self, view: Any, means: Tensor, viewmat: Tensor, scales: Tensor, opacities: Tensor) -> Any:
-        """The densification leaves (densify.signal.ViewProbe) of a training view of these Gaussians."""
+    def probe(self, view: Any, means: Tensor, viewmat: Tensor, scales: Tensor, opacities: Tensor,
+              rows: Optional[Tensor] = None) -> Any:
+        """The densification leaves (densify.signal.ViewProbe) of a training view of these Gaussians (the
+        model's `rows`, or all of them)."""
 
     def view_outputs(self, out: Any, view: Any, background: Tensor, camera: Any,
                      normals: Any = None) -> Dict[str, Tensor]:

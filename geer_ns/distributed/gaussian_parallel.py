@@ -25,7 +25,7 @@ from geer_ns.densify.strategy import PER_GAUSSIAN_STATE, local_budget, strongest
 from geer_ns.distributed.consistency import broadcast_replica, check_consistent, fingerprint
 from geer_ns.distributed.engine import EngineState
 from geer_ns.distributed.reductions import optimized_parameters, reduce_gradients
-from geer_ns.distributed.sharded_render import render_sharded, shard_rows
+from geer_ns.distributed.sharded_render import render_sharded, shard_rows, visible_rows
 from geer_ns.distributed.split_eval import split_outputs
 from geer_ns.distributed.streamed_checkpoint import leaves, replaced, save_rows_streamed
 from geer_ns.gsplat_private import update_param_with_optimizer
@@ -204,36 +204,52 @@ def sharded_outputs(model, cameras, me: int) -> Dict[str, Tensor]:
     """GeerModel.get_outputs for camera `me` of `cameras` (one per process, this round's), rendered from every
     shard; records the densification view of this shard in every camera. Each camera's rows are made as one
     process makes a render's Gaussians (displaced, activated, colored per view), so that every camera's
-    gradient reaches the parameters through its own activations: the sums round as one process's do."""
+    gradient reaches the parameters through its own activations: the sums round as one process's do.
+
+    Everything per camera is over the rows of this shard it sees (found first): their parameters (one gather
+    per parameter for all the cameras: its backward adds into one shard-sized gradient, camera by camera),
+    the densification probe and record, the displacement. Memory per camera: O(what it sees)."""
     views = [model.view_for(camera) for camera in cameras]
     params = model.render_gaussians()
     means = params["means"]
     background = model.render_background().to(means)
     viewmats = torch.stack([model.viewmat(model.camera_optimizer.apply_to_camera(c)[0], means.device) for c in cameras])
-    with torch.no_grad():
-        scales, opacities = model.activated(params)
+    grids = [v.rays.to(means.device) for v in views]
+    rows = [visible_rows(params, viewmats[q], grid, model.config.lambda_mode, model.activated)
+            for q, grid in enumerate(grids)]
     record = model.training and torch.is_grad_enabled()
-    probes = [model.probe(view, means, viewmats[q], scales, opacities) for q, view in enumerate(views)] if record \
-        else []
+    probes = [probe_rows(model, view, params, viewmats[q], rows[q]) for q, view in enumerate(views)] if record else []
+    counts = [int(r.shape[0]) for r in rows]
+    every = torch.cat(rows)
+    gathered = {name: torch.index_select(p, 0, every).split(counts) for name, p in params.items()}
+    parts = [{name: chunks[q] for name, chunks in gathered.items()} for q in range(len(cameras))]
+    activated = [model.activated(part) for part in parts]
 
-    def rows_of(q: int, rows: Tensor):
-        moved = probes[q].displace(means, viewmats[q]) if record else means
-        part = {name: p[rows] for name, p in params.items()}
-        s, o = model.activated(part)
+    def rows_of(q: int, _rows: Tensor):
+        part, (s, o) = parts[q], activated[q]
+        m = probes[q].displace(part["means"], viewmats[q]) if record else part["means"]
         colors, sh_degree = model.colors(part)
-        m = moved[rows]
         rgb = colors if colors.ndim == 2 else sh_to_color(colors, camera_offsets(m, viewmats[q]), sh_degree)
         return m, part["quats"], s, o, rgb
 
     absgrad = record and model.config.use_absgrad
     out, seen = render_sharded(
-        means.detach(), params["quats"].detach(), scales, opacities, viewmats, [v.rays.to(means.device) for v in views],
-        rows_of, background=background, lambda_mode=model.config.lambda_mode,
-        backend=model.config.renderer_backend, max_pairs=model.config.max_pairs,
-        absgrad_sinks=[p.absgrad for p in probes] if absgrad else None, lateral=lateral_basis)
+        means, params["quats"], None, None, viewmats, grids, rows_of, rows=rows,
+        background=background, lambda_mode=model.config.lambda_mode, backend=model.config.renderer_backend,
+        max_pairs=model.config.max_pairs, absgrad_sinks=[p.absgrad for p in probes] if absgrad else None,
+        lateral=lateral_basis)
     for q, probe in enumerate(probes):
-        model.views.append(probe.record(seen.seen[q], seen.max_weight[q]))
+        model.views.append(probe.record(torch.ones_like(seen.rows[q], dtype=torch.bool), seen.max_weight[q]))
     return model.view_outputs(out, views[me], background, cameras[me])
+
+
+def probe_rows(model, view, params: Dict[str, Tensor], viewmat: Tensor, rows: Tensor):
+    """A camera's densification probe (model.probe) over the `rows` of the shard `params` it sees, made from
+    detached copies of their values before the rows are gathered for the render (so that the probe's float64
+    temporaries and the gathered rows are not held together)."""
+    seen = {name: params[name].detach()[rows] for name in ("means", "scales", "opacities")}
+    scales, opacities = model.activated(seen)
+    return model.probe(view, seen["means"], viewmat, scales, opacities, rows=rows)
 
 
 # ----------------------------------------------------------------------------------------- rows

@@ -10,7 +10,7 @@ process renders a scene. What travels per (Gaussian, camera) and why: docs/distr
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 import torch.distributed as dist
@@ -25,6 +25,7 @@ from geer_ns.render.rasterize import preprocess
 from geer_ns.render.transforms import view_transform
 
 PAYLOAD = 14  # mean 3, quaternion 4, scale 3, opacity 1, RGB 3
+SEARCH_ROWS = 1 << 18  # a camera's visibility search goes through a shard this many rows at a time
 
 
 def shard_rows(rank: int, processes: int) -> slice:
@@ -33,24 +34,44 @@ def shard_rows(rank: int, processes: int) -> slice:
     return slice(rank, None, processes)
 
 
+def visible_rows(gaussians: Dict[str, Tensor], viewmat: Tensor, grid: RayGrid, lambda_mode: str = "opacity",
+                 activate: Optional[Callable[[Dict[str, Tensor]], Tuple[Tensor, Tensor]]] = None) -> Tensor:
+    """[k] the rows of `gaussians` (means, quats, scales, opacities) a camera's grid sees (its association's
+    tile search, render.associate.seen_by), searched SEARCH_ROWS rows at a time so that the search's
+    temporaries are a chunk's. `activate`: a chunk's (scales, opacities) as the renderer takes them from its
+    raw parameters (a model's `activated`); None: `gaussians` holds them already."""
+    means = gaussians["means"]
+    found = []
+    with torch.no_grad():
+        for start in range(0, means.shape[0], SEARCH_ROWS):
+            part = {name: p[start : start + SEARCH_ROWS].detach() for name, p in gaussians.items()}
+            scales, opacities = (part["scales"], part["opacities"]) if activate is None else activate(part)
+            pre = preprocess(part["means"], part["quats"], scales, opacities, part["means"].new_zeros(len(scales), 3),
+                             viewmat, lambda_mode=lambda_mode)
+            found.append(torch.nonzero(seen_by(pre.pbf, grid)).squeeze(1) + start)
+            del pre, part
+    return torch.cat(found) if found else torch.zeros(0, dtype=torch.long, device=means.device)
+
+
 @dataclass
 class ShardViews:
     """What a process learns about its own shard in every camera of an exchange (for densification)."""
 
-    seen: List[Tensor]  # per camera [N] bool: the rows it sent (the Gaussians the camera sees)
-    max_weight: List[Tensor]  # per camera [N]: each row's largest blend weight there (0 where not seen)
+    rows: List[Tensor]  # per camera [k] the rows it sent (the Gaussians of this shard the camera sees)
+    max_weight: List[Tensor]  # per camera [k]: each of those rows' largest blend weight there
     sent: int  # rows sent in all (payload rows: the traffic is sent x (14 or 16) numbers, both ways)
 
 
 def render_sharded(
     means: Tensor,
     quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
+    scales: Optional[Tensor],
+    opacities: Optional[Tensor],
     viewmats: Tensor,
     grids: Sequence[RayGrid],
     rows_of: Callable[[int, Tensor], Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]],
     *,
+    rows: Optional[Sequence[Tensor]] = None,
     background: Optional[Tensor] = None,
     lambda_mode: str = "opacity",
     backend: str = "auto",
@@ -63,12 +84,13 @@ def render_sharded(
 
     Args:
         means, quats, scales, opacities: this shard as render() takes them ([N,3], [N,4], [N,3], [N]); they only
-            decide which rows each camera sees.
+            decide which rows each camera sees (scales and opacities may be None when `rows` are given).
         viewmats: [C,4,4] every process's camera in rank order (C = the number of processes); grids: their rays.
         rows_of: (q, rows) -> camera q's payload of those rows (means, quats, scales, opacities, RGB),
             differentiable: a model evaluates its activations per camera, as one process does per image.
-        absgrad_sinks: per camera a [N,2] leaf (render's absgrad); `lateral` turns the received view-space
-            means into render's absgrad basis.
+        rows: per camera the rows of this shard it sees (visible_rows), when the caller found them already.
+        absgrad_sinks: per camera a [k,2] leaf over its rows (render's absgrad); `lateral` turns the received
+            view-space means into render's absgrad basis.
 
     Returns:
         The render of this process's camera (over the received Gaussians) and what each camera saw of this shard.
@@ -78,20 +100,16 @@ def render_sharded(
     if cams != world.size or len(grids) != world.size:
         raise ValueError(f"render_sharded: one camera per process expected ({world.size}), got {cams} viewmats "
                          f"and {len(grids)} grids")
-    blocks, seen = [], []
+    if rows is None:
+        shard = {"means": means, "quats": quats, "scales": scales, "opacities": opacities}
+        rows = [visible_rows(shard, viewmats[q], grids[q], lambda_mode) for q in range(cams)]
+    blocks = []
     for q in range(cams):
-        with torch.no_grad():
-            pre = preprocess(means.detach(), quats.detach(), scales.detach(), opacities.detach(),
-                             means.new_zeros(means.shape[0], 3), viewmats[q], lambda_mode=lambda_mode)
-            rows = torch.nonzero(seen_by(pre.pbf, grids[q])).squeeze(1)
-        m, q_rows, s_rows, o_rows, rgb = rows_of(q, rows)
+        m, q_rows, s_rows, o_rows, rgb = rows_of(q, rows[q])
         columns = [m, q_rows, s_rows, o_rows[:, None], rgb]
         if absgrad_sinks is not None:
-            columns.append(absgrad_sinks[q][rows])
+            columns.append(absgrad_sinks[q])
         blocks.append(torch.cat(columns, -1))
-        mask = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
-        mask[rows] = True
-        seen.append(mask)
     send_counts = [b.shape[0] for b in blocks]
     payload = torch.cat(blocks)
     if world.distributed:
@@ -110,12 +128,7 @@ def render_sharded(
     out = render(r_means, r_quats, r_scales, r_opac.squeeze(1), r_rgb, viewmats[me], grids[me], background=background,
                  lambda_mode=lambda_mode, backend=backend, max_pairs=max_pairs, **extra)
     weights = _weights_home(out, send_counts, recv_counts, world.distributed, payload)
-    max_weight = []
-    for q, chunk in enumerate(weights.split(send_counts)):
-        w = torch.zeros(means.shape[0], dtype=chunk.dtype, device=chunk.device)
-        w[seen[q]] = chunk
-        max_weight.append(w)
-    return out, ShardViews(seen, max_weight, sum(send_counts))
+    return out, ShardViews(list(rows), list(weights.split(send_counts)), sum(send_counts))
 
 
 def _weights_home(out: RenderOutput, send_counts: List[int], recv_counts: List[int], distributed: bool,

@@ -3,7 +3,7 @@ from the rows of every shard that band sees, so that no process holds the scene,
 
 A camera's tile rows are cut into at most BANDS_PER_PROCESS x R bands (R processes), dealt out round by round:
 in round k process q renders band k R + q. In each round every process finds, for every band of the round, the
-rows of its shard that band sees (the association's own tile search, SEARCH_ROWS rows at a time), evaluates
+rows of its shard that band sees (the association's own tile search, sharded_render.visible_rows), evaluates
 their color for the camera and sends them (PAYLOAD numbers a row) to the band's process by one all-to-all; each
 process renders its band (colors, then normals) and lets the rows go. Rank 0 receives the bands' pixels at the
 end and makes nerfstudio's outputs of the whole image. A band's pixels are those of the whole image's render:
@@ -19,17 +19,14 @@ import torch
 import torch.distributed as dist
 from torch import Tensor
 
-from geer_ns.distributed.sharded_render import PAYLOAD
+from geer_ns.distributed.sharded_render import PAYLOAD, visible_rows
 from geer_ns.distributed.world import World, backend_device, current_world, exchange_counts, on_backend_device
 from geer_ns.render import RayGrid, render
-from geer_ns.render.associate import seen_by
 from geer_ns.render.normals import NormalImages, render_normals
-from geer_ns.render.rasterize import preprocess
 from geer_ns.render.sh import sh_to_color
 from geer_ns.render.transforms import camera_offsets
 
 BANDS_PER_PROCESS = 4  # an evaluation image is cut into at most this many bands per process
-SEARCH_ROWS = 1 << 18  # a band's visibility search goes through a shard this many rows at a time
 CHANNELS = 12  # a band's pixels: rgb 3, distance 1, accumulation 1, median distance 1, normals world 3, camera 3
 
 
@@ -104,26 +101,12 @@ def split_outputs(model, camera) -> Optional[Dict[str, Tensor]]:
     return model.view_outputs(out, view, background, camera, NormalImages(world_n, camera_n))
 
 
-def seen_rows(model, params: Dict[str, Tensor], viewmat: Tensor, grid: RayGrid) -> Tensor:
-    """[k] the rows of `params` (a shard) that `grid`'s tiles see, searched SEARCH_ROWS rows at a time."""
-    means = params["means"]
-    found = []
-    for start in range(0, means.shape[0], SEARCH_ROWS):  # the search's temporaries: a chunk's
-        part = {name: p[start : start + SEARCH_ROWS] for name, p in params.items()}
-        scales, opacities = model.activated(part)
-        pre = preprocess(part["means"], part["quats"], scales, opacities, part["means"].new_zeros(len(scales), 3),
-                         viewmat, lambda_mode=model.config.lambda_mode)
-        found.append(torch.nonzero(seen_by(pre.pbf, grid)).squeeze(1) + start)
-        del pre, part
-    return torch.cat(found) if found else torch.zeros(0, dtype=torch.long, device=means.device)
-
-
 def _payload(model, params: Dict[str, Tensor], viewmat: Tensor, grid: Optional[RayGrid]) -> Tensor:
     """[k, PAYLOAD] the rows of this shard `grid` sees (none without a grid): means, quaternions, activated
     scales and opacity, and their color in this camera."""
     if grid is None:
         return params["means"].new_zeros(0, PAYLOAD)
-    rows = seen_rows(model, params, viewmat, grid)
+    rows = visible_rows(params, viewmat, grid, model.config.lambda_mode, model.activated)
     part = {name: p[rows] for name, p in params.items()}
     scales, opacities = model.activated(part)
     colors, degree = model.colors(part)
