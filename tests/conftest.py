@@ -11,6 +11,23 @@ import torch
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
+def start_in_thread(fn, daemon: bool = False):
+    """fn() started in a non-main thread: (the thread, a dict that gets "result" or "error" when it ends)."""
+    import threading
+
+    box = {}
+
+    def run():
+        try:
+            box["result"] = fn()
+        except BaseException as error:  # noqa: BLE001 - handed to the test
+            box["error"] = error
+
+    thread = threading.Thread(target=run, daemon=daemon)
+    thread.start()
+    return thread, box
+
+
 def shared_data(*parts: str) -> Path:
     """Path under ../shared/data; skips the test, saying why, when that data is not beside the checkout."""
     path = SHARED_DATA.joinpath(*parts)

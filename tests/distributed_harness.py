@@ -448,7 +448,8 @@ def small_message_save(trainer, path: Path) -> int:
 def rebalance_plan(trainer, rank: int) -> dict:
     """Rank 1 drops 40 % of its shard (a 1.7x imbalance); the engine's after-step callback must rebalance: the
     shards' sizes end within one, and every surviving Gaussian's parameters and optimiser state (by id) are
-    unchanged by the move."""
+    unchanged by the move. An unrelated state entry of the shard's length on rank 0 alone must not make rank 0
+    enter a collective the others do not (a deadlock)."""
     from gsplat.strategy.ops import remove
 
     from geer_ns.distributed.gaussian_parallel import gather_rows
@@ -472,7 +473,10 @@ def rebalance_plan(trainer, rank: int) -> dict:
         return ids, rows, adam, all_gather_objects(model.num_points)
 
     before = snapshot()
+    if rank == 0:  # a state entry of the shard's length on one rank only: rows are moved by name, not by length
+        model.strategy_state["scratch"] = torch.zeros(model.num_points)
     engine._after_step(0)
+    model.strategy_state.pop("scratch", None)
     after = snapshot()
     return {"rebalance_before": before, "rebalance_after": after}
 

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import os
 import socket
-import threading
 import time
 from datetime import timedelta
 
 import pytest
 import torch.distributed as dist
 
+from conftest import start_in_thread
 from geer_ns.distributed.gate import GateError, StepGate
 
 
@@ -36,17 +36,7 @@ def _gates(stores, timeout_s=0.6, beat_s=0.1, dead_after_s=0.6):
 
 
 def _in_thread(fn):
-    result = {}
-
-    def run():
-        try:
-            result["value"] = fn()
-        except Exception as error:  # noqa: BLE001 - handed to the test
-            result["error"] = error
-
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    return thread, result
+    return start_in_thread(fn, daemon=True)
 
 
 def test_processes_meet_at_each_step(stores):

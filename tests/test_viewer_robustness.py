@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import threading
 
 import numpy as np
 import pytest
@@ -12,6 +11,7 @@ import torch
 from nerfstudio.cameras.cameras import CameraType
 from nerfstudio.viewer.utils import CameraState, get_camera
 
+from conftest import start_in_thread
 from test_nerfstudio_model import make_model
 
 C2W = torch.eye(4)[:3]
@@ -26,16 +26,7 @@ def _viewer_camera(fov: float, c2w: torch.Tensor = C2W, height: int = 24, width:
 
 def _in_thread(fn):
     """Run fn in a non-main thread, like nerfstudio's RenderStateMachine; returns (result, error)."""
-    box = {}
-
-    def run():
-        try:
-            box["result"] = fn()
-        except BaseException as error:  # noqa: BLE001 - reported to the test
-            box["error"] = error
-
-    thread = threading.Thread(target=run)
-    thread.start()
+    thread, box = start_in_thread(fn)
     thread.join()
     return box.get("result"), box.get("error")
 

@@ -339,8 +339,8 @@ def rebalance(world: World, model, optimizers, sizes: List[int]) -> None:
                                  lambda key, v: exchange(v), model.gauss_params, optimizers,
                                  names=list(model.gauss_params.keys()))
     state = model.strategy_state
-    for key in list(state):
-        if isinstance(state[key], Tensor) and state[key].dim() > 0 and state[key].shape[0] == sizes[me]:
+    for key in PER_GAUSSIAN_STATE:  # by name, the same on every rank: never by a tensor's length
+        if isinstance(state.get(key), Tensor):
             state[key] = exchange(state[key])
 
 
