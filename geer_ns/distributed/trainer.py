@@ -23,6 +23,7 @@ from typing import Dict, Type
 
 import torch
 from nerfstudio.configs.base_config import MachineConfig
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils import profiler
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -112,6 +113,9 @@ class GeerTrainer(Trainer):
             self.pipeline.model.strategy.verbose = False  # rank 0 says what densification did
         self.engine.start()
         self.callbacks.extend(self.engine.callbacks())  # after the model's own: densification included
+        self._forget_replaced_parameters()
+        self.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
+                                               self._forget_replaced_parameters))
         store = registered_store()
         if self.world.distributed and store is not None:
             self.gate = StepGate(store, self.world.rank, self.world.size, self.config.machine.timeout_s)
@@ -191,6 +195,13 @@ class GeerTrainer(Trainer):
                     f"{self._start_step} there is step {start} here (the images seen carry over; learning rates, "
                     f"betas and epsilon are this run's)")
         self._start_step = start
+
+    def _forget_replaced_parameters(self, step: int = 0) -> None:
+        """nerfstudio's Optimizers keeps the parameter lists it was built with (`parameters`, for clip_grad_norm);
+        densification and the shard cut replace the Parameters, so those lists would keep the replaced tensors
+        alive (a whole seed model on every process) and clip stale gradients. Point them at what is stepped."""
+        for name, optimizer in self.optimizers.optimizers.items():
+            self.optimizers.parameters[name] = [p for group in optimizer.param_groups for p in group["params"]]
 
     # --------------------------------------------------------------------------------- the step
     @property
