@@ -81,12 +81,30 @@ template <typename T> GEER_HD bool cone_meets_tile(const T* gauss, const T* tile
     }
     const T f0 = cone_coef<T>(p, 2, 2);
     if (f0 >= T(0)) return true;  // the centre ray itself
-    const T h11 = cone_coef<T>(p, 0, 0), h12 = cone_coef<T>(p, 0, 1), h22 = cone_coef<T>(p, 1, 1);
-    const T g1 = cone_coef<T>(p, 0, 2), g2 = cone_coef<T>(p, 1, 2);
     const T rho2 = x_mul(rho, rho);
     T mag = T(0);  // sum of the squared projections: bounds each term of F on the disk, / (1 + rho^2)
     for (int v = 0; v < 3; ++v)
         for (int j = 0; j < 3; ++j) mag = x_add(mag, x_mul(p[v][j], p[v][j]));
+    const T reject_below = -x_mul(T(ConeTol<T>::value), x_mul(mag, x_add(T(1), rho2)));
+    // Cheap pre-reject, no division: on the disk |a.d| <= |p_a3| + rho (|p_a1| + |p_a2|) and
+    // |b.d| >= |p_b3| - rho (|p_b1| + |p_b2|), so F <= A^2 - B1^2 - B2^2 there. Settles most far pairs.
+    T ab[3];
+    for (int v = 0; v < 3; ++v) {
+        const T spread = x_mul(rho, x_add(g_abs(p[v][0]), g_abs(p[v][1])));
+        ab[v] = v == 0 ? x_add(g_abs(p[v][2]), spread) : g_max(x_sub(g_abs(p[v][2]), spread), T(0));
+    }
+    if (x_sub(x_sub(x_mul(ab[0], ab[0]), x_mul(ab[1], ab[1])), x_mul(ab[2], ab[2])) < reject_below) return false;
+    const T h11 = cone_coef<T>(p, 0, 0), h12 = cone_coef<T>(p, 0, 1), h22 = cone_coef<T>(p, 1, 1);
+    const T g1 = cone_coef<T>(p, 0, 2), g2 = cone_coef<T>(p, 1, 2);
+    const T gg = x_add(x_mul(g1, g1), x_mul(g2, g2));
+    if (gg > T(0)) {  // cheap accept: F's maximum on the disk along g's direction is a point of the disk
+        const T ng = g_sqrt(gg);
+        const T ghg = x_add(x_add(x_mul(x_mul(h11, g1), g1), x_mul(x_mul(x_mul(T(2), h12), g1), g2)),
+                            x_mul(x_mul(h22, g2), g2));
+        const T c = ghg / gg;
+        const T t = c >= T(0) ? rho : g_min(rho, ng / -c);
+        if (x_add(x_add(f0, x_mul(x_mul(T(2), t), ng)), x_mul(x_mul(t, t), c)) >= T(0)) return true;
+    }
     // H's eigenvalues h1 >= h2 and g's squared components along their eigenvectors.
     const T hm = x_mul(T(0.5), x_add(h11, h22)), hd = x_mul(T(0.5), x_sub(h11, h22));
     const T dd = g_sqrt(x_add(x_mul(hd, hd), x_mul(h12, h12)));
@@ -94,7 +112,6 @@ template <typename T> GEER_HD bool cone_meets_tile(const T* gauss, const T* tile
     const T v0 = hd >= T(0) ? x_add(hd, dd) : h12, v1 = hd >= T(0) ? h12 : x_sub(dd, hd);
     const T vn = g_sqrt(x_add(x_mul(v0, v0), x_mul(v1, v1)));
     const T gp = vn > T(0) ? x_add(x_mul(v0, g1), x_mul(v1, g2)) / vn : g1;
-    const T gg = x_add(x_mul(g1, g1), x_mul(g2, g2));
     const T q1 = x_mul(gp, gp), q2 = g_max(x_sub(gg, q1), T(0));
     // The minimiser of U lies in [mu_a, mu_b]: |x(mu)| >= tan(beta) at mu_a, <= at mu_b.
     const T mu_lo = g_max(h1, T(0));
@@ -114,7 +131,7 @@ template <typename T> GEER_HD bool cone_meets_tile(const T* gauss, const T* tile
     if (!(t1 > T(0)) && q1 > T(0)) return true;  // mu on the pole with weight there: no finite bound
     const T u1 = t1 > T(0) ? q1 / t1 : T(0), u2 = t2 > T(0) ? q2 / t2 : T(0);
     const T bound = x_add(x_add(x_add(f0, x_mul(mu, rho2)), u1), u2);
-    return bound >= -x_mul(T(ConeTol<T>::value), x_mul(mag, x_add(T(1), rho2)));
+    return bound >= reject_below;
 }
 
 // The pyramid's per-node data: bounds [n_nodes][4] (theta lo, hi, phi lo, hi, mirror domain; level 0 =

@@ -116,6 +116,16 @@ def cone_meets_tile(gauss: Tensor, tile: Tensor) -> Tensor:
     for v in range(3):
         for j in range(3):
             mag = mag + sq[:, v, j]
+    reject_below = -(_TOL[dtype] * (mag * (1.0 + rho2)))
+    pa = p.abs()  # the pre-reject: F <= A^2 - B1^2 - B2^2 on the disk
+    spread = rho[:, None] * (pa[:, :, 0] + pa[:, :, 1])
+    ab = torch.cat([pa[:, :1, 2] + spread[:, :1], torch.clamp_min(pa[:, 1:, 2] - spread[:, 1:], 0.0)], 1)
+    pre_keep = ~((ab[:, 0] * ab[:, 0] - ab[:, 1] * ab[:, 1]) - ab[:, 2] * ab[:, 2] < reject_below)
+    gg = g1 * g1 + g2 * g2  # the cheap accept: F's maximum along g's direction, a point of the disk
+    ng = torch.sqrt(gg)
+    c = (((h11 * g1) * g1 + ((2.0 * h12) * g1) * g2) + (h22 * g2) * g2) / gg
+    t = torch.where(c >= 0, rho, torch.minimum(rho, ng / -c))
+    line_keep = (gg > 0) & (((f0 + (2.0 * t) * ng) + (t * t) * c) >= 0)
     hm, hd = 0.5 * (h11 + h22), 0.5 * (h11 - h22)
     dd = torch.sqrt(hd * hd + h12 * h12)
     h1, h2 = hm + dd, hm - dd
@@ -123,7 +133,6 @@ def cone_meets_tile(gauss: Tensor, tile: Tensor) -> Tensor:
     v1 = torch.where(hd >= 0, h12, dd - hd)
     vn = torch.sqrt(v0 * v0 + v1 * v1)
     gp = torch.where(vn > 0, (v0 * g1 + v1 * g2) / vn, g1)
-    gg = g1 * g1 + g2 * g2
     q1 = gp * gp
     q2 = torch.clamp_min(gg - q1, 0.0)
     mu_lo = torch.clamp_min(h1, 0.0)
@@ -145,5 +154,5 @@ def cone_meets_tile(gauss: Tensor, tile: Tensor) -> Tensor:
     u1 = torch.where(t1 > 0, q1 / t1, zero)
     u2 = torch.where(t2 > 0, q2 / t2, zero)
     bound = ((f0 + mu * rho2) + u1) + u2
-    keep = bound >= -(_TOL[dtype] * (mag * (1.0 + rho2)))
-    return ~(rho < math.inf) | (f0 >= 0) | pole | keep
+    keep = bound >= reject_below
+    return ~(rho < math.inf) | (f0 >= 0) | (pre_keep & (line_keep | pole | keep))
