@@ -65,6 +65,8 @@ def main() -> None:
     extra.add_argument("--lens-lr", type=float, default=2e-3)
     extra.add_argument("--only", default="", help="run only the runs whose name contains this")
     extra.add_argument("--suffix", default="", help="appended to the report's file names")
+    extra.add_argument("--pose-penalty", type=float, nargs=2, default=(1e-2, 1e-3), metavar=("TRANS", "ROT"),
+                       help="nerfstudio's camera optimizer L2 penalties on the pose adjustments (its defaults)")
     known, rest = extra.parse_known_args()
     sys.argv = [sys.argv[0], *rest]
     args = bench_args(__doc__, 1000, "/tmp/geer_lens")
@@ -86,7 +88,8 @@ def main() -> None:
                                                              lr_pre_warmup=0.0)}
 
     optimizers = {"camera_opt": adam(5e-4), "lens_opt": adam(args.lens_lr)}
-    poses = {"camera_optimizer.mode": "SO3xR3"}
+    poses = {"camera_optimizer.mode": "SO3xR3", "camera_optimizer.trans_l2_penalty": known.pose_penalty[0],
+             "camera_optimizer.rot_l2_penalty": known.pose_penalty[1]}
     lens = {**poses, "lens_refinement": "full", "lens_refinement_start": 200}
     runs = {"perturbed, no refinement": (noisy / clean.name, {}),
             "perturbed, SO3xR3 poses + lens full": (noisy / clean.name, lens),
