@@ -130,15 +130,20 @@ def camera_groups(models: Sequence[CameraModel]) -> Tuple[List[CameraModel], Lis
     return list(distinct), image_camera
 
 
+def training_camera_groups(cameras) -> Tuple[List[CameraModel], List[int]]:
+    """camera_groups of nerfstudio Cameras (the training images'), as geer's camera models."""
+    from geer_ns.data.views import camera_model
+
+    return camera_groups([camera_model(cameras, i) for i in range(len(cameras))])
+
+
 def attach(model, cameras) -> None:
     """Give a geer model its per-camera state once the training cameras (nerfstudio Cameras) are known (the
     pipeline calls this before the optimizers are made): the lens refinement when the model's lens_refinement
     is on, and one vignetting per camera when its appearance model is on."""
-    from geer_ns.data.views import camera_model
-
     if model.config.lens_refinement == "off" and model.appearance is None:
         return
-    distinct, image_camera = camera_groups([camera_model(cameras, i) for i in range(len(cameras))])
+    distinct, image_camera = training_camera_groups(cameras)
     if model.appearance is not None:
         model.appearance.set_cameras(distinct, image_camera)
     if model.config.lens_refinement != "off":
@@ -220,13 +225,13 @@ class LensRefinement(nn.Module):
         state = self._state(view, camera, group)
         full = self.values(group)
         values = rescaled(full, state.factor)
-        fixed = tensor_camera(self._scaled_base(group, state.factor), {k: v.detach() for k, v in values.items()})
-        attached = tensor_camera(self._scaled_base(group, state.factor), values)
+        base = self._scaled_base(group, state.factor)
+        fixed = tensor_camera(base, {k: v.detach() for k, v in values.items()})
+        attached = tensor_camera(base, values)
         dirs, worst = refresh_rays(fixed, attached, state.pixels, state.dirs, state.valid)
         if worst > _RESIDUAL_PX:  # a jump too far for the refresh: the model's own unprojection, then again
             with torch.no_grad():
-                plain = dataclasses.replace(self._scaled_base(group, state.factor),
-                                            **{k: float(v) for k, v in values.items()})
+                plain = dataclasses.replace(base, **{k: float(v) for k, v in values.items()})
                 state.dirs = torch.where(state.valid[:, None], plain.unproject(state.pixels)[0], state.dirs)
             dirs, worst = refresh_rays(fixed, attached, state.pixels, state.dirs, state.valid)
         state.dirs = dirs.detach()

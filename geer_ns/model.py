@@ -218,15 +218,16 @@ class GeerModel(SplatfactoModel):
         refined lens when lens refinement is on (geer_ns/lens_refinement.py)."""
         kind = (camera.metadata or {}).get(VIEW_KEY, "native") if self.training else "native"
         factor = self._get_downscale_factor()
+        model = host_camera_model(camera)
         if kind == "beap":
-            view = beap_view(host_camera_model(camera), factor)
+            view = beap_view(model, factor)
         elif factor > 1:
             camera_small = deepcopy(camera)
             camera_small.rescale_output_resolution(1.0 / factor)
             view = native_view(camera_model(camera_small, 0))
         else:
-            view = native_view(host_camera_model(camera))
-        return view if self.lens is None else self.lens.refine_view(view, host_camera_model(camera), self.step)
+            view = native_view(model)
+        return view if self.lens is None else self.lens.refine_view(view, model, self.step)
 
     def render_gaussians(self) -> Optional[Dict[str, Tensor]]:
         """Parameters to render (the engine's display copy when set, outside training; cropped to the viewer's

@@ -115,14 +115,12 @@ def _applied_transform(datamanager) -> Optional[torch.Tensor]:
 
 def refined_cameras(pipeline) -> Tuple[List[CameraModel], List[int]]:
     """(the distinct training cameras with refined intrinsics, each training image's index into them)."""
-    from geer_ns.data.views import camera_model
-    from geer_ns.lens_refinement import camera_groups
+    from geer_ns.lens_refinement import training_camera_groups
 
     lens = pipeline.model.lens
     if lens is not None:
         return lens.refined_cameras(), list(lens.image_camera)
-    cameras = pipeline.datamanager.train_dataset.cameras
-    return camera_groups([camera_model(cameras, i) for i in range(len(cameras))])
+    return training_camera_groups(pipeline.datamanager.train_dataset.cameras)
 
 
 def write_refined_cameras(pipeline, out_dir: Path) -> Optional[Path]:
@@ -186,18 +184,9 @@ def write_colmap_text(folder: Path, cams: List[CameraModel], image_camera: List[
 
 
 def _quaternion(rot: np.ndarray) -> np.ndarray:
-    """(w, x, y, z) of a rotation matrix, w >= 0."""
-    w = np.sqrt(max(0.0, 1.0 + np.trace(rot))) / 2.0
-    if w > 1e-6:
-        q = np.array([w, (rot[2, 1] - rot[1, 2]) / (4 * w), (rot[0, 2] - rot[2, 0]) / (4 * w),
-                      (rot[1, 0] - rot[0, 1]) / (4 * w)])
-    else:  # a half turn: from the largest diagonal entry
-        i = int(np.argmax(np.diag(rot)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        v = np.zeros(3)
-        v[i] = np.sqrt(max(0.0, 1.0 + rot[i, i] - rot[j, j] - rot[k, k])) / 2.0
-        v[j] = (rot[j, i] + rot[i, j]) / (4 * v[i])
-        v[k] = (rot[k, i] + rot[i, k]) / (4 * v[i])
-        q = np.array([(rot[k, j] - rot[j, k]) / (4 * v[i]), *v])
-    q = q / np.linalg.norm(q)
+    """(w, x, y, z) of a rotation matrix, w >= 0 (pycolmap's conversion; it returns x, y, z, w)."""
+    import pycolmap
+
+    x, y, z, w = pycolmap.Rotation3d(np.asarray(rot, dtype=np.float64)).quat
+    q = np.array([w, x, y, z])
     return q if q[0] >= 0 else -q
