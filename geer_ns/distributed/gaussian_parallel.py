@@ -285,13 +285,20 @@ def scene_totals(entry: Dict[str, int]) -> Dict[str, int]:
     return {key: (entry["step"] if key == "step" else sum(e.get(key, 0) for e in every)) for key in keys}
 
 
+def _padded(tensor: Tensor) -> Tuple[List[int], Tensor]:
+    """(every process's row count, `tensor` on the backend's device padded to the largest: a collective's
+    equal shapes). At least one row, so that a collective never moves empty tensors."""
+    sizes = all_gather_counts(tensor.shape[0])
+    padded = on_backend_device(tensor.new_zeros((max(max(sizes), 1),) + tuple(tensor.shape[1:])))
+    padded[: tensor.shape[0]] = tensor.detach()
+    return sizes, padded
+
+
 def all_gather_rows(world: World, tensor: Tensor) -> Tensor:
     """Every shard's rows of `tensor`, in rank order, on every process (padded for the collective)."""
     if not world.distributed:
         return tensor
-    sizes = all_gather_counts(tensor.shape[0])
-    padded = on_backend_device(tensor.new_zeros((max(max(sizes), 1),) + tuple(tensor.shape[1:])))
-    padded[: tensor.shape[0]] = tensor.detach()
+    sizes, padded = _padded(tensor)
     parts = [torch.empty_like(padded) for _ in sizes]
     dist.all_gather(parts, padded)
     return torch.cat([part[:k] for part, k in zip(parts, sizes)]).to(tensor.device)
@@ -302,9 +309,7 @@ def gather_rows(world: World, tensor: Tensor, device: Optional[torch.device] = N
     process), on `device` (default: the tensor's). Uneven shards are padded for the collective and cut back."""
     if not world.distributed:
         return tensor if device is None else tensor.to(device)
-    sizes = all_gather_counts(tensor.shape[0])
-    padded = on_backend_device(tensor.new_zeros((max(sizes),) + tuple(tensor.shape[1:])))
-    padded[: tensor.shape[0]] = tensor.detach()
+    sizes, padded = _padded(tensor)
     parts = [torch.empty_like(padded) for _ in sizes] if world.is_main else None
     dist.gather(padded, parts, dst=0)
     if not world.is_main:
