@@ -135,3 +135,16 @@ def test_a_process_of_this_machine_that_ended_is_named_at_once(stores):
     assert time.monotonic() - started < 5.0
     for g in gates:
         g.close()
+
+
+def test_the_gate_needs_a_tcp_rendezvous():
+    """rendezvous_store makes the gate's store for tcp://host:port only; other URLs get none (the trainer then
+    says that the run has no gate)."""
+    from geer_ns.distributed.launch import rendezvous_store
+
+    for url in ("file:///tmp/geer-rendezvous", "env://"):
+        assert rendezvous_store(url, 1, 0, timedelta(seconds=5)) is None
+    store = rendezvous_store(f"tcp://127.0.0.1:{_free_port()}", 1, 0, timedelta(seconds=5))
+    assert isinstance(store, dist.TCPStore)
+    store.set("k", "v")
+    assert store.get("k") == b"v"

@@ -120,6 +120,10 @@ class GeerTrainer(Trainer):
         if self.world.distributed and store is not None:
             self.gate = StepGate(store, self.world.rank, self.world.size, self.config.machine.timeout_s)
             self.gate.set_state(self.training_state)
+        elif self.world.distributed and self.world.is_main:  # say it: pauses and long evaluations then time out
+            CONSOLE.log(f"geer: no step gate (--machine.dist-url {self.config.machine.dist_url} is not "
+                        "tcp://host:port): a process paused in the viewer, evaluating or saving past "
+                        "--machine.timeout-s stops the run")
         self._say_start()
 
     def _say_start(self) -> None:
