@@ -25,24 +25,49 @@ def lens_errors(pipeline, truth: dict) -> dict:
         if "w" in truth["intrinsics"] else 1.0
     true = truth["intrinsics"]
     focal = 50.0 * (abs(cam.fx / (true["fl_x"] * scale) - 1) + abs(cam.fy / (true["fl_y"] * scale) - 1))
+    map_mean, map_max = lens_map_error(cam, true, scale)
     return {"focal_pct": float(focal), "k1_abs": float(abs(cam.k1 - true.get("k1", 0.0))),
             "cx_px": float(cam.cx - true["cx"] * scale), "cy_px": float(cam.cy - true["cy"] * scale),
-            "fx": cam.fx, "k1": cam.k1}
+            "map_px_mean": map_mean, "map_px_max": map_max, "fx": cam.fx, "fy": cam.fy, "k1": cam.k1}
+
+
+def lens_map_error(cam, true: dict, scale: float) -> tuple:
+    """(mean, max) pixel distance between where the refined lens `cam` and the true lens put each ray the true
+    lens sees in the inscribed image circle: the lens's own error, free of the trade-offs between its
+    coefficients (a focal error that the distortion polynomial makes up for moves no pixel)."""
+    import dataclasses
+
+    import torch
+
+    names = {"fl_x": "fx", "fl_y": "fy"}
+    values = {names.get(k, k): (v * scale if k in ("fl_x", "fl_y", "cx", "cy") else v) for k, v in true.items()}
+    truth = dataclasses.replace(cam, **{k: v for k, v in values.items() if hasattr(cam, k)})
+    dirs, valid = truth.pixel_rays(torch.float64)
+    pixels = truth.pixel_centers(torch.float64)
+    inside = ((pixels - torch.tensor([truth.cx, truth.cy], dtype=torch.float64)).norm(dim=-1)
+              <= 0.5 * min(truth.width, truth.height))  # the image circle (the inscribed one)
+    dirs, valid = dirs.reshape(-1, 3), (valid & inside).reshape(-1)
+    moved = (cam.project(dirs)[0] - truth.project(dirs)[0]).norm(dim=-1)[valid]
+    return float(moved.mean()), float(moved.max())
 
 
 def _report(args, record: dict, rows: list) -> str:
+    rot, pos, focal, k1 = args.perturbation[0], 100 * args.perturbation[1], 100 * args.perturbation[2], \
+        args.perturbation[3]
     return f"""# Lens and pose refinement with perturbed training cameras
 
 - data: the dev fisheye room at {args.size}x{args.size} (`benchmarks/refinement_runs.small_dev_room`, 180-degree
   equidistant fisheye; BEAP supervision, the crop circle keeps its rays within 84 degrees, so every BEAP target
   is resampled once through the perturbed lens and its cells rendered along the refined lens's rays), every
-  training camera turned by 1
-  degree about a random axis and moved by 1 % of the scene's extent, the lens (all images) with focal lengths
-  +2 % and k1 + 0.02 (`geer_ns/data/camera_perturbation.py`, seed 0; test poses true)
+  training camera turned by {rot:g} degree(s) about a random axis and moved by {pos:g} % of the scene's extent,
+  the lens (all images) with focal lengths {focal:+g} % and k1 {k1:+g} (`geer_ns/data/camera_perturbation.py`,
+  seed 0; test poses true)
 - runs: {args.steps} steps each, warm-up 300, refinement every 100 until step 1000, full resolution, same seed.
-  SO3xR3: nerfstudio's camera optimizer, Adam lr 5e-4 after a 200-step warm-up, decaying to 1e-5. Lens:
+  SO3xR3: nerfstudio's camera optimizer, Adam lr {args.pose_lr:g} after a 200-step warm-up, decaying to 1e-5. Lens:
   `--pipeline.model.lens-refinement full --pipeline.model.lens-refinement-start 200`, Adam (lens_opt) lr
   {args.lens_lr:g} after a 200-step warm-up, decaying to 1e-5; gradients from the CPU build of the kernels
+- lens map: how far (pixels) the refined lens moves each ray the true lens sees, mean / max over the image
+  circle (independent of how focal and distortion coefficients trade off)
 - camera errors: training cameras against the truth mapped into the dataparser's frame (no re-alignment; mean /
   max over the training cameras), position in % of the scene's extent; aligned: the same after the similarity
   that best maps the cameras' centres onto the truth's (pose_bench.similarity_aligned: the gauge images cannot
@@ -50,27 +75,36 @@ def _report(args, record: dict, rows: list) -> str:
 - scored on the test split (6 views, true poses, the run's lens: refined where refined) as ns-eval does
 - device: CPU, 2 cores shared with other jobs (training seconds vary with the other jobs: not a speed measure; load average {load_average()} when written; one run each)
 - commit: {record['commit']} (+ the working tree that adds this file)
-- command: `nice -n 10 python benchmarks/lens_bench.py --size {args.size} --steps {args.steps} --lens-lr {args.lens_lr:g}`
+- command: `nice -n 10 {args.command}`
 
-| run | test PSNR | test SSIM | rotation deg (mean / max) | position % (mean / max) | aligned: rotation deg, position % (mean) | focal % | k1 | cx, cy px | training s |
-| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |
+| run | test PSNR | test SSIM | rotation deg (mean / max) | position % (mean / max) | aligned: rotation deg, position % (mean) | lens map px (mean / max) | focal % | k1 | cx, cy px | training s |
+| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |
 """ + "\n".join(rows) + "\n"
 
 
 def main() -> None:
     import argparse
+    import shlex
     import sys
 
     extra = argparse.ArgumentParser(add_help=False)
     extra.add_argument("--lens-lr", type=float, default=2e-3)
-    extra.add_argument("--only", default="", help="run only the runs whose name contains this")
+    extra.add_argument("--pose-lr", type=float, default=5e-4, help="camera_opt's (SO3xR3) learning rate")
+    extra.add_argument("--only", nargs="+", default=[], help="run only the runs whose name contains one of these")
     extra.add_argument("--suffix", default="", help="appended to the report's file names")
     extra.add_argument("--pose-penalty", type=float, nargs=2, default=(1e-2, 1e-3), metavar=("TRANS", "ROT"),
                        help="nerfstudio's camera optimizer L2 penalties on the pose adjustments (its defaults)")
+    extra.add_argument("--aspect", action="store_true", help="refine fy / fx too (lens-refinement-aspect)")
+    extra.add_argument("--perturbation", type=float, nargs=4, default=(1.0, 0.01, 0.02, 0.02),
+                       metavar=("ROT_DEG", "POS_FRACTION", "FOCAL_FRACTION", "K1_OFFSET"),
+                       help="the training cameras' rotation (degrees) and move (fraction of the extent), the lens's "
+                            "focal change (fraction) and k1 offset")
     known, rest = extra.parse_known_args()
+    command = shlex.join(["python", "benchmarks/lens_bench.py", *sys.argv[1:]])
     sys.argv = [sys.argv[0], *rest]
     args = bench_args(__doc__, 1000, "/tmp/geer_lens")
-    args.lens_lr = known.lens_lr
+    args.lens_lr, args.pose_lr, args.perturbation, args.command = known.lens_lr, known.pose_lr, known.perturbation, \
+        command
     from nerfstudio.engine.optimizers import AdamOptimizerConfig
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
@@ -78,8 +112,9 @@ def main() -> None:
 
     clean = small_dev_room(args.work, args.size)
     noisy = fresh(args.work / f"lens_{args.size}")
-    truth = perturb_cameras(clean.parent, noisy, transforms=clean.name, rotation_deg=1.0, position_fraction=0.01,
-                            focal_fraction=0.02, k1_offset=0.02)
+    rotation_deg, position_fraction, focal_fraction, k1_offset = known.perturbation
+    truth = perturb_cameras(clean.parent, noisy, transforms=clean.name, rotation_deg=rotation_deg,
+                            position_fraction=position_fraction, focal_fraction=focal_fraction, k1_offset=k1_offset)
     schedule = {"warmup_length": 300, "refine_every": 100, "stop_split_at": 1000, "num_downscales": 0}
 
     def adam(lr):
@@ -87,17 +122,20 @@ def main() -> None:
                 "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=args.steps, warmup_steps=200,
                                                              lr_pre_warmup=0.0)}
 
-    optimizers = {"camera_opt": adam(5e-4), "lens_opt": adam(args.lens_lr)}
+    optimizers = {"camera_opt": adam(known.pose_lr), "lens_opt": adam(args.lens_lr)}
     poses = {"camera_optimizer.mode": "SO3xR3", "camera_optimizer.trans_l2_penalty": known.pose_penalty[0],
              "camera_optimizer.rot_l2_penalty": known.pose_penalty[1]}
-    lens = {**poses, "lens_refinement": "full", "lens_refinement_start": 200}
+    lens_only = {"lens_refinement": "full", "lens_refinement_start": 200, "lens_refinement_aspect": known.aspect}
+    lens = {**poses, **lens_only}
     runs = {"perturbed, no refinement": (noisy / clean.name, {}),
             "perturbed, SO3xR3 poses + lens full": (noisy / clean.name, lens),
             "true cameras": (clean, {}),
-            "perturbed, SO3xR3 poses": (noisy / clean.name, poses)}
+            "perturbed, SO3xR3 poses only": (noisy / clean.name, poses),
+            "perturbed, lens full (poses fixed)": (noisy / clean.name, lens_only)}
     if known.only:
-        runs = {k: v for k, v in runs.items() if known.only in k}
-    record = {"commit": git_commit(), "size": args.size, "steps": args.steps, "lens_lr": args.lens_lr, "runs": {}}
+        runs = {k: v for k, v in runs.items() if any(part in k for part in known.only)}
+    record = {"commit": git_commit(), "size": args.size, "steps": args.steps, "lens_lr": args.lens_lr,
+              "pose_lr": args.pose_lr, "perturbation": list(args.perturbation), "runs": {}}
     rows = []
     for name, (data, overrides) in runs.items():
         tag = name.replace(" ", "_").replace(",", "").replace("+", "")
@@ -112,10 +150,11 @@ def main() -> None:
         if cam:
             errors = (f"{cam['rotation_deg_mean']:.3f} / {cam['rotation_deg_max']:.3f} | "
                       f"{cam['position_pct_mean']:.3f} / {cam['position_pct_max']:.3f} | "
-                      f"{cam['aligned_rotation_deg_mean']:.3f}, {cam['aligned_position_pct_mean']:.3f} | {lens_e['focal_pct']:.3f} | "
+                      f"{cam['aligned_rotation_deg_mean']:.3f}, {cam['aligned_position_pct_mean']:.3f} | "
+                      f"{lens_e['map_px_mean']:.3f} / {lens_e['map_px_max']:.3f} | {lens_e['focal_pct']:.3f} | "
                       f"{lens_e['k1_abs']:.4f} | {lens_e['cx_px']:+.2f}, {lens_e['cy_px']:+.2f}")
         else:
-            errors = "0 | 0 | 0 | 0 | 0 | 0"
+            errors = "0 | 0 | 0 | 0 | 0 | 0 | 0"
         rows.append(f"| {name} | {metrics['psnr']:.2f} | {metrics['ssim']:.3f} | {errors} | {seconds:.0f} |")
         print(rows[-1], flush=True)
         dump(ROOT / "benchmarks" / f"lens_refinement_runs{known.suffix}.json", record)

@@ -4,7 +4,8 @@ the scene, through the rays they define.
 A camera (a distinct set of intrinsics among the training images, shared by every image taken with it) gets
 one zero-initialised delta per refined parameter:
 
-    focal:      fx = fx0 exp(d)          (relative: one learning rate for any image size)
+    focal:      fx = fx0 exp(d), fy = fy0 exp(d)   (relative: one learning rate for any image size; one delta for
+                both, so the aspect ratio stays as calibrated, unless `aspect`: then one delta each)
     principal:  cx = cx0 + d sqrt(fx0 fy0)   (in units of the focal length, ~radians at the centre)
     others:     k  = k0 + d              (distortion coefficients, FOV's omega, Mei's xi, skew in focal units)
 
@@ -12,8 +13,8 @@ Rays of refined cameras. A pixel position x (a native pixel centre, or the sourc
 below) sees the ray d(p) with project(d(p); p) = x. Each render refreshes the ray of every such x from its
 last value by Newton steps on the unit sphere, d <- normalize(d - J^+ (project(d; p) - x)), J = d project / d d
 (2x3, by float64 central differences; its pseudo-inverse maps into the tangent plane): three detached chord steps,
-then one more with J at the result and the intrinsics as tensors that require grad, so that d(d)/d(p) = -J^+ d project / d p, the implicit-function gradient (its value moves by
-the converged residual only). The renderer returns dL/d(ray direction) (both compiled backends), which autograd
+then one more with J at the result and the intrinsics as tensors that require grad, so that
+d(d)/d(p) = -J^+ d project / d p, the implicit-function gradient (its value moves by the converged residual only). The renderer returns dL/d(ray direction) (both compiled backends), which autograd
 carries to the deltas. A refresh whose residual stays above a thousandth of a pixel (a large jump of the
 intrinsics) is redone by the camera model's own unprojection.
 
@@ -63,6 +64,20 @@ def refined_fields(camera: CameraModel, mode: str) -> Tuple[str, ...]:
         else:  # FOV's omega = 0 is the pinhole limit, where the model divides by omega
             keep.append(mode == "full" and not (name == "omega" and getattr(camera, name) == 0))
     return tuple(n for n, k in zip(names, keep) if k)
+
+
+def refined_parameters(camera: CameraModel, mode: str, aspect: bool = False) -> Tuple[Tuple[str, ...], ...]:
+    """The fields `mode` refines, grouped by the delta they share: fx and fy one group unless `aspect` (the
+    ratio fy / fx refined too), every other field its own.
+
+    Why the ratio is kept by default: cameras that stay upright while they move (a handheld walk, a car, a robot)
+    cannot tell a wrong fy / fx from a vertical stretch of the scene, which the Gaussians learn; refined alone, fy
+    drifts with the scene (docs/refinement.md)."""
+    fields = refined_fields(camera, mode)
+    if aspect or not ("fx" in fields and "fy" in fields):
+        return tuple((name,) for name in fields)
+    rest = tuple((name,) for name in fields if name not in ("fx", "fy"))
+    return (("fx", "fy"),) + rest
 
 
 def tensor_camera(camera: CameraModel, values: Dict[str, Tensor]) -> CameraModel:
@@ -147,7 +162,8 @@ def attach(model, cameras) -> None:
     if model.appearance is not None:
         model.appearance.set_cameras(distinct, image_camera)
     if model.config.lens_refinement != "off":
-        lens = LensRefinement(distinct, image_camera, model.config.lens_refinement, model.config.lens_refinement_start)
+        lens = LensRefinement(distinct, image_camera, model.config.lens_refinement, model.config.lens_refinement_start,
+                              aspect=model.config.lens_refinement_aspect)
         model.lens = lens.to(model.device)
 
 
@@ -163,24 +179,39 @@ class _RayState:
 
 class LensRefinement(nn.Module):
     """The refined intrinsics of the training cameras: `cameras` their distinct models, in the order of their
-    first image; `image_camera[i]` the camera of training image i."""
+    first image; `image_camera[i]` the camera of training image i; `aspect`: refine fy / fx too
+    (refined_parameters). `deltas[c, j]` moves the fields `delta_fields[c][j]` of camera c."""
 
-    def __init__(self, cameras: Sequence[CameraModel], image_camera: Sequence[int], mode: str, start: int = 0):
+    def __init__(self, cameras: Sequence[CameraModel], image_camera: Sequence[int], mode: str, start: int = 0,
+                 aspect: bool = False):
         super().__init__()
         self.mode, self.start = mode, int(start)
         self.cameras: List[CameraModel] = list(cameras)
         self.image_camera = [int(i) for i in image_camera]
         self.index: Dict[CameraModel, int] = {cam: i for i, cam in enumerate(self.cameras)}
-        self.fields = [refined_fields(cam, mode) for cam in self.cameras]
-        width = max([len(f) for f in self.fields] + [1])
+        self.delta_fields = [refined_parameters(cam, mode, aspect) for cam in self.cameras]
+        self.fields = [tuple(name for group in groups for name in group) for groups in self.delta_fields]
+        width = max([len(p) for p in self.delta_fields] + [1])
         self.deltas = nn.Parameter(torch.zeros(len(self.cameras), width, dtype=torch.float64))
+        self.aspect = aspect
         self._states: Dict[tuple, _RayState] = {}
 
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        """A checkpoint refined with the other aspect setting fails with the option to pass, not a size error."""
+        saved = state_dict.get(prefix + "deltas")
+        if saved is not None and saved.shape != self.deltas.shape:
+            other = LensRefinement(self.cameras, self.image_camera, self.mode, self.start, not self.aspect)
+            if saved.shape == other.deltas.shape:
+                raise ValueError(f"{prefix}deltas: the checkpoint's lens was refined with lens-refinement-aspect "
+                                 f"{other.aspect}; resume with --pipeline.model.lens-refinement-aspect {other.aspect}")
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     @classmethod
-    def from_cameras(cls, models: Sequence[CameraModel], mode: str, start: int = 0) -> "LensRefinement":
+    def from_cameras(cls, models: Sequence[CameraModel], mode: str, start: int = 0,
+                     aspect: bool = False) -> "LensRefinement":
         """One refined camera per distinct model among the training images' `models`."""
         distinct, image_camera = camera_groups(models)
-        return cls(distinct, image_camera, mode, start)
+        return cls(distinct, image_camera, mode, start, aspect)
 
     # ------------------------------------------------------------------------------------ values
     def values(self, camera: int) -> Dict[str, Tensor]:
@@ -189,14 +220,15 @@ class LensRefinement(nn.Module):
         delta = self.deltas[camera]
         scale = math.sqrt(base.fx * base.fy) if hasattr(base, "fx") else 1.0
         out = {}
-        for j, name in enumerate(self.fields[camera]):
-            v0 = float(getattr(base, name))
-            if name in FOCAL_FIELDS:
-                out[name] = v0 * torch.exp(delta[j])
-            elif name in PRINCIPAL_FIELDS or name == "skew":
-                out[name] = v0 + scale * delta[j]
-            else:
-                out[name] = v0 + delta[j]
+        for j, group in enumerate(self.delta_fields[camera]):
+            for name in group:
+                v0 = float(getattr(base, name))
+                if name in FOCAL_FIELDS:
+                    out[name] = v0 * torch.exp(delta[j])
+                elif name in PRINCIPAL_FIELDS or name == "skew":
+                    out[name] = v0 + scale * delta[j]
+                else:
+                    out[name] = v0 + delta[j]
         return out
 
     def refined_camera(self, camera: int) -> CameraModel:

@@ -63,6 +63,9 @@ class GeerOwnOptions:
     <run>/cameras_refined.json and colmap/cameras.txt with every checkpoint."""
     lens_refinement_start: int = 500
     """lens-refinement: the step from which renders use (and train) the refined intrinsics."""
+    lens_refinement_aspect: bool = False
+    """lens-refinement: refine the aspect ratio fy / fx too (off: fx and fy scale together). Cameras that stay
+    upright cannot tell a wrong ratio from a vertical stretch of the scene (docs/refinement.md)."""
     mcmc_cap_max: int = 1_000_000
     """strategy=mcmc: most Gaussians (gsplat MCMCStrategy cap_max)."""
     mcmc_noise_lr: float = 5e5

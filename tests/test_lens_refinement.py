@@ -17,7 +17,7 @@ from test_pose_gradients import with_dirs
 from geer_ns.cameras import FOVCamera, MeiCamera, OpenCVFisheyeCamera, PinholeCamera
 from geer_ns.data.beap import resample_to_beap
 from geer_ns.data.views import NativeView, beap_view
-from geer_ns.lens_refinement import LensRefinement, refined_fields
+from geer_ns.lens_refinement import LensRefinement, refined_fields, refined_parameters
 from geer_ns.render import RayGrid, render
 
 F64 = torch.float64
@@ -59,14 +59,14 @@ def test_intrinsics_gradient_matches_finite_differences_of_the_render(ops, name)
     camera = CAMERAS[name]
     scene = _scene()
     view = _view(camera)
-    lens = LensRefinement.from_cameras([camera], "full")
-    refined = lens.refine_view(view, camera, step=0)
-    _loss(_render(scene, refined.rays)).backward()
-    grad = lens.deltas.grad[0]
-    checked = 0
-    for j, name_ in enumerate(lens.fields[0]):
-        if name_ not in ("fx", "fy", "cx", "cy", "k1"):
-            continue
+    grads = {}
+    for aspect in (True, False):
+        lens = LensRefinement.from_cameras([camera], "full", aspect=aspect)
+        refined = lens.refine_view(view, camera, step=0)
+        _loss(_render(scene, refined.rays)).backward()
+        grads[aspect] = dict(zip(lens.delta_fields[0], lens.deltas.grad[0].tolist()))
+    fds = {}
+    for name_ in ("fx", "fy", "cx", "cy", "k1"):
         v0 = getattr(camera, name_)
         # delta -> value: fx0 exp(d) (focal), cx0 + sqrt(fx fy) d (principal point), k1 + d
         dv = v0 if name_ in ("fx", "fy") else (math.sqrt(camera.fx * camera.fy) if name_ in ("cx", "cy") else 1.0)
@@ -77,10 +77,12 @@ def test_intrinsics_gradient_matches_finite_differences_of_the_render(ops, name)
             dirs = moved.pixel_rays(F64)[0].reshape(-1, 3)  # the camera module's own unprojection
             with torch.no_grad():
                 losses.append(float(_loss(_render(scene, with_dirs(view.rays, dirs)))))
-        fd = (losses[0] - losses[1]) / (2 * h) * dv
-        assert abs(float(grad[j]) - fd) <= 1e-4 * abs(fd) + 1e-7, (name_, float(grad[j]), fd)
-        checked += 1
-    assert checked == 5
+        fds[name_] = (losses[0] - losses[1]) / (2 * h) * dv
+    for name_, fd in fds.items():  # one delta per field
+        assert abs(grads[True][(name_,)] - fd) <= 1e-4 * abs(fd) + 1e-7, (name_, grads[True][(name_,)], fd)
+    shared = fds["fx"] + fds["fy"]  # one delta scaling fx and fy together
+    assert abs(grads[False][("fx", "fy")] - shared) <= 1e-4 * abs(shared) + 1e-7, (grads[False], shared)
+    assert abs(grads[False][("k1",)] - fds["k1"]) <= 1e-4 * abs(fds["k1"]) + 1e-7
 
 
 @pytest.mark.parametrize("camera", [
@@ -90,7 +92,7 @@ def test_refreshed_rays_are_the_unprojection_through_the_refined_lens(camera):
     """After any change of every refined parameter the rays equal the camera module's unprojection of the pixel
     centres through the refined camera (float64)."""
     view = _view(camera)
-    lens = LensRefinement.from_cameras([camera], "full")
+    lens = LensRefinement.from_cameras([camera], "full", aspect=True)
     gen = torch.Generator().manual_seed(1)
     with torch.no_grad():
         lens.deltas.copy_(0.01 * torch.randn(lens.deltas.shape, generator=gen, dtype=F64))
@@ -110,6 +112,31 @@ def test_modes_pick_the_fields():
     assert refined_fields(fisheye, "off") == ()
     with pytest.raises(ValueError, match="lens_refinement"):
         refined_fields(fisheye, "everything")
+    assert refined_parameters(fisheye, "focal") == (("fx", "fy"),)
+    assert refined_parameters(fisheye, "focal", aspect=True) == (("fx",), ("fy",))
+    assert refined_parameters(fisheye, "full")[:2] == (("fx", "fy"), ("cx",))
+
+
+def test_the_default_keeps_the_aspect_ratio_and_aspect_refines_it():
+    """Without `aspect` fx and fy move by one factor (fy / fx as calibrated); with it each moves alone."""
+    camera = CAMERAS["fisheye"]
+    shared = LensRefinement.from_cameras([camera], "focal")
+    separate = LensRefinement.from_cameras([camera], "focal", aspect=True)
+    assert shared.deltas.shape[-1] == 1 and separate.deltas.shape[-1] == 2
+    with torch.no_grad():
+        shared.deltas.fill_(0.03)
+        separate.deltas.copy_(torch.tensor([[0.03, -0.01]], dtype=F64))
+    a, b = shared.refined_camera(0), separate.refined_camera(0)
+    assert a.fy / a.fx == pytest.approx(camera.fy / camera.fx, rel=1e-12)
+    assert a.fx == pytest.approx(camera.fx * math.exp(0.03), rel=1e-12)
+    assert b.fy / b.fx == pytest.approx(camera.fy / camera.fx * math.exp(-0.04), rel=1e-12)
+
+
+def test_a_checkpoint_of_the_other_aspect_setting_names_the_option():
+    camera = CAMERAS["fisheye"]
+    saved = LensRefinement.from_cameras([camera], "full", aspect=True).state_dict()
+    with pytest.raises(ValueError, match="lens-refinement-aspect True"):
+        LensRefinement.from_cameras([camera], "full").load_state_dict(saved)
 
 
 def _refine(lens, target, valid, make_view, truth_camera, scene, steps):
