@@ -62,7 +62,7 @@ def _report(args, record: dict, rows: list) -> str:
   training camera turned by {rot:g} degree(s) about a random axis and moved by {pos:g} % of the scene's extent,
   the lens (all images) with focal lengths {focal:+g} % and k1 {k1:+g} (`geer_ns/data/camera_perturbation.py`,
   seed 0; test poses true)
-- runs: {args.steps} steps each, warm-up 300, refinement every 100 until step 1000, full resolution, same seed.
+- runs: {args.steps} steps each, warm-up 300, refinement every 100 until step {args.densify_until}, full resolution, same seed.
   SO3xR3: nerfstudio's camera optimizer, Adam lr {args.pose_lr:g} after a 200-step warm-up, decaying to 1e-5. Lens:
   `--pipeline.model.lens-refinement full --pipeline.model.lens-refinement-start 200`, Adam (lens_opt) lr
   {args.lens_lr:g} after a 200-step warm-up, decaying to 1e-5; gradients from the CPU build of the kernels
@@ -90,6 +90,7 @@ def main() -> None:
     extra = argparse.ArgumentParser(add_help=False)
     extra.add_argument("--lens-lr", type=float, default=2e-3)
     extra.add_argument("--pose-lr", type=float, default=5e-4, help="camera_opt's (SO3xR3) learning rate")
+    extra.add_argument("--densify-until", type=int, default=1000, help="the last step that densifies (0: none)")
     extra.add_argument("--only", nargs="+", default=[], help="run only the runs whose name contains one of these")
     extra.add_argument("--suffix", default="", help="appended to the report's file names")
     extra.add_argument("--pose-penalty", type=float, nargs=2, default=(1e-2, 1e-3), metavar=("TRANS", "ROT"),
@@ -105,6 +106,7 @@ def main() -> None:
     args = bench_args(__doc__, 1000, "/tmp/geer_lens")
     args.lens_lr, args.pose_lr, args.perturbation, args.command = known.lens_lr, known.pose_lr, known.perturbation, \
         command
+    args.densify_until = known.densify_until
     from nerfstudio.engine.optimizers import AdamOptimizerConfig
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
@@ -115,7 +117,7 @@ def main() -> None:
     rotation_deg, position_fraction, focal_fraction, k1_offset = known.perturbation
     truth = perturb_cameras(clean.parent, noisy, transforms=clean.name, rotation_deg=rotation_deg,
                             position_fraction=position_fraction, focal_fraction=focal_fraction, k1_offset=k1_offset)
-    schedule = {"warmup_length": 300, "refine_every": 100, "stop_split_at": 1000, "num_downscales": 0}
+    schedule = {"warmup_length": 300, "refine_every": 100, "stop_split_at": known.densify_until, "num_downscales": 0}
 
     def adam(lr):
         return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15),
@@ -135,7 +137,8 @@ def main() -> None:
     if known.only:
         runs = {k: v for k, v in runs.items() if any(part in k for part in known.only)}
     record = {"commit": git_commit(), "size": args.size, "steps": args.steps, "lens_lr": args.lens_lr,
-              "pose_lr": args.pose_lr, "perturbation": list(args.perturbation), "runs": {}}
+              "pose_lr": args.pose_lr, "perturbation": list(args.perturbation), "densify_until": args.densify_until,
+              "runs": {}}
     rows = []
     for name, (data, overrides) in runs.items():
         tag = name.replace(" ", "_").replace(",", "").replace("+", "")
