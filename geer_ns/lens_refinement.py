@@ -14,9 +14,10 @@ below) sees the ray d(p) with project(d(p); p) = x. Each render refreshes the ra
 last value by Newton steps on the unit sphere, d <- normalize(d - J^+ (project(d; p) - x)), J = d project / d d
 (2x3, by float64 central differences; its pseudo-inverse maps into the tangent plane): three detached chord steps,
 then one more with J at the result and the intrinsics as tensors that require grad, so that
-d(d)/d(p) = -J^+ d project / d p, the implicit-function gradient (its value moves by the converged residual only). The renderer returns dL/d(ray direction) (both compiled backends), which autograd
-carries to the deltas. A refresh whose residual stays above a thousandth of a pixel (a large jump of the
-intrinsics) is redone by the camera model's own unprojection.
+d(d)/d(p) = -J^+ d project / d p, the implicit-function gradient (its value moves by the converged residual
+only). The renderer returns dL/d(ray direction) (both compiled backends), which autograd carries to the deltas.
+A refresh whose residual stays above a thousandth of a pixel (a large jump of the intrinsics) is redone by the
+camera model's own unprojection.
 
 BEAP supervision. A BEAP target image was resampled once from the source image: cell c holds the source image at
 x_c = project(d_c; p0), the original lens. The target is kept as cached; cell c is rendered along the ray the
@@ -189,21 +190,23 @@ class LensRefinement(nn.Module):
         self.cameras: List[CameraModel] = list(cameras)
         self.image_camera = [int(i) for i in image_camera]
         self.index: Dict[CameraModel, int] = {cam: i for i, cam in enumerate(self.cameras)}
-        self.delta_fields = [refined_parameters(cam, mode, aspect) for cam in self.cameras]
-        self.fields = [tuple(name for group in groups for name in group) for groups in self.delta_fields]
-        width = max([len(p) for p in self.delta_fields] + [1])
-        self.deltas = nn.Parameter(torch.zeros(len(self.cameras), width, dtype=torch.float64))
         self.aspect = aspect
+        self.delta_fields = [refined_parameters(cam, mode, aspect) for cam in self.cameras]
+        self.deltas = nn.Parameter(torch.zeros(len(self.cameras), self._width(aspect), dtype=torch.float64))
         self._states: Dict[tuple, _RayState] = {}
+
+    def _width(self, aspect: bool) -> int:
+        """Deltas per camera with that aspect setting (the most any camera needs, at least one)."""
+        return max([len(refined_parameters(cam, self.mode, aspect)) for cam in self.cameras] + [1])
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         """A checkpoint refined with the other aspect setting fails with the option to pass, not a size error."""
         saved = state_dict.get(prefix + "deltas")
-        if saved is not None and saved.shape != self.deltas.shape:
-            other = LensRefinement(self.cameras, self.image_camera, self.mode, self.start, not self.aspect)
-            if saved.shape == other.deltas.shape:
-                raise ValueError(f"{prefix}deltas: the checkpoint's lens was refined with lens-refinement-aspect "
-                                 f"{other.aspect}; resume with --pipeline.model.lens-refinement-aspect {other.aspect}")
+        other = not self.aspect
+        if saved is not None and saved.shape != self.deltas.shape and \
+                tuple(saved.shape) == (len(self.cameras), self._width(other)):
+            raise ValueError(f"{prefix}deltas: the checkpoint's lens was refined with lens-refinement-aspect "
+                             f"{other}; resume with --pipeline.model.lens-refinement-aspect {other}")
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @classmethod
@@ -242,7 +245,7 @@ class LensRefinement(nn.Module):
 
     def active(self, step: int) -> bool:
         """Whether renders at `step` use (and train) the refined intrinsics."""
-        return step >= self.start and any(self.fields)
+        return step >= self.start and any(self.delta_fields)
 
     # ------------------------------------------------------------------------------------- views
     def refine_view(self, view, camera: CameraModel, step: int):
@@ -252,7 +255,7 @@ class LensRefinement(nn.Module):
         from geer_ns.data.views import BeapView, NativeView
 
         group = self.index.get(camera)
-        if group is None or not self.fields[group] or not self.active(step):
+        if group is None or not self.delta_fields[group] or not self.active(step):
             return view
         state = self._state(view, camera, group)
         full = self.values(group)
