@@ -4,7 +4,8 @@ The dev room at --size^2; every training camera turned by 1 degree about a rando
 scene's extent, and the lens (every image's, test images' too) with its focal lengths 2 % long and k1 moved by
 0.02 (geer_ns/data/camera_perturbation.py, seed 0). Runs of --steps steps from the same seed: the true cameras,
 the perturbed ones without refinement, with pose refinement only (SO3xR3), and with pose and lens refinement
-(`lens_refinement full`). Scored on the test split as ns-eval does (test images: true poses, the run's lens);
+(`lens_refinement full`), each also with the Levenberg-Marquardt pose solve (`pose_solve_every`). Scored on
+the test split as ns-eval does (test images: true poses, the run's lens);
 the refined training cameras are compared with the truth. Writes benchmarks/lens_refinement.md (+ .json).
 
     python benchmarks/lens_bench.py [--size 64] [--steps 1000] [--work /tmp/geer_lens]
@@ -13,7 +14,8 @@ the refined training cameras are compared with the truth. Writes benchmarks/lens
 from __future__ import annotations
 
 from pose_bench import camera_errors
-from refinement_runs import ROOT, bench_args, dump, fresh, git_commit, load_average, small_dev_room, train_and_score
+from refinement_runs import (ROOT, bench_args, dump, fresh, git_commit, load_average, small_dev_room,
+                             solved_test_metrics, train_and_score)
 
 
 def lens_errors(pipeline, truth: dict) -> dict:
@@ -65,20 +67,24 @@ def _report(args, record: dict, rows: list) -> str:
 - runs: {args.steps} steps each, warm-up 300, refinement every 100 until step {args.densify_until}, full resolution, same seed.
   SO3xR3: nerfstudio's camera optimizer, Adam lr {args.pose_lr:g} after a 200-step warm-up, decaying to 1e-5. Lens:
   `--pipeline.model.lens-refinement full --pipeline.model.lens-refinement-start 200`, Adam (lens_opt) lr
-  {args.lens_lr:g} after a 200-step warm-up, decaying to 1e-5; gradients from the CPU build of the kernels
+  {args.lens_lr:g} after a 200-step warm-up, decaying to 1e-5; gradients from the CPU build of the kernels. Pose
+  solve: `--pipeline.model.pose-solve-every {args.pose_solve_every} --pipeline.model.pose-solve-iterations
+  {args.pose_solve_iterations}` (geer_ns/pose_solve.py)
 - lens map: how far (pixels) the refined lens moves each ray the true lens sees, mean / max over the image
   circle (independent of how focal and distortion coefficients trade off)
 - camera errors: training cameras against the truth mapped into the dataparser's frame (no re-alignment; mean /
   max over the training cameras), position in % of the scene's extent; aligned: the same after the similarity
   that best maps the cameras' centres onto the truth's (pose_bench.similarity_aligned: the gauge images cannot
   fix, removed as BARF-style benchmarks do); focal in % (mean of fx and fy), k1 absolute, principal point in pixels
-- scored on the test split (6 views, true poses, the run's lens: refined where refined) as ns-eval does
+- scored on the test split (6 views, true poses, the run's lens: refined where refined) as ns-eval does; "test
+  poses solved": the same after each test view's pose is solved against the trained scene (the test-time pose
+  alignment of pose-refinement benchmarks: `refinement_runs.solved_test_metrics`)
 - device: CPU, 2 cores shared with other jobs (training seconds vary with the other jobs: not a speed measure; load average {load_average()} when written; one run each)
 - commit: {record['commit']} (+ the working tree that adds this file)
-- command: `nice -n 10 {args.command}`
+- command: `{args.command}`
 
-| run | test PSNR | test SSIM | rotation deg (mean / max) | position % (mean / max) | aligned: rotation deg, position % (mean) | lens map px (mean / max) | focal % | k1 | cx, cy px | training s |
-| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |
+| run | test PSNR | test PSNR, test poses solved | test SSIM | rotation deg (mean / max) | position % (mean / max) | aligned: rotation deg, position % (mean) | lens map px (mean / max) | focal % | k1 | cx, cy px | training s |
+| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |
 """ + "\n".join(rows) + "\n"
 
 
@@ -92,9 +98,13 @@ def main() -> None:
     extra.add_argument("--pose-lr", type=float, default=5e-4, help="camera_opt's (SO3xR3) learning rate")
     extra.add_argument("--densify-until", type=int, default=1000, help="the last step that densifies (0: none)")
     extra.add_argument("--only", nargs="+", default=[], help="run only the runs whose name contains one of these")
+    extra.add_argument("--skip", nargs="+", default=[], help="leave out the runs whose name contains one of these")
     extra.add_argument("--suffix", default="", help="appended to the report's file names")
     extra.add_argument("--pose-penalty", type=float, nargs=2, default=(1e-2, 1e-3), metavar=("TRANS", "ROT"),
                        help="nerfstudio's camera optimizer L2 penalties on the pose adjustments (its defaults)")
+    extra.add_argument("--pose-solve-every", type=int, default=500,
+                       help="the '+ pose solve' runs: --pipeline.model.pose-solve-every")
+    extra.add_argument("--pose-solve-iterations", type=int, default=3)
     extra.add_argument("--aspect", action="store_true", help="refine fy / fx too (lens-refinement-aspect)")
     extra.add_argument("--perturbation", type=float, nargs=4, default=(1.0, 0.01, 0.02, 0.02),
                        metavar=("ROT_DEG", "POS_FRACTION", "FOCAL_FRACTION", "K1_OFFSET"),
@@ -107,6 +117,7 @@ def main() -> None:
     args.lens_lr, args.pose_lr, args.perturbation, args.command = known.lens_lr, known.pose_lr, known.perturbation, \
         command
     args.densify_until = known.densify_until
+    args.pose_solve_every, args.pose_solve_iterations = known.pose_solve_every, known.pose_solve_iterations
     from nerfstudio.engine.optimizers import AdamOptimizerConfig
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
@@ -129,13 +140,17 @@ def main() -> None:
              "camera_optimizer.rot_l2_penalty": known.pose_penalty[1]}
     lens_only = {"lens_refinement": "full", "lens_refinement_start": 200, "lens_refinement_aspect": known.aspect}
     lens = {**poses, **lens_only}
+    solve = {"pose_solve_every": known.pose_solve_every, "pose_solve_iterations": known.pose_solve_iterations}
     runs = {"perturbed, no refinement": (noisy / clean.name, {}),
             "perturbed, SO3xR3 poses + lens full": (noisy / clean.name, lens),
             "true cameras": (clean, {}),
             "perturbed, SO3xR3 poses only": (noisy / clean.name, poses),
-            "perturbed, lens full (poses fixed)": (noisy / clean.name, lens_only)}
+            "perturbed, lens full (poses fixed)": (noisy / clean.name, lens_only),
+            "perturbed, SO3xR3 poses only + pose solve": (noisy / clean.name, {**poses, **solve}),
+            "perturbed, SO3xR3 poses + lens full + pose solve": (noisy / clean.name, {**lens, **solve})}
     if known.only:
         runs = {k: v for k, v in runs.items() if any(part in k for part in known.only)}
+    runs = {k: v for k, v in runs.items() if not any(part in k for part in known.skip)}
     record = {"commit": git_commit(), "size": args.size, "steps": args.steps, "lens_lr": args.lens_lr,
               "pose_lr": args.pose_lr, "perturbation": list(args.perturbation), "densify_until": args.densify_until,
               "runs": {}}
@@ -144,7 +159,9 @@ def main() -> None:
         tag = name.replace(" ", "_").replace(",", "").replace("+", "")
         metrics, seconds, pipeline = train_and_score(tag, data, args.steps, {**schedule, **overrides}, args.work,
                                                      optimizers)
-        entry = {"seconds": seconds, "psnr": metrics["psnr"], "ssim": metrics["ssim"]}
+        solved = solved_test_metrics(pipeline)
+        entry = {"seconds": seconds, "psnr": metrics["psnr"], "ssim": metrics["ssim"],
+                 "psnr_test_poses_solved": solved["psnr"]}
         if data != clean:
             entry["cameras"] = camera_errors(pipeline, truth, refined="camera_optimizer.mode" in overrides)
             entry["lens"] = lens_errors(pipeline, truth)
@@ -158,7 +175,8 @@ def main() -> None:
                       f"{lens_e['k1_abs']:.4f} | {lens_e['cx_px']:+.2f}, {lens_e['cy_px']:+.2f}")
         else:
             errors = "0 | 0 | 0 | 0 | 0 | 0 | 0"
-        rows.append(f"| {name} | {metrics['psnr']:.2f} | {metrics['ssim']:.3f} | {errors} | {seconds:.0f} |")
+        rows.append(f"| {name} | {metrics['psnr']:.2f} | {solved['psnr']:.2f} | {metrics['ssim']:.3f} | {errors} | "
+                    f"{seconds:.0f} |")
         print(rows[-1], flush=True)
         dump(ROOT / "benchmarks" / f"lens_refinement_runs{known.suffix}.json", record)
         (ROOT / "benchmarks" / f"lens_refinement{known.suffix}.md").write_text(_report(args, record, rows))

@@ -72,6 +72,17 @@ def train_and_score(name: str, data: Path, steps: int, overrides: dict, out: Pat
     return metrics, seconds, trainer.pipeline
 
 
+def solved_test_metrics(pipeline, iterations: int = 2) -> dict:
+    """ns-eval's averaged metrics of the eval split after each test view's pose is solved against the trained
+    scene (geer_ns.pose_solve.solve_view_pose): the test-time pose alignment of pose-refinement benchmarks
+    (BARF's protocol), which takes out the small rigid motion between a refined scene and the given test poses."""
+    from geer_ns.pose_solve import solve_view_pose
+
+    views = [(solve_view_pose(pipeline.model, camera, batch, iterations), batch)
+             for camera, batch in pipeline.datamanager.fixed_indices_eval_dataloader]
+    return pipeline.get_average_image_metrics(views, image_prefix="eval")
+
+
 def git_commit() -> str:
     done = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT)
     return done.stdout.strip()

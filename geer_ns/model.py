@@ -53,6 +53,7 @@ from geer_ns.distributed.engine import EngineState
 from geer_ns.metrics import central_region, downscale_mask, masked_psnr, region_psnr
 from geer_ns.options import GeerOwnOptions, ignored_options_set
 from geer_ns.perceptual import build_lpips_if_cached
+from geer_ns.pose_solve import PoseSolver
 from geer_ns.render import render
 from geer_ns.render.backend import announce_backend
 from geer_ns.render.normals import render_normals
@@ -130,6 +131,13 @@ class GeerModel(SplatfactoModel):
             }
         )
         self.camera_optimizer = self.config.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
+        if self.config.pose_solve_every < 0 or self.config.pose_solve_iterations < 1:
+            raise ValueError("--pipeline.model.pose-solve-every must be >= 0 and "
+                             "--pipeline.model.pose-solve-iterations >= 1 (got "
+                             f"{self.config.pose_solve_every}, {self.config.pose_solve_iterations})")
+        if self.config.pose_solve_every > 0 and self.config.camera_optimizer.mode == "off":
+            raise ValueError("--pipeline.model.pose-solve-every: needs --pipeline.model.camera-optimizer.mode SO3xR3 "
+                             "or SE3 (the pose adjustments it solves)")
         self.ssim = SSIM(data_range=1.0, size_average=True, channel=3)
         self._perceptual: Dict[str, object] = {}  # LPIPS, built on first use (not a submodule: no state)
         self.step = 0
@@ -412,11 +420,16 @@ class GeerModel(SplatfactoModel):
                                          {"statistics": statistics}, packed=False)
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
-        return [
+        callbacks = [
             TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self.step_cb,
                              args=[training_callback_attributes.optimizers]),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.step_post_backward),
         ]
+        if self.config.pose_solve_every > 0:
+            solver = PoseSolver(training_callback_attributes.pipeline, training_callback_attributes.optimizers,
+                                self.config.pose_solve_every, self.config.pose_solve_iterations, say=CONSOLE.log)
+            callbacks.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], solver))
+        return callbacks
 
     # ------------------------------------------------------------------------------------- losses
     def _batch_mask(self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]) -> Tensor:

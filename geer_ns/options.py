@@ -66,6 +66,13 @@ class GeerOwnOptions:
     lens_refinement_aspect: bool = False
     """lens-refinement: refine the aspect ratio fy / fx too (off: fx and fy scale together). Cameras that stay
     upright cannot tell a wrong ratio from a vertical stretch of the scene (docs/refinement.md)."""
+    pose_solve_every: int = 0
+    """With camera-optimizer.mode SO3xR3 or SE3: every this many steps, hold the scene and solve each training
+    camera's pose adjustments by Levenberg-Marquardt on its image's residuals (0: off; geer_ns/pose_solve.py).
+    Adam's one-image steps leave poses short of where the scene puts them (docs/refinement.md)."""
+    pose_solve_iterations: int = 2
+    """pose-solve-every: Levenberg-Marquardt iterations per camera at each of the solve's three blur levels (an
+    iteration renders the image about 13 times)."""
     mcmc_cap_max: int = 1_000_000
     """strategy=mcmc: most Gaussians (gsplat MCMCStrategy cap_max)."""
     mcmc_noise_lr: float = 5e5
@@ -88,6 +95,7 @@ OWN_OPTIONS_HELP = (
     "--pipeline.model.distributed {images,gaussians}, "
     "--pipeline.model.max-pairs, --pipeline.model.kernel-check-every, "
     "--pipeline.model.central-half-angles-deg, --pipeline.model.lens-refinement {off,focal,focal+principal,full}, "
+    "--pipeline.model.pose-solve-every, --pipeline.model.pose-solve-iterations, "
     "--pipeline.datamanager.supervision, "
     "--pipeline.datamanager.mask-edge-fill, --pipeline.datamanager.images-per-step, --machine.timeout-s; resume "
     "with --load-dir <run>/nerfstudio_models. Splatfacto options "

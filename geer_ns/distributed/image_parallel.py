@@ -35,6 +35,9 @@ class ImageParallel:
         """Before the trainer builds its pipeline (the model attaches `state` then)."""
         self.trainer, self.world = trainer, trainer.world
         self.state = EngineState(images_per_step=trainer.batch.images)
+        if self.world.distributed and trainer.config.pipeline.model.pose_solve_every > 0:
+            raise ValueError("geer: --pipeline.model.pose-solve-every runs in one process only (each process would "
+                             "solve every camera); leave it at 0 with --machine.num-devices > 1")
 
     def start(self) -> None:
         if self.world.distributed:
