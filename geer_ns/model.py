@@ -432,7 +432,7 @@ class GeerModel(SplatfactoModel):
         return callbacks
 
     # ------------------------------------------------------------------------------------- losses
-    def _batch_mask(self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]) -> Tensor:
+    def supervised_mask(self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]) -> Tensor:
         """[H,W,1] bool: supervised pixels (the datamanager's validity mask and the rendered rays)."""
         valid = outputs["valid_rays"].to(self.device)
         if "mask" in batch:
@@ -442,7 +442,7 @@ class GeerModel(SplatfactoModel):
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, Tensor]:
         gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
-        valid = self._batch_mask(outputs, batch)[..., 0]
+        valid = self.supervised_mask(outputs, batch)[..., 0]
         squared = torch.where(valid[..., None], (outputs["rgb"].detach() - gt) ** 2, 0.0)  # no boolean index: no sync
         mse = (squared.sum() / (valid.sum() * gt.shape[-1]).clamp_min(1)).clamp_min(1e-10)
         metrics = {"psnr": -10.0 * torch.log10(mse), "gaussian_count": self.scene_gaussians or self.num_points}
@@ -455,7 +455,7 @@ class GeerModel(SplatfactoModel):
     def get_image_loss_dict(self, outputs, batch) -> Dict[str, Tensor]:
         """The losses of one rendered image (a step averages them over its images)."""
         gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
-        valid = self._batch_mask(outputs, batch)
+        valid = self.supervised_mask(outputs, batch)
         pred = torch.where(valid, outputs["rgb"], gt)  # invalid pixels equal: no loss, no SSIM edge
         l1 = (pred - gt).abs().sum() / (valid.sum() * gt.shape[-1]).clamp_min(1)
         ssim = self.ssim(gt.permute(2, 0, 1)[None], pred.permute(2, 0, 1)[None])
@@ -508,7 +508,7 @@ class GeerModel(SplatfactoModel):
         """Native-image metrics over valid pixels: PSNR, SSIM, LPIPS (when its weights are cached), the
         central / peripheral PSNR of the paper's App. G and the color-corrected psnr_cc / ssim_cc."""
         gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
-        valid = self._batch_mask(outputs, batch)
+        valid = self.supervised_mask(outputs, batch)
         pred = torch.where(valid, outputs["rgb"], gt)
         psnr = masked_psnr(pred, gt, valid[..., 0])
         metrics: Dict[str, float] = {"psnr": float("nan") if psnr is None else psnr}

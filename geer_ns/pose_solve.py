@@ -99,7 +99,7 @@ def image_residual(model, render: Callable[[Tensor], Dict], batch: Dict, blur: f
         with torch.no_grad():
             outputs = render(x)
             gt = model.composite_with_background(model.get_gt_img(batch["image"]), outputs["background"])
-            valid = model._batch_mask(outputs, batch)
+            valid = model.supervised_mask(outputs, batch)
             difference = blurred(outputs["rgb"], valid, blur) - blurred(gt, valid, blur)
             difference = torch.where(valid, difference, 0.0)
         return difference.reshape(-1).double()
