@@ -31,6 +31,11 @@ ROTATION_STEP = 1e-3
 BLUR_LEVELS_PX = (2.0, 1.0, 0.0)
 
 
+def difference_steps() -> Tensor:
+    """[6] float64: the central-difference step of each adjustment (translation first, as the tangents)."""
+    return torch.tensor([TRANSLATION_STEP] * 3 + [ROTATION_STEP] * 3, dtype=torch.float64)
+
+
 def levenberg_marquardt(residual: Callable[[Tensor], Tensor], x0: Tensor, steps: Tensor, iterations: int,
                         damping: float = 1e-3) -> Tuple[Tensor, float, float]:
     """Minimise |residual(x)|^2 from x0 by Levenberg-Marquardt with a central-difference Jacobian.
@@ -140,7 +145,7 @@ def solve_view_pose(model, camera, batch: Dict, iterations: int):
     was_training = model.training
     model.eval()
     x = torch.zeros(6, dtype=torch.float64)
-    steps = torch.tensor([TRANSLATION_STEP] * 3 + [ROTATION_STEP] * 3, dtype=torch.float64)
+    steps = difference_steps()
     try:
         for blur in BLUR_LEVELS_PX:
             residual = image_residual(model, lambda y: model.get_outputs(adjusted_camera(camera, y)), batch, blur)
@@ -166,7 +171,7 @@ def solve_poses(model, datamanager, indices: Iterable[int], iterations: int) -> 
         of the summed squared residuals.
     """
     adjustment = model.camera_optimizer.pose_adjustment
-    steps = torch.tensor([TRANSLATION_STEP] * 3 + [ROTATION_STEP] * 3, dtype=torch.float64)
+    steps = difference_steps()
     was_training = model.training
     model.train()  # the training render: the pose adjustments applied
     moved_rotation, moved_translation, before, after, count = 0.0, 0.0, 0.0, 0.0, 0
