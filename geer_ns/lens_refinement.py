@@ -194,6 +194,7 @@ class LensRefinement(nn.Module):
         self.delta_fields = [refined_parameters(cam, mode, aspect) for cam in self.cameras]
         self.deltas = nn.Parameter(torch.zeros(len(self.cameras), self._width(aspect), dtype=torch.float64))
         self._states: Dict[tuple, _RayState] = {}
+        self._unchanged: Dict[int, tuple] = {}  # id(state) -> (the deltas, a view rebuilt from their rays)
 
     def _width(self, aspect: bool) -> int:
         """Deltas per camera with that aspect setting (the most any camera needs, at least one)."""
@@ -258,6 +259,12 @@ class LensRefinement(nn.Module):
         if group is None or not self.delta_fields[group] or not self.active(step):
             return view
         state = self._state(view, camera, group)
+        # a render without gradients under unchanged intrinsics (the pose solve's many renders, an eval) reuses
+        # the rays of the last one
+        deltas = self.deltas[group].detach().clone()
+        memo = None if torch.is_grad_enabled() else self._unchanged.get(id(state))
+        if memo is not None and memo[0].device == deltas.device and torch.equal(memo[0], deltas):
+            return memo[1](view)
         full = self.values(group)
         values = rescaled(full, state.factor)
         base = self._scaled_base(group, state.factor)
@@ -276,10 +283,18 @@ class LensRefinement(nn.Module):
                                  _TILE)
         rays.dirs = dirs32 if torch.is_grad_enabled() else dirs32.detach()
         if isinstance(view, BeapView):
-            return BeapView(view.camera, view.grid, rays, view.downscale)
-        with torch.no_grad():
-            refined = dataclasses.replace(view.camera, **rescaled({k: float(v) for k, v in full.items()}, state.factor))
-        return NativeView(refined, rays, view.step)
+            def rebuild(v):
+                return BeapView(v.camera, v.grid, rays, v.downscale)
+        else:
+            with torch.no_grad():
+                refined = dataclasses.replace(view.camera, **rescaled({k: float(v) for k, v in full.items()},
+                                                                      state.factor))
+
+            def rebuild(v):
+                return NativeView(refined, rays, v.step)
+        if not torch.is_grad_enabled():
+            self._unchanged[id(state)] = (deltas, rebuild)
+        return rebuild(view)
 
     def _scaled_base(self, group: int, factor: int) -> CameraModel:
         base = self.cameras[group]

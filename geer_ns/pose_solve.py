@@ -16,7 +16,7 @@ from __future__ import annotations
 import copy
 import math
 import time
-from typing import Callable, Dict, Iterable, Tuple
+from typing import Callable, Dict, Iterable, Sequence, Tuple
 
 import torch
 from torch import Tensor
@@ -138,24 +138,49 @@ def adjusted_camera(camera, x: Tensor):
     return out
 
 
-def solve_view_pose(model, camera, batch: Dict, iterations: int):
+def coarse_to_fine(residual_at: Callable[[float], Callable[[Tensor], Tensor]], x0: Tensor, iterations: int,
+                   blur_levels: Sequence[float] = BLUR_LEVELS_PX) -> Tuple[Tensor, float, float]:
+    """Levenberg-Marquardt from x0 over residuals blurred by each of `blur_levels` in turn, `iterations` each.
+
+    Args:
+        residual_at: blur (pixels) -> the residual function x [6] -> [M] at that blur.
+        x0: [6] float64, the start.
+        iterations: per level.
+        blur_levels: the blurs, coarse to fine.
+
+    Returns:
+        (x, the unblurred cost at x0, at x). Each level's own cost falls, but a blurred level can lead where the
+        image itself fits worse: then x is x0 (the two costs equal).
+    """
+    sharp = residual_at(0.0)
+    cost0 = float(sharp(x0).square().sum())
+    x = x0
+    for blur in blur_levels:
+        x = levenberg_marquardt(residual_at(blur), x, difference_steps(), iterations)[0]
+    cost1 = float(sharp(x).square().sum())
+    if not cost1 < cost0:
+        return x0, cost0, cost0
+    return x, cost0, cost1
+
+
+def solve_view_pose(model, camera, batch: Dict, iterations: int, blur_levels: Sequence[float] = BLUR_LEVELS_PX):
     """`camera` (one held-out view, not trained) with its pose solved against the model's scene for the batch's
     image: the test-time pose alignment of pose-refinement benchmarks, whose refined scene may sit a small rigid
-    motion away from the frame the held-out poses are given in. Returns the moved camera."""
+    motion away from the frame the held-out poses are given in. Returns the moved camera (`camera` itself when no
+    move makes its image fit better)."""
     was_training = model.training
     model.eval()
-    x = torch.zeros(6, dtype=torch.float64)
-    steps = difference_steps()
     try:
-        for blur in BLUR_LEVELS_PX:
-            residual = image_residual(model, lambda y: model.get_outputs(adjusted_camera(camera, y)), batch, blur)
-            x = levenberg_marquardt(residual, x, steps, iterations)[0]
+        x = coarse_to_fine(lambda blur: image_residual(
+            model, lambda y: model.get_outputs(adjusted_camera(camera, y)), batch, blur),
+            torch.zeros(6, dtype=torch.float64), iterations, blur_levels)[0]
     finally:
         model.train(was_training)
     return adjusted_camera(camera, x)
 
 
-def solve_poses(model, datamanager, indices: Iterable[int], iterations: int) -> Dict[str, float]:
+def solve_poses(model, datamanager, indices: Iterable[int], iterations: int,
+                blur_levels: Sequence[float] = BLUR_LEVELS_PX) -> Dict[str, float]:
     """Solve the pose adjustments of training images `indices` one by one against the model's current scene,
     writing them into model.camera_optimizer.pose_adjustment (a camera whose unblurred residuals would not fall
     keeps its adjustment).
@@ -165,13 +190,13 @@ def solve_poses(model, datamanager, indices: Iterable[int], iterations: int) -> 
         datamanager: what gives `train_view(index)` (camera, batch).
         indices: the training images to solve.
         iterations: Levenberg-Marquardt iterations per blur level.
+        blur_levels: the residuals' blurs (pixels), coarse to fine.
 
     Returns:
         cameras, the mean rotation (degrees) and translation (scene units) each moved, and the relative change
         of the summed squared residuals.
     """
     adjustment = model.camera_optimizer.pose_adjustment
-    steps = difference_steps()
     was_training = model.training
     model.train()  # the training render: the pose adjustments applied
     moved_rotation, moved_translation, before, after, count = 0.0, 0.0, 0.0, 0.0, 0
@@ -179,14 +204,9 @@ def solve_poses(model, datamanager, indices: Iterable[int], iterations: int) -> 
         for index in indices:
             start = x = adjustment[index].detach().double().cpu()
             try:
-                sharp = camera_residual(model, datamanager, index, adjustment.data)
-                cost0 = float(sharp(start).square().sum())
-                for blur in BLUR_LEVELS_PX:  # each level's cost falls; the unblurred residuals decide below
-                    x = levenberg_marquardt(camera_residual(model, datamanager, index, adjustment.data, blur), x,
-                                            steps, iterations)[0]
-                cost1 = float(sharp(x).square().sum())
-                if not cost1 < cost0:  # the blurred levels led where the image itself fits no better
-                    x, cost1 = start, cost0
+                x, cost0, cost1 = coarse_to_fine(
+                    lambda blur: camera_residual(model, datamanager, index, adjustment.data, blur), start,
+                    iterations, blur_levels)
             finally:
                 adjustment.data[index] = x.to(adjustment)  # never a trial value, also when a render raised
             moved_translation += float((x[:3] - start[:3]).norm())
