@@ -9,7 +9,7 @@ Separates what the gradient can do from what the joint problem (a scene that lea
 allows. Writes benchmarks/pose_frozen_scene.md (+ .json).
 
     python benchmarks/pose_frozen_scene.py [--size 128] [--steps 2000] [--refine-steps 2000] [--lr 5e-4]
-    python benchmarks/pose_frozen_scene.py --solver lm [--iterations 2] [--blur-levels 2,1,0 4,2,1,0]
+    python benchmarks/pose_frozen_scene.py --solver lm [--iterations 2] [--blur-levels 4,2,1,0 2,1,0]
         # the Levenberg-Marquardt solve instead, one pass per blur schedule, each from the same perturbation
 """
 
@@ -98,7 +98,7 @@ def main() -> None:
     parser.add_argument("--solver", choices=("adam", "lm"), default="adam",
                         help="adam: the camera optimizer's steps; lm: one pass of geer_ns/pose_solve.py")
     parser.add_argument("--iterations", type=int, default=2, help="--solver lm: iterations per blur level")
-    parser.add_argument("--blur-levels", nargs="+", default=["2,1,0"],
+    parser.add_argument("--blur-levels", nargs="+", default=["4,2,1,0"],
                         help="--solver lm: blur schedules (pixels, coarse to fine, comma-separated), one pass each")
     parser.add_argument("--work", type=Path, default=Path("/tmp/geer_frozen"))
     parser.add_argument("--suffix", default="")

@@ -131,10 +131,12 @@ class GeerModel(SplatfactoModel):
             }
         )
         self.camera_optimizer = self.config.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
-        if self.config.pose_solve_every < 0 or self.config.pose_solve_iterations < 1:
-            raise ValueError("--pipeline.model.pose-solve-every must be >= 0 and "
-                             "--pipeline.model.pose-solve-iterations >= 1 (got "
-                             f"{self.config.pose_solve_every}, {self.config.pose_solve_iterations})")
+        if self.config.pose_solve_every < 0 or self.config.pose_solve_first < 0 or \
+                self.config.pose_solve_iterations < 1:
+            raise ValueError("--pipeline.model.pose-solve-every and --pipeline.model.pose-solve-first must be >= 0 "
+                             "and --pipeline.model.pose-solve-iterations >= 1 (got "
+                             f"{self.config.pose_solve_every}, {self.config.pose_solve_first}, "
+                             f"{self.config.pose_solve_iterations})")
         if self.config.pose_solve_every > 0 and self.config.camera_optimizer.mode == "off":
             raise ValueError("--pipeline.model.pose-solve-every: needs --pipeline.model.camera-optimizer.mode SO3xR3 "
                              "or SE3 (the pose adjustments it solves)")
@@ -427,7 +429,8 @@ class GeerModel(SplatfactoModel):
         ]
         if self.config.pose_solve_every > 0:
             solver = PoseSolver(training_callback_attributes.pipeline, training_callback_attributes.optimizers,
-                                self.config.pose_solve_every, self.config.pose_solve_iterations, say=CONSOLE.log)
+                                self.config.pose_solve_every, self.config.pose_solve_iterations, say=CONSOLE.log,
+                                first=self.config.pose_solve_first)
             callbacks.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], solver))
         return callbacks
 

@@ -70,8 +70,12 @@ class GeerOwnOptions:
     """With camera-optimizer.mode SO3xR3 or SE3: every this many steps, hold the scene and solve each training
     camera's pose adjustments by Levenberg-Marquardt on its image's residuals (0: off; geer_ns/pose_solve.py).
     Adam's one-image steps leave poses short of where the scene puts them (docs/refinement.md)."""
+    pose_solve_first: int = 0
+    """pose-solve-every: the step of the first solve (0: pose-solve-every); the solves then follow every
+    pose-solve-every steps. An early first solve meets the scene while it still sits where the initial points put
+    it, before it has learned each view's pose error."""
     pose_solve_iterations: int = 2
-    """pose-solve-every: Levenberg-Marquardt iterations per camera at each of the solve's three blur levels (an
+    """pose-solve-every: Levenberg-Marquardt iterations per camera at each of the solve's four blur levels (an
     iteration renders the image about 13 times)."""
     mcmc_cap_max: int = 1_000_000
     """strategy=mcmc: most Gaussians (gsplat MCMCStrategy cap_max)."""

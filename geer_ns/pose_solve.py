@@ -26,9 +26,10 @@ from torch import Tensor
 TRANSLATION_STEP = 1e-3
 ROTATION_STEP = 1e-3
 # Coarse to fine, as image alignment goes: the residuals of both images blurred by these standard deviations
-# (pixels), `iterations` each. A sharp image's Jacobian holds only within a fraction of a pixel; blurred, it
-# holds over the pose error, and the last level is the unblurred images.
-BLUR_LEVELS_PX = (2.0, 1.0, 0.0)
+# (pixels of the rendered image), `iterations` each. A sharp image's Jacobian holds only within a fraction of a
+# pixel; blurred, it holds over the pose error, and the last level is the unblurred images. A first level of
+# 2 px left 3 of 42 cameras in local minima where 4 px left none (benchmarks/pose_frozen_scene_lm.md).
+BLUR_LEVELS_PX = (4.0, 2.0, 1.0, 0.0)
 
 
 def difference_steps() -> Tensor:
@@ -220,18 +221,19 @@ def solve_poses(model, datamanager, indices: Iterable[int], iterations: int,
 
 
 class PoseSolver:
-    """The training callback: every `every` steps (from step `every`), solve every training camera's pose
-    adjustments and restart Adam's moments of them."""
+    """The training callback: at step `first` (default `every`) and every `every` steps after it, solve every
+    training camera's pose adjustments and restart Adam's moments of them."""
 
-    def __init__(self, pipeline, optimizers, every: int, iterations: int, say: Callable[[str], None]) -> None:
+    def __init__(self, pipeline, optimizers, every: int, iterations: int, say: Callable[[str], None],
+                 first: int = 0) -> None:
         """pipeline: the training pipeline (its model and datamanager); optimizers: nerfstudio's Optimizers
-        (camera_opt's moments are reset after a solve); every, iterations: the options; say: the log."""
+        (camera_opt's moments are reset after a solve); every, iterations, first: the options; say: the log."""
         self.pipeline, self.optimizers, self.say = pipeline, optimizers, say
-        self.every, self.iterations = every, iterations
+        self.every, self.iterations, self.first = every, iterations, first or every
 
     def __call__(self, step: int) -> None:
-        """Solve at this step if it is a positive multiple of `every`."""
-        if step == 0 or step % self.every:
+        """Solve at this step if it is `first` or `first` plus a multiple of `every`."""
+        if step < self.first or (step - self.first) % self.every:
             return
         model = self.pipeline.model
         start = time.perf_counter()

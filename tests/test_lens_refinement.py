@@ -104,6 +104,26 @@ def test_refreshed_rays_are_the_unprojection_through_the_refined_lens(camera):
     assert refined.camera == lens.refined_camera(0)
 
 
+def test_renders_without_gradients_reuse_the_rays_until_the_intrinsics_change():
+    """The pose solve renders each image dozens of times under one lens: without gradients the refreshed rays
+    are reused, and any change of the deltas (an optimizer's step, or one written through .data) gives the
+    unprojection through the new lens, never the old rays."""
+    camera = CAMERAS["fisheye"]
+    view = _view(camera)
+    lens = LensRefinement.from_cameras([camera], "full")
+    with torch.no_grad():
+        first = lens.refine_view(view, camera, step=0)
+        assert lens.refine_view(view, camera, step=0).rays is first.rays
+        lens.deltas.data[0, 0] += 0.02
+        moved = lens.refine_view(view, camera, step=0)
+    assert moved.rays is not first.rays
+    truth, valid = lens.refined_camera(0).pixel_rays(F64)
+    ok = valid.reshape(-1) & view.rays.valid
+    assert float((moved.rays.dirs - truth.reshape(-1, 3))[ok].abs().max()) < 1e-9
+    attached = lens.refine_view(view, camera, step=0)  # with gradients: a fresh, differentiable refresh
+    assert attached.rays is not moved.rays and attached.rays.dirs.requires_grad
+
+
 def test_modes_pick_the_fields():
     fisheye = CAMERAS["fisheye"]
     assert refined_fields(fisheye, "focal") == ("fx", "fy")

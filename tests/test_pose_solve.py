@@ -9,7 +9,7 @@ import math
 import pytest
 import torch
 
-from geer_ns.pose_solve import adjusted_camera, levenberg_marquardt, solve_poses, solve_view_pose
+from geer_ns.pose_solve import adjusted_camera, coarse_to_fine, levenberg_marquardt, solve_poses, solve_view_pose
 
 F64 = torch.float64
 
@@ -43,6 +43,22 @@ def test_solver_never_raises_the_cost_and_stops_at_a_minimum():
     costs = [levenberg_marquardt(residual, torch.tensor([5.0, 3.0], dtype=F64), steps, k)[2] for k in range(6)]
     assert all(b <= a for a, b in zip(costs, costs[1:]))
     assert abs(float(best[0]) - 2.0) < 0.02 and abs(float(best[1]) - 0.5) < 0.02
+
+
+def test_coarse_to_fine_keeps_the_start_when_the_blurred_levels_lead_away_from_the_unblurred_minimum():
+    """Blurred residuals whose minimum (x = 5) the unblurred ones fit worse than the start: x0 is kept, with
+    equal costs. When the blurred minimum is the unblurred one too, the solve gets there."""
+    def levels(blurred_target):
+        def residual_at(blur):
+            target = blurred_target if blur > 0 else 0.0
+            return lambda x: torch.cat([x - target, 2.0 * (x - target)])
+        return residual_at
+
+    x0 = torch.full((6,), 0.5, dtype=F64)
+    x, before, after = coarse_to_fine(levels(5.0), x0, iterations=3, blur_levels=(2.0, 1.0))
+    assert torch.equal(x, x0) and before == after == pytest.approx(6 * 0.25 * (1 + 4))
+    x, before, after = coarse_to_fine(levels(0.0), x0, iterations=3, blur_levels=(2.0, 0.0))
+    assert after < 1e-12 * before and float(x.abs().max()) < 1e-6
 
 
 def _turn(axis, degrees):
@@ -153,7 +169,7 @@ def test_solver_survives_a_coordinate_the_residuals_ignore():
     assert cost < 1e-12 and float(x[1]) == 0.5
 
 
-def test_the_callback_solves_at_multiples_of_every_and_resets_the_momentum(monkeypatch):
+def test_the_callback_solves_on_its_schedule_and_resets_the_momentum(monkeypatch):
     from types import SimpleNamespace
 
     import geer_ns.pose_solve as pose_solve
@@ -174,6 +190,14 @@ def test_the_callback_solves_at_multiples_of_every_and_resets_the_momentum(monke
     assert calls == [([0, 1, 2], 2)] * 3  # steps 50, 100 and 150; never step 0
     state = adam.state[adjustment]
     assert float(state["exp_avg"].abs().max()) == 0 and float(state["exp_avg_sq"].min()) > 0
+    early = pose_solve.PoseSolver(SimpleNamespace(model=model, datamanager=None), SimpleNamespace(optimizers={}),
+                                  every=50, iterations=1, say=lambda line: None, first=20)
+    solved_at = []
+    for step in range(0, 160):
+        before = len(calls)
+        early(step)
+        solved_at += [step] if len(calls) > before else []
+    assert solved_at == [20, 70, 120]  # first=20, then every 50
 
 
 def test_invalid_pose_solve_options_are_refused():
@@ -182,3 +206,5 @@ def test_invalid_pose_solve_options_are_refused():
 
     with pytest.raises(ValueError, match="pose-solve-iterations"):
         make_model(camera_optimizer=CameraOptimizerConfig(mode="SO3xR3"), pose_solve_every=10, pose_solve_iterations=0)
+    with pytest.raises(ValueError, match="pose-solve-first"):
+        make_model(camera_optimizer=CameraOptimizerConfig(mode="SO3xR3"), pose_solve_every=10, pose_solve_first=-5)
