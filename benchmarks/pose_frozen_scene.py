@@ -29,7 +29,8 @@ def adjustment_errors(adjustment: torch.Tensor, extent: float) -> dict:
     """Mean / max rotation (degrees) and position (% of extent) of SO3xR3 adjustments [N, 6] (translation first)."""
     rot = torch.rad2deg(adjustment[:, 3:].detach().double().norm(dim=-1))
     pos = 100.0 * adjustment[:, :3].detach().double().norm(dim=-1) / extent
-    return {"rotation_deg_mean": float(rot.mean()), "rotation_deg_max": float(rot.max()),
+    return {"rotation_deg_mean": float(rot.mean()), "rotation_deg_median": float(rot.median()),
+            "rotation_deg_max": float(rot.max()),
             "position_pct_mean": float(pos.mean()), "position_pct_max": float(pos.max())}
 
 
@@ -127,7 +128,6 @@ def main() -> None:
             rotation = torch.rad2deg(adjustment[:, 3:].detach().double().norm(dim=-1))
             history.append({"step": f"solved, blur {schedule_text} px", "loss": summary["residual_change"],
                             "seconds": time.perf_counter() - start,
-                            "rotation_deg_median": float(rotation.median()),
                             "rotation_deg_per_camera": [round(float(r), 4) for r in rotation],
                             **adjustment_errors(adjustment, extent)})
             print(json.dumps(history[-1]), flush=True)
@@ -137,12 +137,11 @@ def main() -> None:
     record = {"commit": git_commit(), "command": command, "scene_psnr": metrics["psnr"], "history": history}
     dump(ROOT / "benchmarks" / f"pose_frozen_scene{args.suffix}.json", record)
     rows = "\n".join(f"| {h['step']} | {h.get('loss', float('nan')):.4f} | {h['rotation_deg_mean']:.4f} / "
-                     f"{h.get('rotation_deg_median', float('nan')):.4f} / {h['rotation_deg_max']:.4f} | "
-                     f"{h['position_pct_mean']:.4f} / {h['position_pct_max']:.4f} | {h.get('seconds', float('nan')):.0f} |"
-                     for h in history)
+                     f"{h['rotation_deg_median']:.4f} / {h['rotation_deg_max']:.4f} | "
+                     f"{h['position_pct_mean']:.4f} / {h['position_pct_max']:.4f} | "
+                     f"{h.get('seconds', float('nan')):.0f} |" for h in history)
     method = (f"one pass of the Levenberg-Marquardt pose solve per blur schedule, {args.iterations} iterations per "
-              "blur level, each from the same perturbation (the loss column: the relative change of the squared "
-              "residuals)" if args.solver == "lm" else
+              "blur level, each from the same perturbation)" if args.solver == "lm" else
               f"Adam lr {args.lr:g} decaying to {args.lr_final:g} over {args.refine_steps} steps, one training image a "
               "step")
     (ROOT / "benchmarks" / f"pose_frozen_scene{args.suffix}.md").write_text(f"""# Pose refinement against a frozen scene
@@ -154,7 +153,7 @@ def main() -> None:
 - device: CPU, 2 cores (load average {load_average()}); commit {record['commit']}
 - command: `{command}`
 
-| step | loss (mean of the last 100) | rotation deg (mean / median / max) | position % (mean / max) | seconds |
+| step | loss: Adam's mean of the last 100 / the solve's relative change of the squared residuals | rotation deg (mean / median / max) | position % (mean / max) | seconds |
 | ---: | ---: | ---: | ---: | ---: |
 {rows}
 """)

@@ -33,7 +33,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Dict, List, Literal, Sequence, Tuple
+from typing import Dict, List, Literal, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -176,6 +176,7 @@ class _RayState:
     valid: Tensor  # [R] bool
     dirs: Tensor  # [R, 3]
     factor: int  # the downscale of the camera the pixels belong to (1 for BEAP: full-resolution source)
+    last: Optional[tuple] = None  # (the deltas, a view rebuilt from their rays) of the last render without grad
 
 
 class LensRefinement(nn.Module):
@@ -194,7 +195,6 @@ class LensRefinement(nn.Module):
         self.delta_fields = [refined_parameters(cam, mode, aspect) for cam in self.cameras]
         self.deltas = nn.Parameter(torch.zeros(len(self.cameras), self._width(aspect), dtype=torch.float64))
         self._states: Dict[tuple, _RayState] = {}
-        self._unchanged: Dict[int, tuple] = {}  # id(state) -> (the deltas, a view rebuilt from their rays)
 
     def _width(self, aspect: bool) -> int:
         """Deltas per camera with that aspect setting (the most any camera needs, at least one)."""
@@ -261,10 +261,10 @@ class LensRefinement(nn.Module):
         state = self._state(view, camera, group)
         # a render without gradients under unchanged intrinsics (the pose solve's many renders, an eval) reuses
         # the rays of the last one
-        deltas = self.deltas[group].detach().clone()
-        memo = None if torch.is_grad_enabled() else self._unchanged.get(id(state))
-        if memo is not None and memo[0].device == deltas.device and torch.equal(memo[0], deltas):
-            return memo[1](view)
+        deltas = None if torch.is_grad_enabled() else self.deltas[group].detach().clone()
+        if deltas is not None and state.last is not None and state.last[0].device == deltas.device and \
+                torch.equal(state.last[0], deltas):
+            return state.last[1](view)
         full = self.values(group)
         values = rescaled(full, state.factor)
         base = self._scaled_base(group, state.factor)
@@ -292,8 +292,8 @@ class LensRefinement(nn.Module):
 
             def rebuild(v):
                 return NativeView(refined, rays, v.step)
-        if not torch.is_grad_enabled():
-            self._unchanged[id(state)] = (deltas, rebuild)
+        if deltas is not None:
+            state.last = (deltas, rebuild)
         return rebuild(view)
 
     def _scaled_base(self, group: int, factor: int) -> CameraModel:

@@ -137,6 +137,9 @@ class GeerModel(SplatfactoModel):
                              "and --pipeline.model.pose-solve-iterations >= 1 (got "
                              f"{self.config.pose_solve_every}, {self.config.pose_solve_first}, "
                              f"{self.config.pose_solve_iterations})")
+        if self.config.pose_solve_first > 0 and self.config.pose_solve_every == 0:
+            raise ValueError("--pipeline.model.pose-solve-first: needs --pipeline.model.pose-solve-every > 0 (the "
+                             "solves it schedules)")
         if self.config.pose_solve_every > 0 and self.config.camera_optimizer.mode == "off":
             raise ValueError("--pipeline.model.pose-solve-every: needs --pipeline.model.camera-optimizer.mode SO3xR3 "
                              "or SE3 (the pose adjustments it solves)")

@@ -72,8 +72,8 @@ class GeerOwnOptions:
     Adam's one-image steps leave poses short of where the scene puts them (docs/refinement.md)."""
     pose_solve_first: int = 0
     """pose-solve-every: the step of the first solve (0: pose-solve-every); the solves then follow every
-    pose-solve-every steps. An early first solve meets the scene while it still sits where the initial points put
-    it, before it has learned each view's pose error."""
+    pose-solve-every steps. Meant for an early first solve, against a scene still near the initial points,
+    before it fits each view's pose error (benchmarks/pose_solve.md)."""
     pose_solve_iterations: int = 2
     """pose-solve-every: Levenberg-Marquardt iterations per camera at each of the solve's four blur levels (an
     iteration renders the image about 13 times)."""

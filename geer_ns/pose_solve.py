@@ -4,11 +4,11 @@
 nerfstudio's camera optimizer moves each camera's six pose adjustments (SO3xR3 or SE3 tangent) by Adam steps on
 the training loss, one image a step: a camera's adjustments move only when its image is drawn, by steps the
 learning-rate schedule shrinks before they arrive (docs/refinement.md, benchmarks/pose_solve.md). Here, every
-`every` steps, the scene is held fixed and each training camera's adjustments are solved for: Gauss-Newton on
-the image's photometric residuals with a central-difference Jacobian (twelve renders of the image an iteration;
-the renderers give reverse-mode gradients, and a Jacobian needs one derivative per adjustment), damped
-Levenberg-Marquardt style so that the cost never rises. Adam then continues from the solved poses, its momentum
-of the adjustments reset.
+`every` steps (the first at step `first`), the scene is held fixed and each training camera's adjustments are
+solved for: Gauss-Newton on the image's photometric residuals with a central-difference Jacobian (twelve renders
+of the image an iteration; the renderers give reverse-mode gradients, and a Jacobian needs one derivative per
+adjustment), damped Levenberg-Marquardt style so that the cost never rises. Adam then continues from the solved
+poses, its momentum of the adjustments reset.
 """
 
 from __future__ import annotations
@@ -150,7 +150,7 @@ def coarse_to_fine(residual_at: Callable[[float], Callable[[Tensor], Tensor]], x
         blur_levels: the blurs, coarse to fine.
 
     Returns:
-        (x, the unblurred cost at x0, at x). Each level's own cost falls, but a blurred level can lead where the
+        (x, the unblurred cost at x0, at x). No level's own cost rises, but a blurred level can lead where the
         image itself fits worse: then x is x0 (the two costs equal).
     """
     sharp = residual_at(0.0)
@@ -167,8 +167,8 @@ def coarse_to_fine(residual_at: Callable[[float], Callable[[Tensor], Tensor]], x
 def solve_view_pose(model, camera, batch: Dict, iterations: int, blur_levels: Sequence[float] = BLUR_LEVELS_PX):
     """`camera` (one held-out view, not trained) with its pose solved against the model's scene for the batch's
     image: the test-time pose alignment of pose-refinement benchmarks, whose refined scene may sit a small rigid
-    motion away from the frame the held-out poses are given in. Returns the moved camera (`camera` itself when no
-    move makes its image fit better)."""
+    motion away from the frame the held-out poses are given in. Returns a copy of `camera` at the solved pose (at
+    its given pose when no move makes its image fit better)."""
     was_training = model.training
     model.eval()
     try:

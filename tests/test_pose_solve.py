@@ -208,3 +208,5 @@ def test_invalid_pose_solve_options_are_refused():
         make_model(camera_optimizer=CameraOptimizerConfig(mode="SO3xR3"), pose_solve_every=10, pose_solve_iterations=0)
     with pytest.raises(ValueError, match="pose-solve-first"):
         make_model(camera_optimizer=CameraOptimizerConfig(mode="SO3xR3"), pose_solve_every=10, pose_solve_first=-5)
+    with pytest.raises(ValueError, match="pose-solve-first: needs --pipeline.model.pose-solve-every"):
+        make_model(camera_optimizer=CameraOptimizerConfig(mode="SO3xR3"), pose_solve_first=200)
