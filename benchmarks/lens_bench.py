@@ -69,8 +69,7 @@ def _report(args, record: dict, rows: list) -> str:
   `--pipeline.model.lens-refinement full --pipeline.model.lens-refinement-start 200`, Adam (lens_opt) lr
   {args.lens_lr:g} after a 200-step warm-up, decaying to 1e-5; gradients from the CPU build of the kernels. Pose
   solve: `--pipeline.model.pose-solve-every {args.pose_solve_every} --pipeline.model.pose-solve-iterations
-  {args.pose_solve_iterations} --pipeline.model.pose-solve-first {args.pose_solve_first}` (geer_ns/pose_solve.py;
-  first 0: the first solve at pose-solve-every)
+  {args.pose_solve_iterations}` (geer_ns/pose_solve.py)
 - lens map: how far (pixels) the refined lens moves each ray the true lens sees, mean / max over the image
   circle (independent of how focal and distortion coefficients trade off)
 - camera errors: training cameras against the truth mapped into the dataparser's frame (no re-alignment; mean /
@@ -106,7 +105,6 @@ def main() -> None:
     extra.add_argument("--pose-solve-every", type=int, default=500,
                        help="the '+ pose solve' runs: --pipeline.model.pose-solve-every")
     extra.add_argument("--pose-solve-iterations", type=int, default=3)
-    extra.add_argument("--pose-solve-first", type=int, default=0, help="--pipeline.model.pose-solve-first")
     extra.add_argument("--aspect", action="store_true", help="refine fy / fx too (lens-refinement-aspect)")
     extra.add_argument("--perturbation", type=float, nargs=4, default=(1.0, 0.01, 0.02, 0.02),
                        metavar=("ROT_DEG", "POS_FRACTION", "FOCAL_FRACTION", "K1_OFFSET"),
@@ -120,7 +118,6 @@ def main() -> None:
         command
     args.densify_until = known.densify_until
     args.pose_solve_every, args.pose_solve_iterations = known.pose_solve_every, known.pose_solve_iterations
-    args.pose_solve_first = known.pose_solve_first
     from nerfstudio.engine.optimizers import AdamOptimizerConfig
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
@@ -143,8 +140,7 @@ def main() -> None:
              "camera_optimizer.rot_l2_penalty": known.pose_penalty[1]}
     lens_only = {"lens_refinement": "full", "lens_refinement_start": 200, "lens_refinement_aspect": known.aspect}
     lens = {**poses, **lens_only}
-    solve = {"pose_solve_every": known.pose_solve_every, "pose_solve_iterations": known.pose_solve_iterations,
-             "pose_solve_first": known.pose_solve_first}
+    solve = {"pose_solve_every": known.pose_solve_every, "pose_solve_iterations": known.pose_solve_iterations}
     runs = {"perturbed, no refinement": (noisy / clean.name, {}),
             "perturbed, SO3xR3 poses + lens full": (noisy / clean.name, lens),
             "true cameras": (clean, {}),

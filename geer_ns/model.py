@@ -131,15 +131,10 @@ class GeerModel(SplatfactoModel):
             }
         )
         self.camera_optimizer = self.config.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
-        if self.config.pose_solve_every < 0 or self.config.pose_solve_first < 0 or \
-                self.config.pose_solve_iterations < 1:
-            raise ValueError("--pipeline.model.pose-solve-every and --pipeline.model.pose-solve-first must be >= 0 "
-                             "and --pipeline.model.pose-solve-iterations >= 1 (got "
-                             f"{self.config.pose_solve_every}, {self.config.pose_solve_first}, "
-                             f"{self.config.pose_solve_iterations})")
-        if self.config.pose_solve_first > 0 and self.config.pose_solve_every == 0:
-            raise ValueError("--pipeline.model.pose-solve-first: needs --pipeline.model.pose-solve-every > 0 (the "
-                             "solves it schedules)")
+        if self.config.pose_solve_every < 0 or self.config.pose_solve_iterations < 1:
+            raise ValueError("--pipeline.model.pose-solve-every must be >= 0 and "
+                             "--pipeline.model.pose-solve-iterations >= 1 (got "
+                             f"{self.config.pose_solve_every}, {self.config.pose_solve_iterations})")
         if self.config.pose_solve_every > 0 and self.config.camera_optimizer.mode == "off":
             raise ValueError("--pipeline.model.pose-solve-every: needs --pipeline.model.camera-optimizer.mode SO3xR3 "
                              "or SE3 (the pose adjustments it solves)")
@@ -432,8 +427,7 @@ class GeerModel(SplatfactoModel):
         ]
         if self.config.pose_solve_every > 0:
             solver = PoseSolver(training_callback_attributes.pipeline, training_callback_attributes.optimizers,
-                                self.config.pose_solve_every, self.config.pose_solve_iterations, say=CONSOLE.log,
-                                first=self.config.pose_solve_first)
+                                self.config.pose_solve_every, self.config.pose_solve_iterations, say=CONSOLE.log)
             callbacks.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], solver))
         return callbacks
 

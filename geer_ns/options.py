@@ -70,10 +70,6 @@ class GeerOwnOptions:
     """With camera-optimizer.mode SO3xR3 or SE3: every this many steps, hold the scene and solve each training
     camera's pose adjustments by Levenberg-Marquardt on its image's residuals (0: off; geer_ns/pose_solve.py).
     Adam's one-image steps leave poses short of where the scene puts them (docs/refinement.md)."""
-    pose_solve_first: int = 0
-    """pose-solve-every: the step of the first solve (0: pose-solve-every); the solves then follow every
-    pose-solve-every steps. Meant for an early first solve, against a scene still near the initial points,
-    before it fits each view's pose error (benchmarks/pose_solve.md)."""
     pose_solve_iterations: int = 2
     """pose-solve-every: Levenberg-Marquardt iterations per camera at each of the solve's four blur levels (an
     iteration renders the image about 13 times)."""

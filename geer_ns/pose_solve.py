@@ -4,8 +4,7 @@
 nerfstudio's camera optimizer moves each camera's six pose adjustments (SO3xR3 or SE3 tangent) by Adam steps on
 the training loss, one image a step: a camera's adjustments move only when its image is drawn, by steps the
 learning-rate schedule shrinks before they arrive (docs/refinement.md, benchmarks/pose_solve.md). Here, every
-`every` steps (the first at step `first`), the scene is held fixed and each training camera's adjustments are
-solved for: Gauss-Newton on the image's photometric residuals with a central-difference Jacobian (twelve renders
+`every` steps the scene is held fixed and each training camera's adjustments are solved for: Gauss-Newton on the image's photometric residuals with a central-difference Jacobian (twelve renders
 of the image an iteration; the renderers give reverse-mode gradients, and a Jacobian needs one derivative per
 adjustment), damped Levenberg-Marquardt style so that the cost never rises. Adam then continues from the solved
 poses, its momentum of the adjustments reset.
@@ -221,19 +220,18 @@ def solve_poses(model, datamanager, indices: Iterable[int], iterations: int,
 
 
 class PoseSolver:
-    """The training callback: at step `first` (default `every`) and every `every` steps after it, solve every
-    training camera's pose adjustments and restart Adam's moments of them."""
+    """The training callback: every `every` steps (from step `every`), solve every training camera's pose
+    adjustments and restart Adam's moments of them."""
 
-    def __init__(self, pipeline, optimizers, every: int, iterations: int, say: Callable[[str], None],
-                 first: int = 0) -> None:
+    def __init__(self, pipeline, optimizers, every: int, iterations: int, say: Callable[[str], None]) -> None:
         """pipeline: the training pipeline (its model and datamanager); optimizers: nerfstudio's Optimizers
-        (camera_opt's moments are reset after a solve); every, iterations, first: the options; say: the log."""
+        (camera_opt's moments are reset after a solve); every, iterations: the options; say: the log."""
         self.pipeline, self.optimizers, self.say = pipeline, optimizers, say
-        self.every, self.iterations, self.first = every, iterations, first or every
+        self.every, self.iterations = every, iterations
 
     def __call__(self, step: int) -> None:
-        """Solve at this step if it is `first` or `first` plus a multiple of `every`."""
-        if step < self.first or (step - self.first) % self.every:
+        """Solve at this step if it is a positive multiple of `every`."""
+        if step == 0 or step % self.every:
             return
         model = self.pipeline.model
         start = time.perf_counter()
