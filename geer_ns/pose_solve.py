@@ -4,10 +4,11 @@
 nerfstudio's camera optimizer moves each camera's six pose adjustments (SO3xR3 or SE3 tangent) by Adam steps on
 the training loss, one image a step: a camera's adjustments move only when its image is drawn, by steps the
 learning-rate schedule shrinks before they arrive (docs/refinement.md, benchmarks/pose_solve.md). Here, every
-`every` steps the scene is held fixed and each training camera's adjustments are solved for: Gauss-Newton on the image's photometric residuals with a central-difference Jacobian (twelve renders
-of the image an iteration; the renderers give reverse-mode gradients, and a Jacobian needs one derivative per
-adjustment), damped Levenberg-Marquardt style so that the cost never rises. Adam then continues from the solved
-poses, its momentum of the adjustments reset.
+`every` steps the scene is held fixed and each training camera's adjustments are solved for: Gauss-Newton on
+the image's photometric residuals with a central-difference Jacobian (twelve renders of the image an iteration;
+the renderers give reverse-mode gradients, and a Jacobian needs one derivative per adjustment), damped
+Levenberg-Marquardt style so that the cost never rises, coarse to fine over blurred residuals. Adam then
+continues from the solved poses, its momentum of the adjustments reset.
 """
 
 from __future__ import annotations
