@@ -157,8 +157,9 @@ def coarse_to_fine(residual_at: Callable[[float], Callable[[Tensor], Tensor]], x
     cost0 = float(sharp(x0).square().sum())
     x = x0
     for blur in blur_levels:
-        x = levenberg_marquardt(residual_at(blur), x, difference_steps(), iterations)[0]
-    cost1 = float(sharp(x).square().sum())
+        x, _, cost1 = levenberg_marquardt(residual_at(blur), x, difference_steps(), iterations)
+    if not blur_levels or blur_levels[-1] > 0:  # the last level was blurred: its cost is not the image's
+        cost1 = float(sharp(x).square().sum())
     if not cost1 < cost0:
         return x0, cost0, cost0
     return x, cost0, cost1
