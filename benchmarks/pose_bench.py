@@ -27,10 +27,10 @@ def camera_errors(pipeline, truth: dict, refined: bool) -> dict:
     outputs = pipeline.datamanager.train_dataparser_outputs
     cameras = pipeline.datamanager.train_dataset.cameras
     c2w = cameras.camera_to_worlds.detach().clone()
-    if refined:
-        with torch.no_grad():
-            adj = pipeline.model.camera_optimizer(torch.arange(c2w.shape[0]))
-        c2w = torch.cat([torch.bmm(adj[:, :3, :3], c2w[:, :3, :3]), c2w[:, :3, 3:] + adj[:, :3, 3:]], dim=-1)
+    if refined:  # as the run exports them: in the given frame (geer_ns/refined_frame.py)
+        from geer_ns.refined_cameras import refined_poses
+
+        c2w = refined_poses(pipeline).to(c2w.dtype)
     transform = torch.cat([outputs.dataparser_transform, torch.tensor([[0.0, 0.0, 0.0, 1.0]])]).double()
     scale = float(outputs.dataparser_scale)
     by_name = {"/".join(Path(k).parts[-2:]): np.asarray(v) for k, v in truth["frames"].items()}

@@ -54,6 +54,7 @@ from geer_ns.metrics import central_region, downscale_mask, masked_psnr, region_
 from geer_ns.options import GeerOwnOptions, ignored_options_set
 from geer_ns.perceptual import build_lpips_if_cached
 from geer_ns.pose_solve import PoseSolver
+from geer_ns.refined_frame import RefinedFrame, scene_pose
 from geer_ns.render import render
 from geer_ns.render.backend import announce_backend
 from geer_ns.render.normals import render_normals
@@ -155,6 +156,7 @@ class GeerModel(SplatfactoModel):
         if changed:
             CONSOLE.print(f"[yellow]geer: ignoring splatfacto option(s) {', '.join(changed)} (not used by the 3DGEER renderer)")
         self.lens: Optional[LensRefinement] = None  # set with the training cameras (lens_refinement.attach)
+        self.refined_frame: Optional[RefinedFrame] = None  # set with the training cameras (the pipeline)
         self.strategy, self.strategy_state = build_strategy(self.config, self.num_train_data, self.images_per_step)
         self.views: List[ViewRecord] = []  # this step's rendered training views, for the densification statistics
         self._statistics: Optional[StepStatistics] = None  # the step's statistics, when the engine reduced them
@@ -274,8 +276,7 @@ class GeerModel(SplatfactoModel):
             return self.get_empty_outputs(width, height, self.background_color)
         means = params["means"]
         background = self.render_background().to(means)
-        c2w = self.camera_optimizer.apply_to_camera(camera)[0] if self.training else camera.camera_to_worlds[0]
-        viewmat = self.viewmat(c2w, means.device)
+        viewmat = self.viewmat(self.render_pose(camera), means.device)
         scales, opacities = self.activated(params)
         probe = None
         if self.training and torch.is_grad_enabled():  # not for viewer renders during training
@@ -302,6 +303,14 @@ class GeerModel(SplatfactoModel):
                                      lambda_mode=self.config.lambda_mode, backend=self.config.renderer_backend,
                                      max_pairs=self.config.max_pairs)
         return self.view_outputs(out, view, background, camera, normals)
+
+    def render_pose(self, camera: Cameras) -> Tensor:
+        """[3, 4] the camera-to-world a render of `camera` (one camera) uses: while training, the training image's
+        with its pose adjustment; otherwise the camera as given in the data's frame, mapped into the scene's when
+        poses are refined (geer_ns/refined_frame.py)."""
+        if self.training:
+            return self.camera_optimizer.apply_to_camera(camera)[0]
+        return scene_pose(self.refined_frame, self.camera_optimizer, camera.camera_to_worlds[0])
 
     @staticmethod
     def viewmat(camera_to_world: Tensor, device) -> Tensor:

@@ -73,6 +73,11 @@ class GeerOwnOptions:
     pose_solve_iterations: int = 2
     """pose-solve-every: Levenberg-Marquardt iterations per camera at each of the solve's four blur levels (an
     iteration renders the image about 13 times)."""
+    refined_frame: bool = True
+    """With camera-optimizer.mode SO3xR3 or SE3: render cameras from outside training (ns-eval's test views, the
+    viewer's, ns-render's) in the frame the scene and its refined cameras drifted to together, moved by the
+    similarity that best maps the given training poses onto the refined ones; the refined poses are exported
+    mapped back into the given frame (geer_ns/refined_frame.py). False: render them as given."""
     mcmc_cap_max: int = 1_000_000
     """strategy=mcmc: most Gaussians (gsplat MCMCStrategy cap_max)."""
     mcmc_noise_lr: float = 5e5
@@ -95,7 +100,7 @@ OWN_OPTIONS_HELP = (
     "--pipeline.model.distributed {images,gaussians}, "
     "--pipeline.model.max-pairs, --pipeline.model.kernel-check-every, "
     "--pipeline.model.central-half-angles-deg, --pipeline.model.lens-refinement {off,focal,focal+principal,full}, "
-    "--pipeline.model.pose-solve-every, --pipeline.model.pose-solve-iterations, "
+    "--pipeline.model.pose-solve-every, --pipeline.model.pose-solve-iterations, --pipeline.model.refined-frame, "
     "--pipeline.datamanager.supervision, "
     "--pipeline.datamanager.mask-edge-fill, --pipeline.datamanager.images-per-step, --machine.timeout-s; resume "
     "with --load-dir <run>/nerfstudio_models. Splatfacto options "

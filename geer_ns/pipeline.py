@@ -18,9 +18,11 @@ import torch
 import torchvision.utils as vutils
 
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.utils.rich_utils import CONSOLE
 
 from geer_ns.data.views import camera_kind
 from geer_ns.lens_refinement import attach
+from geer_ns.refined_frame import RefinedFrame
 
 # Per-image timings are not split by camera kind (ns-eval's fps is not a render speed anyway).
 _NOT_SPLIT = ("num_rays_per_sec", "fps")
@@ -64,7 +66,10 @@ class GeerPipeline(VanillaPipeline):
         super().__init__(config, device, test_mode=test_mode, world_size=1, local_rank=local_rank,
                          grad_scaler=grad_scaler)
         self.world_size = world_size
-        attach(self.model, self.datamanager.train_dataset.cameras)  # per-camera state: lens, vignetting
+        cameras = self.datamanager.train_dataset.cameras
+        attach(self.model, cameras)  # per-camera state: lens, vignetting
+        if self.model.camera_optimizer.config.mode != "off" and self.model.config.refined_frame:
+            self.model.refined_frame = RefinedFrame(cameras.camera_to_worlds)
 
     def get_average_image_metrics(
         self,
@@ -76,6 +81,11 @@ class GeerPipeline(VanillaPipeline):
     ) -> Dict[str, float]:
         """nerfstudio's per-image loop (same metrics, same saved images), averaged per key and per camera kind."""
         self.eval()
+        frame = self.model.refined_frame
+        if frame is not None:
+            CONSOLE.log("geer: scoring in the refined frame: the given test poses follow the scene, which with its "
+                        f"refined cameras {frame.similarity(self.model.camera_optimizer).describe()} "
+                        "(--pipeline.model.refined-frame False: as given)")
         if output_path is not None:
             output_path.mkdir(exist_ok=True, parents=True)
         per_image: List[Tuple[str, Dict[str, float]]] = []

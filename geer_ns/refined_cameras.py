@@ -32,6 +32,7 @@ from geer_ns.cameras import (
     ThinPrismFisheyeCamera,
 )
 from geer_ns.cameras.convert import _COLMAP_MODELS
+from geer_ns.refined_frame import adjusted_poses
 
 FILE_NAME = "cameras_refined.json"
 COLMAP_DIR = "colmap"
@@ -78,15 +79,14 @@ def nerfstudio_intrinsics(camera: CameraModel) -> Dict[str, object]:
 
 
 def refined_poses(pipeline) -> torch.Tensor:
-    """[N, 3, 4] the training images' camera-to-worlds (run frame) with the camera optimizer's corrections."""
-    cameras = pipeline.datamanager.train_dataset.cameras
-    c2w = cameras.camera_to_worlds.detach().double().cpu()
-    optimizer = pipeline.model.camera_optimizer
-    if optimizer.config.mode == "off":
-        return c2w
-    with torch.no_grad():
-        adj = optimizer(torch.arange(c2w.shape[0])).double().cpu()
-    return torch.cat([torch.bmm(adj[:, :3, :3], c2w[:, :3, :3]), c2w[:, :3, 3:] + adj[:, :3, 3:]], dim=-1)
+    """[N, 3, 4] float64 the training images' refined camera-to-worlds in the run's given frame: the camera
+    optimizer's corrections applied, then the similarity the scene drifted by taken out (geer_ns/refined_frame.py),
+    so that they sit beside the poses the run was given (its test views')."""
+    model = pipeline.model
+    given = pipeline.datamanager.train_dataset.cameras.camera_to_worlds
+    refined = adjusted_poses(model.camera_optimizer, given)
+    frame = getattr(model, "refined_frame", None)
+    return refined if frame is None else frame.similarity(model.camera_optimizer).inverse().apply(refined)
 
 
 def to_data_frame(c2w: torch.Tensor, transform: torch.Tensor, scale: float,

@@ -69,7 +69,6 @@ class EngineModel(Protocol):
     gauss_params: torch.nn.ParameterDict
     strategy: Any
     strategy_state: Dict[str, Any]
-    camera_optimizer: Any
     views: List[Any]  # this step's densification records (densify.signal.ViewRecord), the engine may add
     training: bool
     num_points: int
@@ -93,6 +92,10 @@ class EngineModel(Protocol):
 
     def activated(self, params: Dict[str, Tensor]) -> Tuple[Tensor, Tensor]:
         """(scales, opacities) as the renderer takes them."""
+
+    def render_pose(self, camera: Any) -> Tensor:
+        """The camera-to-world a render of a nerfstudio camera uses (a training camera's refined pose while
+        training; otherwise the given pose, in the scene's frame)."""
 
     def viewmat(self, camera_to_world: Tensor, device: Any) -> Tensor:
         """The world-to-camera matrix (OpenCV axes, float64) of a nerfstudio pose."""

@@ -213,7 +213,7 @@ def sharded_outputs(model, cameras, me: int) -> Dict[str, Tensor]:
     params = model.render_gaussians()
     means = params["means"]
     background = model.render_background().to(means)
-    viewmats = torch.stack([model.viewmat(model.camera_optimizer.apply_to_camera(c)[0], means.device) for c in cameras])
+    viewmats = torch.stack([model.viewmat(model.render_pose(c), means.device) for c in cameras])
     grids = [v.rays.to(means.device) for v in views]
     rows = [visible_rows(params, viewmats[q], grid, model.config.lambda_mode, model.activated)
             for q, grid in enumerate(grids)]

@@ -73,11 +73,12 @@ def split_outputs(model, camera) -> Optional[Dict[str, Tensor]]:
     try:
         view = model.view_for(camera)
         background = model.render_background()
+        pose = model.render_pose(camera)
     finally:
         model.train(training)
     params = {name: p.detach() for name, p in model.gauss_params.items()}
     device = params["means"].device
-    viewmat, grid = model.viewmat(camera.camera_to_worlds[0], device), view.rays.to(device)
+    viewmat, grid = model.viewmat(pose, device), view.rays.to(device)
     background = background.to(params["means"])
     cut = bands(grid.tiles_y, world.size)
     pixels: List[Tensor] = []  # this process's bands' pixels, in its bands' order
