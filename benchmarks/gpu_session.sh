@@ -10,10 +10,10 @@
 #    benchmarks/gpu_prep.py) and .device/COMMIT. Synthetic scenes are generated on the device from seeds.
 # 2. Then exactly these two `run` calls, the second issued as soon as the first returns (a machine stays warm
 #    only ~30 s after a call; a cold second call rebuilds everything and gets little benchmark time):
-#        run(command="bash benchmarks/gpu_session.sh call1", carry=[".device"], timeout_s=330)
-#        run(command="bash benchmarks/gpu_session.sh call2", carry=[".device"], timeout_s=330)
+#        run(command="CALL_LIMIT_S=290 bash benchmarks/gpu_session.sh call1", carry=[".device"], timeout_s=310)
+#        run(command="CALL_LIMIT_S=400 bash benchmarks/gpu_session.sh call2", carry=[".device"], timeout_s=420)
 #    then give_back. Each call plans for CALL_LIMIT_S (default 300 s) and stops its stages in time, so that
-#    start (~2 min) + 2 x 5.5 min + the gap stay under 15 minutes.
+#    start (~2 min) + 5 + 7 min + the gap stay under 15 minutes.
 #
 # call1 (~5 min)  the wheels into /tmp/site; gsplat 1.4.0's JIT build started DETACHED (setsid: it outlives this
 #                 call and is ready for call 2; ~195 s with 16 jobs); geer's CUDA extension built at the same time;
@@ -23,13 +23,15 @@
 #                 refused launch raising at its call, float64 backward repeatability) and compute-sanitizer
 #                 memcheck, racecheck and synccheck on benchmarks/gpu_sanitize.py with
 #                 PYTORCH_NO_CUDA_MEMORY_CACHING=1 ("Device not supported" is recorded, not fatal).
-#                 $OUT: summary.txt setup.log build_geer.log doctor.log selftest/ (verdict, report, child log)
-#                 pytest_cuda.log memcheck.log racecheck.log synccheck.log gsplat_build.log (so far).
-# call2 (~5 min)  waits for the gsplat build (builds it again on a fresh machine), then benchmarks/bench_gpu.py
+#                 $OUT: summary.txt and logs.tgz (setup.log build_geer.log doctor.log selftest/ pytest_cuda.log
+#                 memcheck.log racecheck.log synccheck.log gsplat_build.log): a call brings back 8 files at most.
+# call2 (~6 min)  waits for the gsplat build (builds it again on a fresh machine); trains on the dev room (carried:
+#                 the pose refinement step time on the CUDA kernels, benchmarks/pose_refinement_step.py, and
+#                 geer-compare: geer against splatfacto and splatfacto-fisheye); then benchmarks/bench_gpu.py
 #                 with the time left: headline rows first (1M Gaussians, pinhole 1920x1080 and 180 degree fisheye,
 #                 geer-cuda vs gsplat `rasterization`; configs/bench_gpu.yaml `first`), each row written as it ends.
-#                 $OUT: summary.txt setup.log (fresh machine) build_geer.log gsplat_build.log bench.log
-#                 gpu_results.md gpu_results.json.
+#                 $OUT: summary.txt gpu_results.md gpu_results.json compare.md pose_refinement_gpu.md and logs.tgz
+#                 (setup.log build_geer.log gsplat_build.log pose_step.log compare.log bench.log).
 # Builds and state live in /tmp (kept on a warm machine between calls, away from the copied tree).
 # Without a GPU the calls run as a smoke test (stages that need CUDA say so and skip).
 set -u
@@ -56,6 +58,8 @@ prep() {  # CPU side
   ls .device/whl/*.whl >/dev/null 2>&1 || bash ../shared/device/fetch-wheels.sh \
     || { echo "prep: no wheels in .device/whl (gsplat rows need them): run ../shared/device/fetch-wheels.sh" >&2; return 1; }
   cp ../shared/device/setup.sh .device/ 2>/dev/null
+  # the dev fisheye room (call 2 trains on it: pose refinement step, geer-compare)
+  [ -d .device/data/fisheye_room_dev ] || cp -r ../shared/data/fisheye_room_dev .device/data/
   du -sh .device
 }
 
@@ -149,7 +153,8 @@ call1() {
   wait "$setup_pid"
   if have_cuda && [ "$built" = 1 ]; then selftest; fi
   note "pytest tests/test_cuda_gpu.py and the sanitizers, in parallel"
-  timeout $(( $(left) - 15 )) "$PY" -m pytest tests/test_cuda_gpu.py -s -q -rfEs -p no:cacheprovider \
+  timeout $(( $(left) - 15 )) "$PY" -m pytest tests/test_cuda_gpu.py \
+    tests/test_pose_gradients.py::test_cuda_kernels_give_pose_and_ray_gradients -s -q -rfEs -p no:cacheprovider \
     >"$OUT/pytest_cuda.log" 2>&1 &
   local pids=() pytest_pid=$!
   if have_cuda && [ "$built" = 0 ]; then
@@ -171,6 +176,21 @@ call1() {
   note "call1 done (gsplat build: $gs)"
 }
 
+training() {  # $1: 1 when gsplat's backend is built (splatfacto's runs need it)
+  local room=.device/data/fisheye_room_dev methods=(geer)
+  if [ ! -f "$room/transforms_fisheye.json" ]; then note "no $room: no training stages (prep copies it)"; return 0; fi
+  note "pose refinement step time (SO3xR3 vs fixed, CUDA kernels, dev room 384^2)"
+  timeout 60 "$PY" benchmarks/pose_refinement_step.py --device cuda --size 384 --rounds 50 --room "$room" \
+    --out "$OUT/pose_refinement_gpu.md" >"$OUT/pose_step.log" 2>&1
+  note "pose step rc=$? ($(grep 'pose refinement (SO3xR3)' "$OUT/pose_step.log" || tail -n 1 "$OUT/pose_step.log"))"
+  [ "$1" = 1 ] && methods+=(splatfacto splatfacto-fisheye)
+  note "geer-compare on the dev room (${methods[*]}, ${COMPARE_STEPS:-1000} steps, limit ${COMPARE_S:-170} s)"
+  timeout "${COMPARE_S:-170}" "$PY" -m geer_ns.compare --data "$room/transforms_fisheye.json" \
+    --steps "${COMPARE_STEPS:-1000}" --methods "${methods[@]}" --output-dir "$STATE/compare" >"$OUT/compare.log" 2>&1
+  note "compare rc=$?"
+  cp "$STATE/compare/compare.md" "$OUT/" 2>/dev/null && grep '^|' "$OUT/compare.md" | head -n 8 >>"$SUMMARY"
+}
+
 call2() {
   note "commit: ${GEER_COMMIT:-unknown}"
   if ! have_cuda; then note "no CUDA device: smoke test only, no benchmark; call2 done"; return 0; fi
@@ -182,6 +202,7 @@ call2() {
   wait "$geer_pid"
   local extra=()
   [ "$gsplat_ok" = 1 ] || extra+=(--no-gsplat)  # never import gsplat's backend while its build runs
+  training "$gsplat_ok"
   local budget=$(( $(left) - 45 ))
   [ "$budget" -lt 30 ] && budget=30
   note "bench_gpu.py, time budget ${budget} s ${extra[*]:-} ${BENCH_ARGS:-}"
@@ -193,9 +214,17 @@ call2() {
   note "call2 done: copy \$OUT/gpu_results.{md,json} to benchmarks/ with the device, commit and command they record"
 }
 
+pack() {  # at most 8 files come back from a call: the logs go into one archive beside the summary and results
+  local keep=" summary.txt gpu_results.md gpu_results.json compare.md pose_refinement_gpu.md "
+  ( cd "$OUT" || exit 1
+    tar czf "$STATE/logs.tgz" --exclude=./logs.tgz . 2>/dev/null
+    for f in * .[!.]*; do [ -e "$f" ] && [[ "$keep" != *" $f "* ]] && rm -rf -- "$f"; done
+    mv "$STATE/logs.tgz" logs.tgz )
+}
+
 case "$STAGE" in
   prep) prep ;;
-  call1) : >"$SUMMARY"; call1 ;;
-  call2) : >"$SUMMARY"; call2 ;;
+  call1) : >"$SUMMARY"; call1; pack ;;
+  call2) : >"$SUMMARY"; call2; pack ;;
   *) echo "usage: bash benchmarks/gpu_session.sh prep|call1|call2 (see the header)" >&2; exit 2 ;;
 esac
