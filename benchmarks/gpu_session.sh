@@ -115,6 +115,8 @@ cuda_backend.load_extension(verbose=True)
 print(f'geer_cuda built/loaded in {time.time() - t:.0f} s')" >"$OUT/build_geer.log" 2>&1
   local rc=$?
   note "geer_cuda build rc=$rc ($(tail -n 1 "$OUT/build_geer.log"))"
+  # A build cut short: what its folders hold (objects written, a lock left) says where it stood.
+  [ "$rc" = 0 ] || ls -la "$GEER_EXT_DIR"/geer_cuda_* >>"$OUT/build_geer.log" 2>&1
   return $rc
 }
 

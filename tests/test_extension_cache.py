@@ -101,3 +101,46 @@ def test_the_cpu_build_lives_in_the_folder_of_its_key():
     key = extensions.build_key(sources, extensions.CSRC, extensions.cpu_cflags(), [], False)
     assert Path(ops.__file__).parent == extensions.build_root() / f"geer_cpu_ops_{key}"
     assert key != extensions.build_key(sources, extensions.CSRC, extensions.cpu_cflags() + ["-DX"], [], False)
+
+
+@pytest.fixture
+def filebaton_torch(monkeypatch):
+    """torch.utils.cpp_extension.load as torch up to 2.11 guards it: a FileBaton on the build folder's `lock`
+    (created with O_EXCL, removed when the build ends; a build that finds the file waits until it is gone). The
+    wait would last for ever with a file no one removes: here it raises instead (the GPU machine's torch 2.11
+    hung there). Returns the list of folders built."""
+    from torch.utils import cpp_extension
+    from torch.utils.file_baton import FileBaton
+
+    real_load, built = cpp_extension.load, []
+
+    def load(*args, build_directory, **kwargs):
+        baton = FileBaton(os.path.join(build_directory, "lock"))
+        if not baton.try_acquire():
+            raise AssertionError(f"torch <= 2.11 would wait for ever on {build_directory}/lock")
+        try:
+            built.append(Path(build_directory))
+            return real_load(*args, build_directory=build_directory, **kwargs)
+        finally:
+            baton.release()
+
+    monkeypatch.setattr(cpp_extension, "load", load)
+    return built
+
+
+def test_a_torch_with_a_filebaton_builds_and_loads(toy, filebaton_torch):
+    """The check for a finished build leaves no file that torch's FileBaton takes for a build in progress."""
+    module = extensions.build_and_load("geer_toy", [toy], cuda=False, cflags=_flags(3))
+    assert module.value() == 3 and len(filebaton_torch) == 1
+    assert extensions.build_and_load("geer_toy", [toy], cuda=False, cflags=_flags(3)).value() == 3
+    assert len(filebaton_torch) == 1  # loaded, not built again
+
+
+def test_a_stale_filebaton_of_a_killed_build_is_cleared(toy, filebaton_torch):
+    """A build killed while torch held its FileBaton leaves `lock` behind; the next build goes ahead."""
+    key = extensions.build_key([toy], toy.parent, _flags(4), [], False)
+    folder = extensions.build_root() / f"geer_toy_{key}"
+    folder.mkdir(parents=True)
+    (folder / "lock").write_text("")  # what the killed build left
+    assert extensions.build_and_load("geer_toy", [toy], cuda=False, cflags=_flags(4)).value() == 4
+    assert filebaton_torch == [folder]

@@ -7,9 +7,11 @@ against pytest's), so two processes on one checkout rebuilt for minutes, alterna
 module name, carry a key: a hash of the sources' and headers' contents, the flags, torch's version and build,
 Python's version and the compiler. A configuration is built once; after that its module is imported from its
 folder directly (no ninja, so no path or timestamp can start a rebuild), and two configurations never share a
-folder. Torch's build holds an OS file lock in the folder (a killed build leaves no stale lock); the check for
-a finished build takes the same lock, so it never imports a module being written. A build is said before it
-starts (it takes a minute or more) and when it ends, with its time.
+folder. geer holds its own OS file lock in the folder (`geer.lock`: a killed process leaves no stale lock) from
+the check for a finished build to the build's end, so it never imports a module being written and two processes
+never build one folder; inside it, torch's build takes torch's own lock (a file lock, or up to torch 2.11 a
+FileBaton, whose file a killed build leaves behind: removed before a build). A build is said before it starts
+(it takes a minute or more) and when it ends, with its time.
 
 Folders: $GEER_EXT_DIR, else <repo>/.cache/geer_ext (git-ignored), one `<name>_<key>` per configuration; old
 ones can be deleted at any time. TORCH_CUDA_ARCH_LIST defaults to the first GPU's compute capability ("9.0"
@@ -40,6 +42,9 @@ _HEADER_SUFFIXES = (".h", ".cuh", ".hpp")
 # What a build is called when it announces itself, and how long it takes on a cold cache.
 _WHAT = {"geer_cpu_ops": ("the CPU renderer", "about a minute"), "geer_cuda": ("the CUDA kernels", "a few minutes")}
 
+# The folder's own OS lock (released by the kernel when its process dies), held from the check for a finished
+# build to its end; torch's build lock is torch's own (a file lock, or up to torch 2.11 a FileBaton).
+_GEER_LOCK = "geer.lock"
 _lock = threading.Lock()
 _modules: dict[str, ModuleType] = {}  # by extension name: one configuration per process
 _errors: dict[str, BaseException] = {}
@@ -107,30 +112,20 @@ def _say(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
-def _import_built(module_name: str, folder: Path, what: str) -> ModuleType | None:
-    """The module of a finished build in `folder`, or None when there is none (or it cannot be loaded)."""
-    from filelock import FileLock, Timeout  # torch.utils.cpp_extension builds under this lock (a torch dependency)
-
+def _import_built(module_name: str, folder: Path) -> ModuleType | None:
+    """The module of a finished build in `folder`, or None when there is none (or it cannot be loaded). Called
+    with the folder's geer lock held."""
     library = folder / f"{module_name}.so"
-    lock = FileLock(str(folder / "lock"))
+    if not library.exists():
+        return None
+    spec = importlib.util.spec_from_file_location(module_name, library)
     try:
-        lock.acquire(timeout=0)
-    except Timeout:
-        _say(f"geer: waiting for another process building {what} in {folder} ...")
-        lock.acquire()
-    try:
-        if not library.exists():
-            return None
-        spec = importlib.util.spec_from_file_location(module_name, library)
-        try:
-            module = importlib.util.module_from_spec(spec)
-            spec.loader.exec_module(module)
-        except ImportError:  # a link cut short (a killed build): build it again
-            library.unlink()
-            return None
-        return module
-    finally:
-        lock.release()
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    except ImportError:  # a link cut short (a killed build): build it again
+        library.unlink()
+        return None
+    return module
 
 
 def build_and_load(name: str, sources: Sequence[Path], *, cuda: bool, cflags: Sequence[str],
@@ -144,24 +139,39 @@ def build_and_load(name: str, sources: Sequence[Path], *, cuda: bool, cflags: Se
     folder = build_root() / module_name
     folder.mkdir(parents=True, exist_ok=True)
     what, how_long = _WHAT.get(name, (name, "a minute or more"))
-    module = _import_built(module_name, folder, what)
-    if module is not None:
-        return module
-    from torch.utils import cpp_extension
+    from filelock import FileLock, Timeout  # a torch dependency
 
-    _say(f"geer: building {what} (first use of this configuration, {how_long}) in {folder} ...")
-    start = time.perf_counter()
+    lock = FileLock(str(folder / _GEER_LOCK))
     try:
-        module = cpp_extension.load(
-            name=module_name, sources=[str(s) for s in sources], extra_cflags=list(cflags),
-            extra_cuda_cflags=cuda_cflags or None, extra_include_paths=[str(include_dir)],
-            build_directory=str(folder), with_cuda=cuda, verbose=verbose,
-        )
-    except BaseException:
-        _say(f"geer: building {what} failed after {time.perf_counter() - start:.0f} s")
-        raise
-    _say(f"geer: built {what} in {time.perf_counter() - start:.0f} s")
-    return module
+        lock.acquire(timeout=0)
+    except Timeout:
+        _say(f"geer: waiting for another process building {what} in {folder} ...")
+        lock.acquire()
+    try:
+        module = _import_built(module_name, folder)
+        if module is not None:
+            return module
+        from torch.utils import cpp_extension
+
+        # torch up to 2.11 guards a build with a FileBaton: the file `lock` itself, which a killed build leaves
+        # behind and every later build then waits on for ever (pytorch/pytorch#189245, fixed by #190543). Holding
+        # the geer lock, no one else builds here.
+        (folder / "lock").unlink(missing_ok=True)
+        _say(f"geer: building {what} (first use of this configuration, {how_long}) in {folder} ...")
+        start = time.perf_counter()
+        try:
+            module = cpp_extension.load(
+                name=module_name, sources=[str(s) for s in sources], extra_cflags=list(cflags),
+                extra_cuda_cflags=cuda_cflags or None, extra_include_paths=[str(include_dir)],
+                build_directory=str(folder), with_cuda=cuda, verbose=verbose,
+            )
+        except BaseException:
+            _say(f"geer: building {what} failed after {time.perf_counter() - start:.0f} s")
+            raise
+        _say(f"geer: built {what} in {time.perf_counter() - start:.0f} s")
+        return module
+    finally:
+        lock.release()
 
 
 def _load(name: str, sources: tuple[str, ...], cuda: bool, verbose: bool) -> ModuleType:
