@@ -108,11 +108,19 @@ def filebaton_torch(monkeypatch):
     """torch.utils.cpp_extension.load as torch up to 2.11 guards it: a FileBaton on the build folder's `lock`
     (created with O_EXCL, removed when the build ends; a build that finds the file waits until it is gone). The
     wait would last for ever with a file no one removes: here it raises instead (the GPU machine's torch 2.11
-    hung there). Returns the list of folders built."""
+    hung there). Under such a torch, its own load. Returns the list of folders built."""
     from torch.utils import cpp_extension
     from torch.utils.file_baton import FileBaton
 
     real_load, built = cpp_extension.load, []
+    if hasattr(cpp_extension, "FileBaton"):  # this torch takes the baton itself: no emulation, the real thing
+
+        def load(*args, build_directory, **kwargs):
+            built.append(Path(build_directory))
+            return real_load(*args, build_directory=build_directory, **kwargs)
+
+        monkeypatch.setattr(cpp_extension, "load", load)
+        return built
 
     def load(*args, build_directory, **kwargs):
         baton = FileBaton(os.path.join(build_directory, "lock"))
