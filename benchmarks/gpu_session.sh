@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The GPU session (issue 11; issue 8 item 7): two device calls, back to back on one warm machine, inside the 15
-# device-minutes a session has (the machine's start, 1-2 min, included). What each session brought back:
-# benchmarks/gpu_sessions.md. A GPU at hand runs this first: its first stage after the build is the self-test verdict (docs/cuda.md).
+# device-minutes a session has (the machine's start, 1-2 min, included); what each session brought back is in
+# benchmarks/gpu_sessions.md. A GPU at hand runs this first: its first stage after the build is the self-test
+# verdict (docs/cuda.md).
 #
 # 1. Here, on the CPU side, once per commit (fetching the wheels needs the network; later runs reuse them):
 #        bash benchmarks/gpu_session.sh prep
