@@ -79,6 +79,9 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", help="cpu (the CPU build) or cuda (the CUDA kernels)")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "pose_refinement.md")
     args = parser.parse_args()
+    if args.device == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda: no CUDA device here (torch.cuda.is_available() is False); --device cpu times "
+                     "the CPU build")
     import cpu_training_step
 
     if args.room is not None:
