@@ -64,8 +64,11 @@ def _report(args, record: dict, rows: list) -> str:
   training camera turned by {rot:g} degree(s) about a random axis and moved by {pos:g} % of the scene's extent,
   the lens (all images) with focal lengths {focal:+g} % and k1 {k1:+g} (`geer_ns/data/camera_perturbation.py`,
   seed 0; test poses true)
-- runs: {args.steps} steps each, warm-up 300, refinement every 100 until step {args.densify_until}, full resolution, same seed.
-  SO3xR3: nerfstudio's camera optimizer, Adam lr {args.pose_lr:g} after a 200-step warm-up, decaying to 1e-5. Lens:
+- runs: {args.steps} steps each, warm-up 300, refinement every 100 until step {args.densify_until}, full resolution
+  unless options say otherwise, same seed; model options {record['options']}.
+  SO3xR3: nerfstudio's camera optimizer from step {args.pose_start} (pose-refinement-start), Adam lr
+  {args.pose_lr:g} after a linear warm-up from 0 that ends at step {args.pose_start + args.pose_warmup}, decaying
+  to 1e-5. Lens:
   `--pipeline.model.lens-refinement full --pipeline.model.lens-refinement-start 200`, Adam (lens_opt) lr
   {args.lens_lr:g} after a 200-step warm-up, decaying to 1e-5; gradients from the CPU build of the kernels. Pose
   solve: `--pipeline.model.pose-solve-every {args.pose_solve_every} --pipeline.model.pose-solve-iterations
@@ -93,16 +96,24 @@ def _report(args, record: dict, rows: list) -> str:
 
 def main() -> None:
     import argparse
+    import json
     import shlex
     import sys
 
     extra = argparse.ArgumentParser(add_help=False)
     extra.add_argument("--lens-lr", type=float, default=2e-3)
     extra.add_argument("--pose-lr", type=float, default=5e-4, help="camera_opt's (SO3xR3) learning rate")
+    extra.add_argument("--pose-warmup", type=int, default=200,
+                       help="camera_opt's warm-up: its learning rate rises from 0 over this many steps")
+    extra.add_argument("--pose-start", type=int, default=0,
+                       help="--pipeline.model.pose-refinement-start of the pose runs; camera_opt's warm-up then "
+                            "ends --pose-warmup steps after it")
     extra.add_argument("--densify-until", type=int, default=1000, help="the last step that densifies (0: none)")
     extra.add_argument("--only", nargs="+", default=[], help="run only the runs whose name contains one of these")
     extra.add_argument("--skip", nargs="+", default=[], help="leave out the runs whose name contains one of these")
     extra.add_argument("--suffix", default="", help="appended to the report's file names")
+    extra.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
+                       help="model options for every run (dotted; values as JSON), e.g. num_downscales=2")
     extra.add_argument("--pose-penalty", type=float, nargs=2, default=(1e-2, 1e-3), metavar=("TRANS", "ROT"),
                        help="nerfstudio's camera optimizer L2 penalties on the pose adjustments (its defaults)")
     extra.add_argument("--pose-solve-every", type=int, default=500,
@@ -119,7 +130,7 @@ def main() -> None:
     args = bench_args(__doc__, 1000, "/tmp/geer_lens")
     args.lens_lr, args.pose_lr, args.perturbation, args.command = known.lens_lr, known.pose_lr, known.perturbation, \
         command
-    args.densify_until = known.densify_until
+    args.densify_until, args.pose_warmup, args.pose_start = known.densify_until, known.pose_warmup, known.pose_start
     args.pose_solve_every, args.pose_solve_iterations = known.pose_solve_every, known.pose_solve_iterations
     from nerfstudio.engine.optimizers import AdamOptimizerConfig
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
@@ -132,14 +143,17 @@ def main() -> None:
     truth = perturb_cameras(clean.parent, noisy, transforms=clean.name, rotation_deg=rotation_deg,
                             position_fraction=position_fraction, focal_fraction=focal_fraction, k1_offset=k1_offset)
     schedule = {"warmup_length": 300, "refine_every": 100, "stop_split_at": known.densify_until, "num_downscales": 0}
+    schedule.update({k: json.loads(v) for k, v in (item.split("=", 1) for item in known.set)})
 
-    def adam(lr):
+    def adam(lr, warmup=200):
         return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=args.steps, warmup_steps=200,
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=args.steps, warmup_steps=warmup,
                                                              lr_pre_warmup=0.0)}
 
-    optimizers = {"camera_opt": adam(known.pose_lr), "lens_opt": adam(args.lens_lr)}
-    poses = {"camera_optimizer.mode": "SO3xR3", "camera_optimizer.trans_l2_penalty": known.pose_penalty[0],
+    optimizers = {"camera_opt": adam(known.pose_lr, known.pose_start + known.pose_warmup),
+                  "lens_opt": adam(args.lens_lr)}
+    poses = {"camera_optimizer.mode": "SO3xR3", "pose_refinement_start": known.pose_start,
+             "camera_optimizer.trans_l2_penalty": known.pose_penalty[0],
              "camera_optimizer.rot_l2_penalty": known.pose_penalty[1]}
     lens_only = {"lens_refinement": "full", "lens_refinement_start": 200, "lens_refinement_aspect": known.aspect}
     lens = {**poses, **lens_only}
@@ -155,7 +169,8 @@ def main() -> None:
         runs = {k: v for k, v in runs.items() if any(part in k for part in known.only)}
     runs = {k: v for k, v in runs.items() if not any(part in k for part in known.skip)}
     record = {"commit": git_commit(), "size": args.size, "steps": args.steps, "lens_lr": args.lens_lr,
-              "pose_lr": args.pose_lr, "perturbation": list(args.perturbation), "densify_until": args.densify_until,
+              "pose_lr": args.pose_lr, "pose_warmup": args.pose_warmup, "pose_start": args.pose_start,
+              "perturbation": list(args.perturbation), "densify_until": args.densify_until, "options": schedule,
               "runs": {}}
     rows = []
     for name, (data, overrides) in runs.items():

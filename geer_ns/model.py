@@ -139,6 +139,11 @@ class GeerModel(SplatfactoModel):
         if self.config.pose_solve_every > 0 and self.config.camera_optimizer.mode == "off":
             raise ValueError("--pipeline.model.pose-solve-every: needs --pipeline.model.camera-optimizer.mode SO3xR3 "
                              "or SE3 (the pose adjustments it solves)")
+        if self.config.pose_refinement_start < 0 or (self.config.pose_refinement_start > 0
+                                                     and self.config.camera_optimizer.mode == "off"):
+            raise ValueError("--pipeline.model.pose-refinement-start: a step >= 0, with "
+                             "--pipeline.model.camera-optimizer.mode SO3xR3 or SE3 (got "
+                             f"{self.config.pose_refinement_start}, mode {self.config.camera_optimizer.mode})")
         self.ssim = SSIM(data_range=1.0, size_average=True, channel=3)
         self._perceptual: Dict[str, object] = {}  # LPIPS, built on first use (not a submodule: no state)
         self.step = 0
@@ -309,8 +314,15 @@ class GeerModel(SplatfactoModel):
         with its pose adjustment; otherwise the camera as given in the data's frame, mapped into the scene's when
         poses are refined (geer_ns/refined_frame.py)."""
         if self.training:
+            if not self.refining_poses:
+                return camera.camera_to_worlds[0]
             return self.camera_optimizer.apply_to_camera(camera)[0]
         return scene_pose(self.refined_frame, self.camera_optimizer, camera.camera_to_worlds[0])
+
+    @property
+    def refining_poses(self) -> bool:
+        """Whether this training step renders with (and trains) the pose adjustments."""
+        return self.camera_optimizer.config.mode != "off" and self.step >= self.config.pose_refinement_start
 
     @staticmethod
     def viewmat(camera_to_world: Tensor, device) -> Tensor:
@@ -401,6 +413,9 @@ class GeerModel(SplatfactoModel):
     def step_cb(self, optimizers, step):
         super().step_cb(optimizers, step)
         self._step_background = None
+        if step == self.config.pose_refinement_start > 0:
+            CONSOLE.log(f"geer: step {step}: pose refinement starts ({self.camera_optimizer.config.mode}, "
+                        "pose-refinement-start)")
 
     @property
     def needs_step_statistics(self) -> bool:
@@ -482,7 +497,8 @@ class GeerModel(SplatfactoModel):
             losses["opacity_reg"] = self.config.mcmc_opacity_reg * torch.sigmoid(self.opacities).mean()
             losses["mcmc_scale_reg"] = self.config.mcmc_scale_reg * torch.exp(self.scales).mean()
         if self.training:
-            self.camera_optimizer.get_loss_dict(losses)
+            if self.refining_poses:
+                self.camera_optimizer.get_loss_dict(losses)
             if self.appearance is not None:
                 losses["appearance_reg"] = self.config.appearance_reg * self.appearance.regularization()
         return losses

@@ -66,6 +66,10 @@ class GeerOwnOptions:
     lens_refinement_aspect: bool = False
     """lens-refinement: refine the aspect ratio fy / fx too (off: fx and fy scale together). Cameras that stay
     upright cannot tell a wrong ratio from a vertical stretch of the scene (docs/refinement.md)."""
+    pose_refinement_start: int = 0
+    """With camera-optimizer.mode SO3xR3 or SE3: the step from which training renders use (and train) the pose
+    adjustments (and pose-solve-every solves them). Poses refined while the scene forms wander, and the scene
+    sets in around them: a later start keeps good (SfM) poses good; rough ones need 0 (docs/refinement.md)."""
     pose_solve_every: int = 0
     """With camera-optimizer.mode SO3xR3 or SE3: every this many steps, hold the scene and solve each training
     camera's pose adjustments by Levenberg-Marquardt on its image's residuals (0: off; geer_ns/pose_solve.py).

@@ -222,8 +222,8 @@ def solve_poses(model, datamanager, indices: Iterable[int], iterations: int,
 
 
 class PoseSolver:
-    """The training callback: every `every` steps (from step `every`), solve every training camera's pose
-    adjustments and restart Adam's moments of them."""
+    """The training callback: every `every` steps (from step `every` and pose-refinement-start on), solve every
+    training camera's pose adjustments and restart Adam's moments of them."""
 
     def __init__(self, pipeline, optimizers, every: int, iterations: int, say: Callable[[str], None]) -> None:
         """pipeline: the training pipeline (its model and datamanager); optimizers: nerfstudio's Optimizers
@@ -232,10 +232,10 @@ class PoseSolver:
         self.every, self.iterations = every, iterations
 
     def __call__(self, step: int) -> None:
-        """Solve at this step if it is a positive multiple of `every`."""
-        if step == 0 or step % self.every:
-            return
+        """Solve at this step if it is a positive multiple of `every`, from pose-refinement-start on."""
         model = self.pipeline.model
+        if step == 0 or step % self.every or step < model.config.pose_refinement_start:
+            return
         start = time.perf_counter()
         count = len(model.camera_optimizer.pose_adjustment)
         self.say(f"geer: pose solve at step {step}: {count} training cameras, {self.iterations} "

@@ -85,7 +85,7 @@ def refined_poses(pipeline) -> torch.Tensor:
     model = pipeline.model
     given = pipeline.datamanager.train_dataset.cameras.camera_to_worlds
     refined = adjusted_poses(model.camera_optimizer, given)
-    frame = getattr(model, "refined_frame", None)
+    frame = model.refined_frame
     return refined if frame is None else frame.similarity(model.camera_optimizer).inverse().apply(refined)
 
 

@@ -88,9 +88,16 @@ class RefinedFrame:
     def __init__(self, given_c2w: Tensor) -> None:
         """given_c2w: [N, 3, 4] the training images' camera-to-worlds as the dataparser gave them."""
         self.given = given_c2w.detach().to("cpu", torch.float64)
+        self._cached: Optional[tuple] = None  # (the corrections' identity and version, their similarity)
 
     def similarity(self, camera_optimizer) -> Similarity:
-        return fit_similarity(self.given, adjusted_poses(camera_optimizer, self.given))
+        """The similarity at the optimizer's current corrections, refitted only when they changed since the last
+        call (the viewer renders many frames between two optimizer steps)."""
+        adjustment = getattr(camera_optimizer, "pose_adjustment", None)
+        key = None if adjustment is None else (id(adjustment), adjustment._version, camera_optimizer.config.mode)
+        if key is None or self._cached is None or self._cached[0] != key:
+            self._cached = (key, fit_similarity(self.given, adjusted_poses(camera_optimizer, self.given)))
+        return self._cached[1]
 
 
 def scene_pose(frame: Optional[RefinedFrame], camera_optimizer, c2w: Tensor) -> Tensor:

@@ -189,6 +189,33 @@ def test_model_refines_poses_through_the_cpu_build(ops, kind):
     assert float((grads["cpu"] - grads["torch"]).norm() / grads["torch"].norm()) <= 1e-3
 
 
+def test_poses_are_neither_rendered_nor_trained_before_pose_refinement_start(ops):
+    """Before --pipeline.model.pose-refinement-start a training render uses the given pose and leaves the pose
+    adjustments without a gradient (no regularizer either); from that step on it renders and trains them."""
+    from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+    from test_nerfstudio_model import fisheye_camera, make_model
+
+    torch.manual_seed(0)
+    model = make_model(n=60, camera_optimizer=CameraOptimizerConfig(mode="SO3xR3"), pose_refinement_start=5)
+    model.train()
+    adjustment = model.camera_optimizer.pose_adjustment
+    camera = fisheye_camera(32)
+    camera.metadata["cam_idx"] = 1
+    with torch.no_grad():
+        given = model.get_outputs(camera)["rgb"].clone()  # no adjustment yet: the given pose
+        adjustment[1] = torch.tensor([0.05, -0.02, 0.01, 0.02, 0.03, -0.01])
+    rgbs = {}
+    for step in (4, 5):
+        model.step, adjustment.grad = step, None
+        rgbs[step] = model.get_outputs(camera)["rgb"]
+        loss = ((rgbs[step] - 0.5) ** 2).mean() + sum(model.get_step_loss_dict().values())
+        loss.backward()
+        assert (adjustment.grad is None) == (step == 4)
+    assert torch.equal(rgbs[4].detach(), given)
+    assert float((rgbs[5].detach() - given).abs().max()) > 0.01
+    assert float(adjustment.grad[1].norm()) > 0
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (the kernels' pose and ray gradients)")
 @pytest.mark.parametrize("name", CASES)
 def test_cuda_kernels_give_pose_and_ray_gradients(name):

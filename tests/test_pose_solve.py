@@ -169,25 +169,28 @@ def test_solver_survives_a_coordinate_the_residuals_ignore():
     assert cost < 1e-12 and float(x[1]) == 0.5
 
 
-def test_the_callback_solves_at_multiples_of_every_and_resets_the_momentum(monkeypatch):
+@pytest.mark.parametrize("start, solved_at", [(0, [50, 100, 150]), (100, [100, 150])])
+def test_the_callback_solves_at_multiples_of_every_and_resets_the_momentum(monkeypatch, start, solved_at):
     from types import SimpleNamespace
 
     import geer_ns.pose_solve as pose_solve
 
-    calls = []
+    calls, steps = [], []
     monkeypatch.setattr(pose_solve, "solve_poses", lambda model, dm, indices, iterations: calls.append(
         (list(indices), iterations)) or {"cameras": 3, "rotation_deg": 0.0, "translation": 0.0, "residual_change": 0.0})
     adjustment = torch.nn.Parameter(torch.zeros(3, 6))
     adam = torch.optim.Adam([adjustment], lr=1e-3)
     adjustment.grad = torch.ones(3, 6)
     adam.step()
-    model = SimpleNamespace(camera_optimizer=SimpleNamespace(pose_adjustment=adjustment))
+    model = SimpleNamespace(camera_optimizer=SimpleNamespace(pose_adjustment=adjustment),
+                            config=SimpleNamespace(pose_refinement_start=start))
     solver = pose_solve.PoseSolver(SimpleNamespace(model=model, datamanager=None),
                                    SimpleNamespace(optimizers={"camera_opt": adam}), every=50, iterations=2,
                                    say=lambda line: None)
     for step in range(0, 160):
         solver(step)
-    assert calls == [([0, 1, 2], 2)] * 3  # steps 50, 100 and 150; never step 0
+        steps += [step] * (len(calls) - len(steps))
+    assert calls == [([0, 1, 2], 2)] * len(solved_at) and steps == solved_at  # never step 0 nor before the start
     state = adam.state[adjustment]
     assert float(state["exp_avg"].abs().max()) == 0 and float(state["exp_avg_sq"].min()) > 0
 
@@ -198,3 +201,12 @@ def test_invalid_pose_solve_options_are_refused():
 
     with pytest.raises(ValueError, match="pose-solve-iterations"):
         make_model(camera_optimizer=CameraOptimizerConfig(mode="SO3xR3"), pose_solve_every=10, pose_solve_iterations=0)
+
+
+@pytest.mark.parametrize("mode, start", [("SO3xR3", -1), ("off", 100)])
+def test_invalid_pose_refinement_start_is_refused(mode, start):
+    from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+    from test_nerfstudio_model import make_model
+
+    with pytest.raises(ValueError, match="pose-refinement-start"):
+        make_model(camera_optimizer=CameraOptimizerConfig(mode=mode), pose_refinement_start=start)

@@ -53,7 +53,7 @@ def run(tmp_path):
     with torch.no_grad():
         lens.deltas.copy_(0.01 * torch.randn(lens.deltas.shape, generator=gen, dtype=torch.float64))
         optimizer.pose_adjustment.copy_(0.02 * torch.randn(optimizer.pose_adjustment.shape, generator=gen))
-    model = SimpleNamespace(lens=lens, camera_optimizer=optimizer, step=7,
+    model = SimpleNamespace(lens=lens, camera_optimizer=optimizer, step=7, refined_frame=None,
                             config=SimpleNamespace(lens_refinement="full"))
     datamanager = SimpleNamespace(train_dataparser_outputs=outputs, train_dataset=SimpleNamespace(cameras=cameras),
                                   config=SimpleNamespace(dataparser=SimpleNamespace(data=data)))

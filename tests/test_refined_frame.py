@@ -168,6 +168,25 @@ def test_the_exported_refined_poses_are_the_given_ones_when_only_the_gauge_moved
     assert torch.allclose(refined_poses(pipeline), given, atol=1e-6)
 
 
+def test_the_similarity_is_refitted_when_the_corrections_change_and_only_then(drifted):
+    model = drifted[0].model
+    frame, optimizer = model.refined_frame, model.camera_optimizer
+    first = frame.similarity(optimizer)
+    assert frame.similarity(optimizer) is first  # the viewer's frames between two steps reuse it
+    adjustment = optimizer.pose_adjustment
+    saved = adjustment.detach().clone()
+    try:
+        with torch.no_grad():
+            adjustment[:, :3] += torch.tensor([0.1, 0.0, 0.0])  # an optimizer step writes in place
+        moved = frame.similarity(optimizer)
+        assert float((moved.translation - first.translation - torch.tensor([0.1, 0.0, 0.0], dtype=F64)).abs().max()) \
+            < 1e-5
+    finally:
+        with torch.no_grad():
+            adjustment.copy_(saved)
+    assert torch.allclose(frame.similarity(optimizer).translation, first.translation)
+
+
 def test_the_option_off_renders_cameras_as_given(tmp_path):
     from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 

@@ -1,0 +1,133 @@
+"""How far joint training moves cameras that start at the truth: the error floor of pose refinement.
+
+geer trained on the dev fisheye room at --size^2 from its true cameras with nerfstudio's SO3xR3 camera optimizer
+on; every --every steps the training cameras' pose adjustments (the truth is zero) are read as rotation (degrees)
+and position (% of the scene's extent) errors, raw and after the similarity that best maps the centres onto the
+truth (pose_bench.similarity_aligned): what joint training leaves when there is nothing to correct. Writes
+benchmarks/pose_drift{suffix}.md (+ .json), one section per run (the file is appended to).
+
+    python benchmarks/pose_drift.py [--size 128] [--steps 2000] [--pose-lr 5e-4] [--pose-warmup 200]
+        [--set model_option=value ...] [--suffix ""]
+"""
+
+from __future__ import annotations
+
+import json
+
+from refinement_runs import ROOT, bench_args, git_commit, load_average, small_dev_room, train_and_score
+
+
+def drift(pipeline, extent: float) -> dict:
+    """Mean / max rotation (degrees) and position (% of extent) of the training cameras' adjustments, raw and
+    with the gauge removed."""
+    import numpy as np
+
+    from geer_ns.data.camera_perturbation import pose_errors
+    from geer_ns.refined_frame import adjusted_poses
+    from pose_bench import similarity_aligned
+
+    given = pipeline.datamanager.train_dataset.cameras.camera_to_worlds.detach().double()
+    moved = adjusted_poses(pipeline.model.camera_optimizer, given).numpy()
+    truth = given.numpy()
+    scale = float(pipeline.datamanager.train_dataparser_outputs.dataparser_scale)
+    out = {}
+    for prefix, estimate in (("", moved), ("aligned_", similarity_aligned(moved, truth))):
+        rot, pos = pose_errors(estimate, truth)
+        pos = 100.0 * pos / scale / extent
+        out.update({f"{prefix}rot_mean": float(rot.mean()), f"{prefix}rot_max": float(rot.max()),
+                    f"{prefix}pos_mean": float(pos.mean()), f"{prefix}pos_max": float(np.max(pos))})
+    return out
+
+
+def recording(every: int, last: int, extent: float, into: list):
+    """Patch GeerModel's training callbacks with one that appends (step, drift) to `into` every `every` steps and
+    at the `last` step."""
+    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+
+    from geer_ns.model import GeerModel
+
+    original = GeerModel.get_training_callbacks
+
+    def with_record(self, attributes):
+        def record(step):
+            if step % every == 0 or step == last:
+                into.append({"step": step, **drift(attributes.pipeline, extent)})
+
+        return [*original(self, attributes),
+                TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], record)]
+
+    GeerModel.get_training_callbacks = with_record
+
+
+def _value(text: str):
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def main() -> None:
+    import argparse
+    import shlex
+    import sys
+
+    extra = argparse.ArgumentParser(add_help=False)
+    extra.add_argument("--pose-lr", type=float, default=5e-4)
+    extra.add_argument("--pose-warmup", type=int, default=200, help="camera_opt's linear warm-up from 0 (steps)")
+    extra.add_argument("--every", type=int, default=100)
+    extra.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
+                       help="model options (dotted, e.g. camera_optimizer.rot_l2_penalty=0); values as JSON")
+    extra.add_argument("--label", default="", help="the run's name in the report")
+    extra.add_argument("--suffix", default="")
+    known, rest = extra.parse_known_args()
+    command = shlex.join(["python", "benchmarks/pose_drift.py", *sys.argv[1:]])
+    sys.argv = [sys.argv[0], *rest]
+    args = bench_args(__doc__, 2000, "/tmp/geer_drift")
+    from nerfstudio.engine.optimizers import AdamOptimizerConfig
+    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+
+    from geer_ns.data.camera_perturbation import scene_extent
+
+    clean = small_dev_room(args.work, args.size)
+    extent = scene_extent(clean.parent, json.loads(clean.read_text()))
+    overrides = {"warmup_length": 300, "refine_every": 100, "stop_split_at": 1000, "num_downscales": 0,
+                 "camera_optimizer.mode": "SO3xR3"}
+    overrides.update({k: _value(v) for k, v in (item.split("=", 1) for item in known.set)})
+    optimizers = {"camera_opt": {
+        "optimizer": AdamOptimizerConfig(lr=known.pose_lr, eps=1e-15),
+        "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=args.steps,
+                                                     warmup_steps=known.pose_warmup, lr_pre_warmup=0.0)}}
+    trace: list = []
+    recording(known.every, args.steps - 1, extent, trace)
+    label = known.label or command
+    metrics, seconds, pipeline = train_and_score("drift", clean, args.steps, overrides, args.work, optimizers)
+    record = {"commit": git_commit(), "command": command, "label": label, "size": args.size, "steps": args.steps,
+              "overrides": {k: str(v) for k, v in overrides.items()}, "pose_lr": known.pose_lr,
+              "pose_warmup": known.pose_warmup, "psnr": metrics["psnr"], "seconds": seconds, "trace": trace}
+    stem = ROOT / "benchmarks" / f"pose_drift{known.suffix}"
+    runs = json.loads(stem.with_suffix(".json").read_text()) if stem.with_suffix(".json").exists() else []
+    stem.with_suffix(".json").write_text(json.dumps([*runs, record], indent=2) + "\n")
+    rows = "\n".join(f"| {t['step']} | {t['rot_mean']:.3f} / {t['rot_max']:.3f} | {t['pos_mean']:.3f} / "
+                     f"{t['pos_max']:.3f} | {t['aligned_rot_mean']:.3f}, {t['aligned_pos_mean']:.3f} |" for t in trace)
+    section = f"""
+## {label}
+
+- {args.size}x{args.size}, {args.steps} steps, camera_opt Adam lr {known.pose_lr:g} after a {known.pose_warmup}-step
+  linear warm-up, decaying to 1e-5; model options {overrides}
+- ns-eval test PSNR {metrics['psnr']:.2f} (test views as given, in the refined frame); {seconds:.0f} s of training
+  (CPU, 2 cores, load average {load_average()} when written)
+- commit {record['commit']} (+ working tree); command: `{command}`
+
+| step | rotation deg (mean / max) | position % (mean / max) | aligned: rotation deg, position % (mean) |
+| ---: | ---: | ---: | ---: |
+{rows}
+"""
+    path = stem.with_suffix(".md")
+    head = "" if path.exists() else \
+        "# Pose drift: joint training from the true cameras\n\n" + __doc__.split("\n\n")[1] + "\n"
+    path.write_text((path.read_text() if path.exists() else head) + section)
+    print(section)
+
+
+if __name__ == "__main__":
+    main()
