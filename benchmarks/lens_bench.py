@@ -14,8 +14,8 @@ the refined training cameras are compared with the truth. Writes benchmarks/lens
 from __future__ import annotations
 
 from pose_bench import camera_errors
-from refinement_runs import (ROOT, bench_args, dump, fresh, git_commit, load_average, small_dev_room,
-                             solved_test_metrics, train_and_score)
+from refinement_runs import (ROOT, adam_entry, bench_args, dump, fresh, git_commit, load_average, short_schedule,
+                             small_dev_room, solved_test_metrics, train_and_score)
 
 
 def lens_errors(pipeline, truth: dict) -> dict:
@@ -132,9 +132,6 @@ def main() -> None:
         command
     args.densify_until, args.pose_warmup, args.pose_start = known.densify_until, known.pose_warmup, known.pose_start
     args.pose_solve_every, args.pose_solve_iterations = known.pose_solve_every, known.pose_solve_iterations
-    from nerfstudio.engine.optimizers import AdamOptimizerConfig
-    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
-
     from geer_ns.data.camera_perturbation import perturb_cameras
 
     clean = small_dev_room(args.work, args.size)
@@ -142,16 +139,11 @@ def main() -> None:
     rotation_deg, position_fraction, focal_fraction, k1_offset = known.perturbation
     truth = perturb_cameras(clean.parent, noisy, transforms=clean.name, rotation_deg=rotation_deg,
                             position_fraction=position_fraction, focal_fraction=focal_fraction, k1_offset=k1_offset)
-    schedule = {"warmup_length": 300, "refine_every": 100, "stop_split_at": known.densify_until, "num_downscales": 0}
+    schedule = short_schedule(known.densify_until)
     schedule.update({k: json.loads(v) for k, v in (item.split("=", 1) for item in known.set)})
 
-    def adam(lr, warmup=200):
-        return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=args.steps, warmup_steps=warmup,
-                                                             lr_pre_warmup=0.0)}
-
-    optimizers = {"camera_opt": adam(known.pose_lr, known.pose_start + known.pose_warmup),
-                  "lens_opt": adam(args.lens_lr)}
+    optimizers = {"camera_opt": adam_entry(known.pose_lr, args.steps, known.pose_start + known.pose_warmup),
+                  "lens_opt": adam_entry(args.lens_lr, args.steps, 200)}
     poses = {"camera_optimizer.mode": "SO3xR3", "pose_refinement_start": known.pose_start,
              "camera_optimizer.trans_l2_penalty": known.pose_penalty[0],
              "camera_optimizer.rot_l2_penalty": known.pose_penalty[1]}

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import json
 
-from refinement_runs import ROOT, bench_args, git_commit, load_average, small_dev_room, train_and_score
+from refinement_runs import (ROOT, adam_entry, bench_args, git_commit, load_average, short_schedule, small_dev_room,
+                             train_and_score)
 
 
 def drift(pipeline, extent: float) -> dict:
@@ -83,20 +84,13 @@ def main() -> None:
     command = shlex.join(["python", "benchmarks/pose_drift.py", *sys.argv[1:]])
     sys.argv = [sys.argv[0], *rest]
     args = bench_args(__doc__, 2000, "/tmp/geer_drift")
-    from nerfstudio.engine.optimizers import AdamOptimizerConfig
-    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
-
     from geer_ns.data.camera_perturbation import scene_extent
 
     clean = small_dev_room(args.work, args.size)
     extent = scene_extent(clean.parent, json.loads(clean.read_text()))
-    overrides = {"warmup_length": 300, "refine_every": 100, "stop_split_at": 1000, "num_downscales": 0,
-                 "camera_optimizer.mode": "SO3xR3"}
+    overrides = {**short_schedule(), "camera_optimizer.mode": "SO3xR3"}
     overrides.update({k: _value(v) for k, v in (item.split("=", 1) for item in known.set)})
-    optimizers = {"camera_opt": {
-        "optimizer": AdamOptimizerConfig(lr=known.pose_lr, eps=1e-15),
-        "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=args.steps,
-                                                     warmup_steps=known.pose_warmup, lr_pre_warmup=0.0)}}
+    optimizers = {"camera_opt": adam_entry(known.pose_lr, args.steps, known.pose_warmup)}
     trace: list = []
     recording(known.every, args.steps - 1, extent, trace)
     label = known.label or command

@@ -25,6 +25,23 @@ def bench_args(doc: str, steps: int, work: str):
     return parser.parse_args()
 
 
+def short_schedule(densify_until: int = 1000) -> dict:
+    """The refinement benchmarks' model options for runs of a few thousand steps: densification every 100 steps
+    from step 300 to `densify_until`, full resolution throughout."""
+    return {"warmup_length": 300, "refine_every": 100, "stop_split_at": densify_until, "num_downscales": 0}
+
+
+def adam_entry(lr: float, steps: int, warmup: int) -> dict:
+    """An optimizer entry (nerfstudio's config): Adam at `lr` after a linear warm-up from 0 over `warmup` steps,
+    decaying exponentially to 1e-5 at `steps`."""
+    from nerfstudio.engine.optimizers import AdamOptimizerConfig
+    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+
+    return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15),
+            "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=steps, warmup_steps=warmup,
+                                                         lr_pre_warmup=0.0)}
+
+
 def fresh(path: Path) -> Path:
     """path, removed first if it exists (a variant is written anew)."""
     import shutil

@@ -15,8 +15,8 @@ import json
 from pathlib import Path
 
 from pose_bench import camera_errors
-from refinement_runs import (ROOT, bench_args, fresh, git_commit, load_average, small_dev_room, solved_test_metrics,
-                             train_and_score)
+from refinement_runs import (ROOT, adam_entry, bench_args, fresh, git_commit, load_average, short_schedule,
+                             small_dev_room, solved_test_metrics, train_and_score)
 
 
 def with_refined_poses(data: Path, refined: Path, out: Path) -> Path:
@@ -51,21 +51,12 @@ def main() -> None:
     command = shlex.join(["python", "benchmarks/two_pass.py", *sys.argv[1:]])
     sys.argv = [sys.argv[0], *rest]
     args = bench_args(__doc__, 2000, "/tmp/geer_two_pass")
-    from nerfstudio.engine.optimizers import AdamOptimizerConfig
-    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
-
     from geer_ns.data.camera_perturbation import perturb_cameras
 
     clean = small_dev_room(args.work, args.size)
     noisy = fresh(args.work / f"two_pass_{args.size}")
     truth = perturb_cameras(clean.parent, noisy, transforms=clean.name, rotation_deg=1.0, position_fraction=0.01)
-    overrides = {"warmup_length": 300, "refine_every": 100, "stop_split_at": 1000, "num_downscales": 0,
-                 "camera_optimizer.mode": "SO3xR3"}
-
-    def camera_opt(lr: float, warmup: int) -> dict:
-        return {"camera_opt": {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15),
-                               "scheduler": ExponentialDecaySchedulerConfig(
-                                   lr_final=1e-5, max_steps=args.steps, warmup_steps=warmup, lr_pre_warmup=0.0)}}
+    overrides = {**short_schedule(), "camera_optimizer.mode": "SO3xR3"}
 
     rows, data = [], noisy / clean.name
     passes = (("pass 1", known.first_lr, 200), ("pass 2", known.second_lr, known.second_warmup))
@@ -73,7 +64,7 @@ def main() -> None:
         tag = name.replace(" ", "_")
         fresh(args.work / "runs" / tag)
         metrics, seconds, pipeline = train_and_score(tag, data, args.steps, overrides, args.work,
-                                                     camera_opt(lr, warmup))
+                                                     {"camera_opt": adam_entry(lr, args.steps, warmup)})
         solved = solved_test_metrics(pipeline)
         cam = camera_errors(pipeline, truth, refined=True)
         rows.append(f"| {name}: lr {lr:g}, warm-up {warmup} | {metrics['psnr']:.2f} | {solved['psnr']:.2f} | "
