@@ -14,8 +14,8 @@ the refined training cameras are compared with the truth. Writes benchmarks/lens
 from __future__ import annotations
 
 from pose_bench import camera_errors
-from refinement_runs import (ROOT, adam_entry, bench_args, dump, fresh, git_commit, load_average, short_schedule,
-                             small_dev_room, solved_test_metrics, train_and_score)
+from refinement_runs import (ROOT, adam_entry, bench_args, dump, fresh, git_commit, load_average, model_options,
+                             short_schedule, small_dev_room, solved_test_metrics, train_and_score)
 
 
 def lens_errors(pipeline, truth: dict) -> dict:
@@ -96,9 +96,6 @@ def _report(args, record: dict, rows: list) -> str:
 
 def main() -> None:
     import argparse
-    import json
-    import shlex
-    import sys
 
     extra = argparse.ArgumentParser(add_help=False)
     extra.add_argument("--lens-lr", type=float, default=2e-3)
@@ -124,32 +121,25 @@ def main() -> None:
                        metavar=("ROT_DEG", "POS_FRACTION", "FOCAL_FRACTION", "K1_OFFSET"),
                        help="the training cameras' rotation (degrees) and move (fraction of the extent), the lens's "
                             "focal change (fraction) and k1 offset")
-    known, rest = extra.parse_known_args()
-    command = shlex.join(["python", "benchmarks/lens_bench.py", *sys.argv[1:]])
-    sys.argv = [sys.argv[0], *rest]
-    args = bench_args(__doc__, 1000, "/tmp/geer_lens")
-    args.lens_lr, args.pose_lr, args.perturbation, args.command = known.lens_lr, known.pose_lr, known.perturbation, \
-        command
-    args.densify_until, args.pose_warmup, args.pose_start = known.densify_until, known.pose_warmup, known.pose_start
-    args.pose_solve_every, args.pose_solve_iterations = known.pose_solve_every, known.pose_solve_iterations
+    args = bench_args(__doc__, 1000, "/tmp/geer_lens", extra)
     from geer_ns.data.camera_perturbation import perturb_cameras
 
     clean = small_dev_room(args.work, args.size)
     noisy = fresh(args.work / f"lens_{args.size}")
-    rotation_deg, position_fraction, focal_fraction, k1_offset = known.perturbation
+    rotation_deg, position_fraction, focal_fraction, k1_offset = args.perturbation
     truth = perturb_cameras(clean.parent, noisy, transforms=clean.name, rotation_deg=rotation_deg,
                             position_fraction=position_fraction, focal_fraction=focal_fraction, k1_offset=k1_offset)
-    schedule = short_schedule(known.densify_until)
-    schedule.update({k: json.loads(v) for k, v in (item.split("=", 1) for item in known.set)})
+    schedule = short_schedule(args.densify_until)
+    schedule.update(model_options(args.set))
 
-    optimizers = {"camera_opt": adam_entry(known.pose_lr, args.steps, known.pose_start + known.pose_warmup),
+    optimizers = {"camera_opt": adam_entry(args.pose_lr, args.steps, args.pose_start + args.pose_warmup),
                   "lens_opt": adam_entry(args.lens_lr, args.steps, 200)}
-    poses = {"camera_optimizer.mode": "SO3xR3", "pose_refinement_start": known.pose_start,
-             "camera_optimizer.trans_l2_penalty": known.pose_penalty[0],
-             "camera_optimizer.rot_l2_penalty": known.pose_penalty[1]}
-    lens_only = {"lens_refinement": "full", "lens_refinement_start": 200, "lens_refinement_aspect": known.aspect}
+    poses = {"camera_optimizer.mode": "SO3xR3", "pose_refinement_start": args.pose_start,
+             "camera_optimizer.trans_l2_penalty": args.pose_penalty[0],
+             "camera_optimizer.rot_l2_penalty": args.pose_penalty[1]}
+    lens_only = {"lens_refinement": "full", "lens_refinement_start": 200, "lens_refinement_aspect": args.aspect}
     lens = {**poses, **lens_only}
-    solve = {"pose_solve_every": known.pose_solve_every, "pose_solve_iterations": known.pose_solve_iterations}
+    solve = {"pose_solve_every": args.pose_solve_every, "pose_solve_iterations": args.pose_solve_iterations}
     runs = {"perturbed, no refinement": (noisy / clean.name, {}),
             "perturbed, SO3xR3 poses + lens full": (noisy / clean.name, lens),
             "true cameras": (clean, {}),
@@ -157,9 +147,9 @@ def main() -> None:
             "perturbed, lens full (poses fixed)": (noisy / clean.name, lens_only),
             "perturbed, SO3xR3 poses only + pose solve": (noisy / clean.name, {**poses, **solve}),
             "perturbed, SO3xR3 poses + lens full + pose solve": (noisy / clean.name, {**lens, **solve})}
-    if known.only:
-        runs = {k: v for k, v in runs.items() if any(part in k for part in known.only)}
-    runs = {k: v for k, v in runs.items() if not any(part in k for part in known.skip)}
+    if args.only:
+        runs = {k: v for k, v in runs.items() if any(part in k for part in args.only)}
+    runs = {k: v for k, v in runs.items() if not any(part in k for part in args.skip)}
     record = {"commit": git_commit(), "size": args.size, "steps": args.steps, "lens_lr": args.lens_lr,
               "pose_lr": args.pose_lr, "pose_warmup": args.pose_warmup, "pose_start": args.pose_start,
               "perturbation": list(args.perturbation), "densify_until": args.densify_until, "options": schedule,
@@ -194,8 +184,8 @@ def main() -> None:
         rows.append(f"| {name} | {metrics['psnr']:.2f} | {as_given:.2f} | {solved['psnr']:.2f} | {metrics['ssim']:.3f} | {errors} | "
                     f"{seconds:.0f} |")
         print(rows[-1], flush=True)
-        dump(ROOT / "benchmarks" / f"lens_refinement_runs{known.suffix}.json", record)
-        (ROOT / "benchmarks" / f"lens_refinement{known.suffix}.md").write_text(_report(args, record, rows))
+        dump(ROOT / "benchmarks" / f"lens_refinement_runs{args.suffix}.json", record)
+        (ROOT / "benchmarks" / f"lens_refinement{args.suffix}.md").write_text(_report(args, record, rows))
     print(_report(args, record, rows))
 
 

@@ -22,8 +22,6 @@ from refinement_runs import ROOT, bench_args, dump, fresh, git_commit, load_aver
 
 def camera_errors(pipeline, truth: dict, refined: bool) -> dict:
     """Mean / max rotation (degrees) and position (% of the extent) error of the training cameras."""
-    from geer_ns.data.camera_perturbation import pose_errors
-
     outputs = pipeline.datamanager.train_dataparser_outputs
     cameras = pipeline.datamanager.train_dataset.cameras
     c2w = cameras.camera_to_worlds.detach().clone()
@@ -39,11 +37,19 @@ def camera_errors(pipeline, truth: dict, refined: bool) -> dict:
         t = transform @ torch.from_numpy(by_name["/".join(Path(name).parts[-2:])])
         t[:3, 3] *= scale
         true.append(t[:3].numpy())
-    true = np.stack(true)
+    return error_summary(c2w.double().numpy(), np.stack(true), scale, truth["extent"])
+
+
+def error_summary(c2w: np.ndarray, true: np.ndarray, scale: float, extent: float) -> dict:
+    """Mean / max rotation (degrees) and position (% of `extent`, a length in the data's units; `scale` the
+    dataparser's) errors of camera-to-worlds [N, 3, 4] against `true`, as they are and (keys aligned_...) after
+    similarity_aligned."""
+    from geer_ns.data.camera_perturbation import pose_errors
+
     errors = {}
-    for prefix, estimate in (("", c2w.double().numpy()), ("aligned_", similarity_aligned(c2w.double().numpy(), true))):
+    for prefix, estimate in (("", c2w), ("aligned_", similarity_aligned(c2w, true))):
         rot, pos = pose_errors(estimate, true)
-        pos = 100.0 * pos / scale / truth["extent"]
+        pos = 100.0 * pos / scale / extent
         errors.update({f"{prefix}rotation_deg_mean": float(rot.mean()), f"{prefix}rotation_deg_max": float(rot.max()),
                        f"{prefix}position_pct_mean": float(pos.mean()), f"{prefix}position_pct_max": float(pos.max())})
     return errors

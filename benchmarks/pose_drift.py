@@ -14,30 +14,19 @@ from __future__ import annotations
 
 import json
 
-from refinement_runs import (ROOT, adam_entry, bench_args, git_commit, load_average, short_schedule, small_dev_room,
-                             train_and_score)
+from refinement_runs import (ROOT, adam_entry, bench_args, git_commit, load_average, model_options, short_schedule,
+                             small_dev_room, train_and_score)
 
 
 def drift(pipeline, extent: float) -> dict:
-    """Mean / max rotation (degrees) and position (% of extent) of the training cameras' adjustments, raw and
-    with the gauge removed."""
-    import numpy as np
-
-    from geer_ns.data.camera_perturbation import pose_errors
+    """pose_bench.error_summary of the training cameras' adjusted poses against their given (true) ones."""
     from geer_ns.refined_frame import adjusted_poses
-    from pose_bench import similarity_aligned
+    from pose_bench import error_summary
 
     given = pipeline.datamanager.train_dataset.cameras.camera_to_worlds.detach().double()
     moved = adjusted_poses(pipeline.model.camera_optimizer, given).numpy()
-    truth = given.numpy()
     scale = float(pipeline.datamanager.train_dataparser_outputs.dataparser_scale)
-    out = {}
-    for prefix, estimate in (("", moved), ("aligned_", similarity_aligned(moved, truth))):
-        rot, pos = pose_errors(estimate, truth)
-        pos = 100.0 * pos / scale / extent
-        out.update({f"{prefix}rot_mean": float(rot.mean()), f"{prefix}rot_max": float(rot.max()),
-                    f"{prefix}pos_mean": float(pos.mean()), f"{prefix}pos_max": float(np.max(pos))})
-    return out
+    return error_summary(moved, given.numpy(), scale, extent)
 
 
 def recording(every: int, last: int, extent: float, into: list):
@@ -60,17 +49,8 @@ def recording(every: int, last: int, extent: float, into: list):
     GeerModel.get_training_callbacks = with_record
 
 
-def _value(text: str):
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        return text
-
-
 def main() -> None:
     import argparse
-    import shlex
-    import sys
 
     extra = argparse.ArgumentParser(add_help=False)
     extra.add_argument("--pose-lr", type=float, default=5e-4)
@@ -80,37 +60,35 @@ def main() -> None:
                        help="model options (dotted, e.g. camera_optimizer.rot_l2_penalty=0); values as JSON")
     extra.add_argument("--label", default="", help="the run's name in the report")
     extra.add_argument("--suffix", default="")
-    known, rest = extra.parse_known_args()
-    command = shlex.join(["python", "benchmarks/pose_drift.py", *sys.argv[1:]])
-    sys.argv = [sys.argv[0], *rest]
-    args = bench_args(__doc__, 2000, "/tmp/geer_drift")
+    args = bench_args(__doc__, 2000, "/tmp/geer_drift", extra)
     from geer_ns.data.camera_perturbation import scene_extent
 
     clean = small_dev_room(args.work, args.size)
     extent = scene_extent(clean.parent, json.loads(clean.read_text()))
     overrides = {**short_schedule(), "camera_optimizer.mode": "SO3xR3"}
-    overrides.update({k: _value(v) for k, v in (item.split("=", 1) for item in known.set)})
-    optimizers = {"camera_opt": adam_entry(known.pose_lr, args.steps, known.pose_warmup)}
+    overrides.update(model_options(args.set))
+    optimizers = {"camera_opt": adam_entry(args.pose_lr, args.steps, args.pose_warmup)}
     trace: list = []
-    recording(known.every, args.steps - 1, extent, trace)
-    label = known.label or command
+    recording(args.every, args.steps - 1, extent, trace)
+    label = args.label or args.command
     metrics, seconds, pipeline = train_and_score("drift", clean, args.steps, overrides, args.work, optimizers)
-    record = {"commit": git_commit(), "command": command, "label": label, "size": args.size, "steps": args.steps,
-              "overrides": {k: str(v) for k, v in overrides.items()}, "pose_lr": known.pose_lr,
-              "pose_warmup": known.pose_warmup, "psnr": metrics["psnr"], "seconds": seconds, "trace": trace}
-    stem = ROOT / "benchmarks" / f"pose_drift{known.suffix}"
+    record = {"commit": git_commit(), "command": args.command, "label": label, "size": args.size, "steps": args.steps,
+              "overrides": {k: str(v) for k, v in overrides.items()}, "pose_lr": args.pose_lr,
+              "pose_warmup": args.pose_warmup, "psnr": metrics["psnr"], "seconds": seconds, "trace": trace}
+    stem = ROOT / "benchmarks" / f"pose_drift{args.suffix}"
     runs = json.loads(stem.with_suffix(".json").read_text()) if stem.with_suffix(".json").exists() else []
     stem.with_suffix(".json").write_text(json.dumps([*runs, record], indent=2) + "\n")
-    rows = "\n".join(f"| {t['step']} | {t['rot_mean']:.3f} / {t['rot_max']:.3f} | {t['pos_mean']:.3f} / "
-                     f"{t['pos_max']:.3f} | {t['aligned_rot_mean']:.3f}, {t['aligned_pos_mean']:.3f} |" for t in trace)
+    rows = "\n".join(f"| {t['step']} | {t['rotation_deg_mean']:.3f} / {t['rotation_deg_max']:.3f} | "
+                     f"{t['position_pct_mean']:.3f} / {t['position_pct_max']:.3f} | "
+                     f"{t['aligned_rotation_deg_mean']:.3f}, {t['aligned_position_pct_mean']:.3f} |" for t in trace)
     section = f"""
 ## {label}
 
-- {args.size}x{args.size}, {args.steps} steps, camera_opt Adam lr {known.pose_lr:g} after a {known.pose_warmup}-step
+- {args.size}x{args.size}, {args.steps} steps, camera_opt Adam lr {args.pose_lr:g} after a {args.pose_warmup}-step
   linear warm-up, decaying to 1e-5; model options {overrides}
 - ns-eval test PSNR {metrics['psnr']:.2f} (test views as given, in the refined frame); {seconds:.0f} s of training
   (CPU, 2 cores, load average {load_average()} when written)
-- commit {record['commit']} (+ working tree); command: `{command}`
+- commit {record['commit']} (+ working tree); command: `{args.command}`
 
 | step | rotation deg (mean / max) | position % (mean / max) | aligned: rotation deg, position % (mean) |
 | ---: | ---: | ---: | ---: |

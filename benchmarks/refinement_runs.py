@@ -14,15 +14,33 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 DEV_ROOM = Path("/work/shared/data/fisheye_room_dev")
 
 
-def bench_args(doc: str, steps: int, work: str):
-    """The benchmarks' command line: --size (the dev room's), --steps, --work (a scratch folder)."""
+def bench_args(doc: str, steps: int, work: str, extra=None):
+    """The benchmarks' command line: --size (the dev room's), --steps, --work (a scratch folder), and a script's
+    own options from `extra` (an argparse parser made with add_help=False); `command` is the line as run, for the
+    reports."""
     import argparse
+    import shlex
 
-    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0], parents=[] if extra is None else [extra])
     parser.add_argument("--size", type=int, default=80)
     parser.add_argument("--steps", type=int, default=steps)
     parser.add_argument("--work", type=Path, default=Path(work))
-    return parser.parse_args()
+    args = parser.parse_args()
+    args.command = shlex.join(["python", f"benchmarks/{Path(sys.argv[0]).name}", *sys.argv[1:]])
+    return args
+
+
+def model_options(items) -> dict:
+    """`option=value` strings (a --set list) as model options; values read as JSON where they parse, else kept as
+    text."""
+    options = {}
+    for item in items:
+        key, text = item.split("=", 1)
+        try:
+            options[key] = json.loads(text)
+        except json.JSONDecodeError:
+            options[key] = text
+    return options
 
 
 def short_schedule(densify_until: int = 1000) -> dict:

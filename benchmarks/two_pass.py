@@ -39,18 +39,13 @@ def with_refined_poses(data: Path, refined: Path, out: Path) -> Path:
 
 def main() -> None:
     import argparse
-    import shlex
-    import sys
 
     extra = argparse.ArgumentParser(add_help=False)
     extra.add_argument("--first-lr", type=float, default=5e-4)
     extra.add_argument("--second-lr", type=float, default=1e-4)
     extra.add_argument("--second-warmup", type=int, default=1000)
     extra.add_argument("--suffix", default="")
-    known, rest = extra.parse_known_args()
-    command = shlex.join(["python", "benchmarks/two_pass.py", *sys.argv[1:]])
-    sys.argv = [sys.argv[0], *rest]
-    args = bench_args(__doc__, 2000, "/tmp/geer_two_pass")
+    args = bench_args(__doc__, 2000, "/tmp/geer_two_pass", extra)
     from geer_ns.data.camera_perturbation import perturb_cameras
 
     clean = small_dev_room(args.work, args.size)
@@ -59,7 +54,7 @@ def main() -> None:
     overrides = {**short_schedule(), "camera_optimizer.mode": "SO3xR3"}
 
     rows, data = [], noisy / clean.name
-    passes = (("pass 1", known.first_lr, 200), ("pass 2", known.second_lr, known.second_warmup))
+    passes = (("pass 1", args.first_lr, 200), ("pass 2", args.second_lr, args.second_warmup))
     for index, (name, lr, warmup) in enumerate(passes):
         tag = name.replace(" ", "_")
         fresh(args.work / "runs" / tag)
@@ -83,12 +78,12 @@ def main() -> None:
 - test PSNR: ns-eval's (test views at their true poses, in the refined frame); test poses solved: each test
   view's pose solved against the scene first; camera errors against the truth as lens_bench.py reads them
 - CPU, 2 cores, load average {load_average()} when written; commit {git_commit()} (+ working tree)
-- command: `{command}`
+- command: `{args.command}`
 
 | pass | test PSNR | test poses solved | rotation deg (mean / max) | position % (mean / max) | aligned: rotation deg, position % | training s |
 | --- | ---: | ---: | ---: | ---: | ---: | ---: |
 """ + "\n".join(rows) + "\n"
-    (ROOT / "benchmarks" / f"two_pass{known.suffix}.md").write_text(report)
+    (ROOT / "benchmarks" / f"two_pass{args.suffix}.md").write_text(report)
     print(report)
 
 

@@ -93,8 +93,8 @@ class RefinedFrame:
     def similarity(self, camera_optimizer) -> Similarity:
         """The similarity at the optimizer's current corrections, refitted only when they changed since the last
         call (the viewer renders many frames between two optimizer steps)."""
-        adjustment = getattr(camera_optimizer, "pose_adjustment", None)
-        key = None if adjustment is None else (id(adjustment), adjustment._version, camera_optimizer.config.mode)
+        adjustment = getattr(camera_optimizer, "pose_adjustment", None)  # absent in mode off
+        key = None if adjustment is None else (id(adjustment), adjustment._version)
         if key is None or self._cached is None or self._cached[0] != key:
             self._cached = (key, fit_similarity(self.given, adjusted_poses(camera_optimizer, self.given)))
         return self._cached[1]
