@@ -39,6 +39,7 @@ import torch
 from torch import Tensor, nn
 
 from geer_ns.cameras import CameraModel
+from geer_ns.errors import OptionError
 from geer_ns.render import RayGrid
 
 LensMode = Literal["off", "focal", "focal+principal", "full"]
@@ -206,8 +207,8 @@ class LensRefinement(nn.Module):
         other = not self.aspect
         if saved is not None and saved.shape != self.deltas.shape and \
                 tuple(saved.shape) == (len(self.cameras), self._width(other)):
-            raise ValueError(f"{prefix}deltas: the checkpoint's lens was refined with lens-refinement-aspect "
-                             f"{other}; resume with --pipeline.model.lens-refinement-aspect {other}")
+            raise OptionError(f"{prefix}deltas: the checkpoint's lens was refined with lens-refinement-aspect "
+                              f"{other}; resume with --pipeline.model.lens-refinement-aspect {other}")
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @classmethod

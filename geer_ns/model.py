@@ -49,6 +49,7 @@ from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, ho
 from geer_ns.lens_refinement import LensRefinement
 from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angular_signal
 from geer_ns.densify.strategy import GeerDefaultStrategy, build_strategy
+from geer_ns.errors import OptionError
 from geer_ns.distributed.engine import EngineState
 from geer_ns.metrics import central_region, downscale_mask, masked_psnr, region_psnr
 from geer_ns.options import GeerOwnOptions, ignored_options_set
@@ -133,17 +134,17 @@ class GeerModel(SplatfactoModel):
         )
         self.camera_optimizer = self.config.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
         if self.config.pose_solve_every < 0 or self.config.pose_solve_iterations < 1:
-            raise ValueError("--pipeline.model.pose-solve-every must be >= 0 and "
-                             "--pipeline.model.pose-solve-iterations >= 1 (got "
-                             f"{self.config.pose_solve_every}, {self.config.pose_solve_iterations})")
+            raise OptionError("--pipeline.model.pose-solve-every must be >= 0 and "
+                              "--pipeline.model.pose-solve-iterations >= 1 (got "
+                              f"{self.config.pose_solve_every}, {self.config.pose_solve_iterations})")
         if self.config.pose_solve_every > 0 and self.config.camera_optimizer.mode == "off":
-            raise ValueError("--pipeline.model.pose-solve-every: needs --pipeline.model.camera-optimizer.mode SO3xR3 "
-                             "or SE3 (the pose adjustments it solves)")
+            raise OptionError("--pipeline.model.pose-solve-every: needs --pipeline.model.camera-optimizer.mode SO3xR3 "
+                              "or SE3 (the pose adjustments it solves)")
         if self.config.pose_refinement_start < 0 or (self.config.pose_refinement_start > 0
                                                      and self.config.camera_optimizer.mode == "off"):
-            raise ValueError("--pipeline.model.pose-refinement-start: a step >= 0, with "
-                             "--pipeline.model.camera-optimizer.mode SO3xR3 or SE3 (got "
-                             f"{self.config.pose_refinement_start}, mode {self.config.camera_optimizer.mode})")
+            raise OptionError("--pipeline.model.pose-refinement-start: a step >= 0, with "
+                              "--pipeline.model.camera-optimizer.mode SO3xR3 or SE3 (got "
+                              f"{self.config.pose_refinement_start}, mode {self.config.camera_optimizer.mode})")
         self.ssim = SSIM(data_range=1.0, size_average=True, channel=3)
         self._perceptual: Dict[str, object] = {}  # LPIPS, built on first use (not a submodule: no state)
         self.step = 0

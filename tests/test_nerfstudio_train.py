@@ -50,8 +50,9 @@ def _scalars(run_dir: Path, tag: str) -> list:
 
 @pytest.fixture(scope="module")
 def commands(tmp_path_factory):
-    """The three command lines, started together (each interpreter's imports take ~11 s of CPU; together they
-    share the cores): the training run, `ns-train geer --help`, and a run with a missing --data folder."""
+    """The four command lines, started together (each interpreter's imports take ~11 s of CPU; together they
+    share the cores): the training run, `ns-train geer --help`, a run with a missing --data folder, and one with
+    an option geer refuses (a pose-refinement start without pose refinement)."""
     out = tmp_path_factory.mktemp("geer_train")
     missing = out / "no_such_scene"
     lines = {
@@ -60,13 +61,15 @@ def commands(tmp_path_factory):
         "help": [str(BIN / "ns-train"), "geer", "--help"],
         "missing": [str(BIN / "ns-train"), "geer", "--data", str(missing), "--vis", "tensorboard", "--output-dir",
                     str(out / "missing_out")],
+        "bad_option": [str(BIN / "ns-train"), "geer", "--data", str(default_scene_dir()), "--vis", "tensorboard",
+                       "--output-dir", str(out / "bad_option_out"), "--pipeline.model.pose-refinement-start", "100"],
     }
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     start = time.perf_counter()
     running = {k: subprocess.Popen(v, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
                for k, v in lines.items()}
     done = {k: (p, *p.communicate(timeout=900)) for k, p in running.items()}
-    print(f"ns-train geer: {STEPS} steps (with --help and a missing --data beside it) in "
+    print(f"ns-train geer: {STEPS} steps (with --help, a missing --data and a refused option beside it) in "
           f"{time.perf_counter() - start:.0f} s")
     return out, missing, done
 
@@ -128,3 +131,10 @@ def test_ns_train_with_a_missing_data_dir_names_it(commands):
     proc, _, stderr = done["missing"]
     assert proc.returncode != 0
     assert f"--data {missing} does not exist" in stderr
+
+
+def test_ns_train_with_a_refused_option_says_so_in_one_line(commands):
+    proc, _, stderr = commands[2]["bad_option"]
+    assert proc.returncode == 1, stderr[-2000:]
+    assert "--pipeline.model.pose-refinement-start: a step >= 0, with --pipeline.model.camera-optimizer.mode" in stderr
+    assert "Traceback" not in stderr, stderr[-2000:]

@@ -28,6 +28,7 @@ from geer_ns.distributed.reductions import optimized_parameters, reduce_gradient
 from geer_ns.distributed.sharded_render import render_sharded, shard_rows, visible_rows
 from geer_ns.distributed.split_eval import split_outputs
 from geer_ns.distributed.streamed_checkpoint import leaves, replaced, save_rows_streamed
+from geer_ns.errors import OptionError
 from geer_ns.gsplat_private import update_param_with_optimizer
 from geer_ns.distributed.world import (
     World,
@@ -61,7 +62,7 @@ class GaussianParallel:
         if config.camera_optimizer.mode != "off":
             problems.append("--pipeline.model.camera-optimizer.mode (pose gradients would reach one shard only)")
         if problems:
-            raise ValueError("geer: --pipeline.model.distributed gaussians does not support " + "; ".join(problems))
+            raise OptionError("geer: --pipeline.model.distributed gaussians does not support " + "; ".join(problems))
 
     # ------------------------------------------------------------------------------------- start-up
     def start(self) -> None:

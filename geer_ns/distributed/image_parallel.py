@@ -24,6 +24,7 @@ from geer_ns.distributed.consistency import (
 )
 from geer_ns.distributed.engine import EngineState
 from geer_ns.distributed.reductions import optimized_parameters, reduce_gradients, reduce_statistics
+from geer_ns.errors import OptionError
 
 
 class ImageParallel:
@@ -36,8 +37,8 @@ class ImageParallel:
         self.trainer, self.world = trainer, trainer.world
         self.state = EngineState(images_per_step=trainer.batch.images)
         if self.world.distributed and trainer.config.pipeline.model.pose_solve_every > 0:
-            raise ValueError("geer: --pipeline.model.pose-solve-every runs in one process only (each process would "
-                             "solve every camera); leave it at 0 with --machine.num-devices > 1")
+            raise OptionError("geer: --pipeline.model.pose-solve-every runs in one process only (each process would "
+                              "solve every camera); leave it at 0 with --machine.num-devices > 1")
 
     def start(self) -> None:
         if self.world.distributed:

@@ -43,7 +43,7 @@ from geer_ns.distributed.schedule import (
 )
 from geer_ns.distributed.gaussian_parallel import GaussianParallel, shard_checkpoint
 from geer_ns.distributed.world import current_world
-from geer_ns.errors import report_dataset_errors_in_one_line
+from geer_ns.errors import report_input_errors_in_one_line
 from geer_ns.refined_cameras import write_refined_cameras
 
 
@@ -60,9 +60,9 @@ class GeerMachineConfig(MachineConfig):
 
 def install_run_fixes() -> None:
     """What a geer training run changes in its process, and only a geer run: the host fixes (geer_ns.compat),
-    DatasetError in one line (errors.py), nerfstudio's launcher routed for geer configs (launch.py)."""
+    DatasetError and OptionError in one line (errors.py), nerfstudio's launcher routed for geer configs (launch.py)."""
     compat.install()
-    report_dataset_errors_in_one_line()
+    report_input_errors_in_one_line()
     install_launch_router()
 
 
