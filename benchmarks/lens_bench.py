@@ -14,8 +14,8 @@ the refined training cameras are compared with the truth. Writes benchmarks/lens
 from __future__ import annotations
 
 from pose_bench import camera_errors
-from refinement_runs import (ROOT, adam_entry, bench_args, dump, fresh, git_commit, load_average, model_options,
-                             short_schedule, small_dev_room, solved_test_metrics, train_and_score)
+from refinement_runs import (OPTIMIZER_NAMES, ROOT, adam_entry, bench_args, dump, fresh, git_commit, load_average,
+                             model_options, record_every, short_schedule, small_dev_room, solved_test_metrics, train_and_score)
 
 
 def lens_errors(pipeline, truth: dict) -> dict:
@@ -53,7 +53,21 @@ def lens_map_error(cam, true: dict, scale: float) -> tuple:
     return float(moved.mean()), float(moved.max())
 
 
-def _report(args, record: dict, rows: list) -> str:
+def trace_table(name: str, trace: list) -> str:
+    """A run's camera errors along training (lens_bench --trace), as a markdown section."""
+    lines = "\n".join(f"| {t['step']} | {t['rotation_deg_mean']:.3f} / {t['rotation_deg_max']:.3f} | "
+                      f"{t['position_pct_mean']:.3f} / {t['position_pct_max']:.3f} | "
+                      f"{t['aligned_rotation_deg_mean']:.3f}, {t['aligned_position_pct_mean']:.3f} |" for t in trace)
+    return f"""
+### {name}: camera errors along training
+
+| step | rotation deg (mean / max) | position % (mean / max) | aligned: rotation deg, position % (mean) |
+| ---: | ---: | ---: | ---: |
+{lines}
+"""
+
+
+def _report(args, record: dict, rows: list, traces: list) -> str:
     rot, pos, focal, k1 = args.perturbation[0], 100 * args.perturbation[1], 100 * args.perturbation[2], \
         args.perturbation[3]
     return f"""# Lens and pose refinement with perturbed training cameras
@@ -66,7 +80,8 @@ def _report(args, record: dict, rows: list) -> str:
   seed 0; test poses true)
 - runs: {args.steps} steps each, warm-up 300, refinement every 100 until step {args.densify_until}, full resolution
   unless options say otherwise, same seed; model options {record['options']}.
-  SO3xR3: nerfstudio's camera optimizer from step {args.pose_start} (pose-refinement-start), Adam lr
+  SO3xR3: nerfstudio's camera optimizer from step {args.pose_start} (pose-refinement-start),
+  {OPTIMIZER_NAMES[args.pose_optimizer]} lr
   {args.pose_lr:g} after a linear warm-up from 0 that ends at step {args.pose_start + args.pose_warmup}, decaying
   to 1e-5. Lens:
   `--pipeline.model.lens-refinement full --pipeline.model.lens-refinement-start 200`, Adam (lens_opt) lr
@@ -91,7 +106,7 @@ def _report(args, record: dict, rows: list) -> str:
 
 | run | test PSNR | test PSNR, as given | test PSNR, test poses solved | test SSIM | rotation deg (mean / max) | position % (mean / max) | aligned: rotation deg, position % (mean) | lens map px (mean / max) | focal % | k1 | cx, cy px | training s |
 | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |
-""" + "\n".join(rows) + "\n"
+""" + "\n".join(rows) + "\n" + "".join(traces)
 
 
 def main() -> None:
@@ -100,6 +115,8 @@ def main() -> None:
     extra = argparse.ArgumentParser(add_help=False)
     extra.add_argument("--lens-lr", type=float, default=2e-3)
     extra.add_argument("--pose-lr", type=float, default=5e-4, help="camera_opt's (SO3xR3) learning rate")
+    extra.add_argument("--pose-optimizer", choices=("adam", "lazy"), default="adam",
+                       help="camera_opt's optimizer: torch's Adam, or benchmarks/lazy_adam.py")
     extra.add_argument("--pose-warmup", type=int, default=200,
                        help="camera_opt's warm-up: its learning rate rises from 0 over this many steps")
     extra.add_argument("--pose-start", type=int, default=0,
@@ -109,6 +126,8 @@ def main() -> None:
     extra.add_argument("--only", nargs="+", default=[], help="run only the runs whose name contains one of these")
     extra.add_argument("--skip", nargs="+", default=[], help="leave out the runs whose name contains one of these")
     extra.add_argument("--suffix", default="", help="appended to the report's file names")
+    extra.add_argument("--trace", type=int, default=0, metavar="EVERY",
+                       help="record the refined runs' camera errors every EVERY steps (0: only at the end)")
     extra.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
                        help="model options for every run (dotted; values as JSON), e.g. num_downscales=2")
     extra.add_argument("--pose-penalty", type=float, nargs=2, default=(1e-2, 1e-3), metavar=("TRANS", "ROT"),
@@ -132,7 +151,8 @@ def main() -> None:
     schedule = short_schedule(args.densify_until)
     schedule.update(model_options(args.set))
 
-    optimizers = {"camera_opt": adam_entry(args.pose_lr, args.steps, args.pose_start + args.pose_warmup),
+    optimizers = {"camera_opt": adam_entry(args.pose_lr, args.steps, args.pose_start + args.pose_warmup,
+                                        args.pose_optimizer == "lazy"),
                   "lens_opt": adam_entry(args.lens_lr, args.steps, 200)}
     poses = {"camera_optimizer.mode": "SO3xR3", "pose_refinement_start": args.pose_start,
              "camera_optimizer.trans_l2_penalty": args.pose_penalty[0],
@@ -151,11 +171,16 @@ def main() -> None:
         runs = {k: v for k, v in runs.items() if any(part in k for part in args.only)}
     runs = {k: v for k, v in runs.items() if not any(part in k for part in args.skip)}
     record = {"commit": git_commit(), "size": args.size, "steps": args.steps, "lens_lr": args.lens_lr,
-              "pose_lr": args.pose_lr, "pose_warmup": args.pose_warmup, "pose_start": args.pose_start,
+              "pose_lr": args.pose_lr, "pose_warmup": args.pose_warmup, "pose_optimizer": args.pose_optimizer,
+              "pose_start": args.pose_start,
               "perturbation": list(args.perturbation), "densify_until": args.densify_until, "options": schedule,
               "runs": {}}
-    rows = []
+    rows, trace, traces = [], [], []
+    if args.trace:
+        record_every(args.trace, args.steps - 1, lambda pipeline: camera_errors(pipeline, truth, refined=True)
+                     if pipeline.model.refining_poses else None, trace)
     for name, (data, overrides) in runs.items():
+        trace.clear()
         tag = name.replace(" ", "_").replace(",", "").replace("+", "")
         metrics, seconds, pipeline = train_and_score(tag, data, args.steps, {**schedule, **overrides}, args.work,
                                                      optimizers)
@@ -171,6 +196,9 @@ def main() -> None:
         if data != clean:
             entry["cameras"] = camera_errors(pipeline, truth, refined="camera_optimizer.mode" in overrides)
             entry["lens"] = lens_errors(pipeline, truth)
+        if trace:
+            entry["trace"] = list(trace)
+            traces.append(trace_table(name, trace))
         record["runs"][name] = entry
         cam, lens_e = entry.get("cameras"), entry.get("lens")
         if cam:
@@ -185,8 +213,8 @@ def main() -> None:
                     f"{seconds:.0f} |")
         print(rows[-1], flush=True)
         dump(ROOT / "benchmarks" / f"lens_refinement_runs{args.suffix}.json", record)
-        (ROOT / "benchmarks" / f"lens_refinement{args.suffix}.md").write_text(_report(args, record, rows))
-    print(_report(args, record, rows))
+        (ROOT / "benchmarks" / f"lens_refinement{args.suffix}.md").write_text(_report(args, record, rows, traces))
+    print(_report(args, record, rows, traces))
 
 
 if __name__ == "__main__":

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import json
 
-from refinement_runs import (ROOT, adam_entry, bench_args, git_commit, load_average, model_options, short_schedule,
-                             small_dev_room, train_and_score)
+from refinement_runs import (OPTIMIZER_NAMES, ROOT, adam_entry, bench_args, git_commit, load_average, model_options,
+                             record_every, short_schedule, small_dev_room, train_and_score)
 
 
 def drift(pipeline, extent: float) -> dict:
@@ -29,31 +29,13 @@ def drift(pipeline, extent: float) -> dict:
     return error_summary(moved, given.numpy(), scale, extent)
 
 
-def recording(every: int, last: int, extent: float, into: list):
-    """Patch GeerModel's training callbacks with one that appends (step, drift) to `into` every `every` steps and
-    at the `last` step."""
-    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
-
-    from geer_ns.model import GeerModel
-
-    original = GeerModel.get_training_callbacks
-
-    def with_record(self, attributes):
-        def record(step):
-            if step % every == 0 or step == last:
-                into.append({"step": step, **drift(attributes.pipeline, extent)})
-
-        return [*original(self, attributes),
-                TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], record)]
-
-    GeerModel.get_training_callbacks = with_record
-
-
 def main() -> None:
     import argparse
 
     extra = argparse.ArgumentParser(add_help=False)
     extra.add_argument("--pose-lr", type=float, default=5e-4)
+    extra.add_argument("--pose-optimizer", choices=("adam", "lazy"), default="adam",
+                       help="camera_opt's optimizer: torch's Adam, or benchmarks/lazy_adam.py")
     extra.add_argument("--pose-warmup", type=int, default=200, help="camera_opt's linear warm-up from 0 (steps)")
     extra.add_argument("--every", type=int, default=100)
     extra.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
@@ -67,14 +49,16 @@ def main() -> None:
     extent = scene_extent(clean.parent, json.loads(clean.read_text()))
     overrides = {**short_schedule(), "camera_optimizer.mode": "SO3xR3"}
     overrides.update(model_options(args.set))
-    optimizers = {"camera_opt": adam_entry(args.pose_lr, args.steps, args.pose_warmup)}
+    optimizers = {"camera_opt": adam_entry(args.pose_lr, args.steps, args.pose_warmup,
+                                           args.pose_optimizer == "lazy")}
     trace: list = []
-    recording(args.every, args.steps - 1, extent, trace)
+    record_every(args.every, args.steps - 1, lambda pipeline: drift(pipeline, extent), trace)
     label = args.label or args.command
     metrics, seconds, pipeline = train_and_score("drift", clean, args.steps, overrides, args.work, optimizers)
     record = {"commit": git_commit(), "command": args.command, "label": label, "size": args.size, "steps": args.steps,
               "overrides": {k: str(v) for k, v in overrides.items()}, "pose_lr": args.pose_lr,
-              "pose_warmup": args.pose_warmup, "psnr": metrics["psnr"], "seconds": seconds, "trace": trace}
+              "pose_warmup": args.pose_warmup, "pose_optimizer": args.pose_optimizer, "psnr": metrics["psnr"],
+              "seconds": seconds, "trace": trace}
     stem = ROOT / "benchmarks" / f"pose_drift{args.suffix}"
     runs = json.loads(stem.with_suffix(".json").read_text()) if stem.with_suffix(".json").exists() else []
     stem.with_suffix(".json").write_text(json.dumps([*runs, record], indent=2) + "\n")
@@ -84,8 +68,8 @@ def main() -> None:
     section = f"""
 ## {label}
 
-- {args.size}x{args.size}, {args.steps} steps, camera_opt Adam lr {args.pose_lr:g} after a {args.pose_warmup}-step
-  linear warm-up, decaying to 1e-5; model options {overrides}
+- {args.size}x{args.size}, {args.steps} steps, camera_opt {OPTIMIZER_NAMES[args.pose_optimizer]} lr {args.pose_lr:g}
+  after a {args.pose_warmup}-step linear warm-up, decaying to 1e-5; model options {overrides}
 - ns-eval test PSNR {metrics['psnr']:.2f} (test views as given, in the refined frame); {seconds:.0f} s of training
   (CPU, 2 cores, load average {load_average()} when written)
 - commit {record['commit']} (+ working tree); command: `{args.command}`

@@ -49,13 +49,18 @@ def short_schedule(densify_until: int = 1000) -> dict:
     return {"warmup_length": 300, "refine_every": 100, "stop_split_at": densify_until, "num_downscales": 0}
 
 
-def adam_entry(lr: float, steps: int, warmup: int) -> dict:
-    """An optimizer entry (nerfstudio's config): Adam at `lr` after a linear warm-up from 0 over `warmup` steps,
-    decaying exponentially to 1e-5 at `steps`."""
+OPTIMIZER_NAMES = {"adam": "Adam", "lazy": "LazyAdam (benchmarks/lazy_adam.py)"}  # adam_entry's lazy or not
+
+
+def adam_entry(lr: float, steps: int, warmup: int, lazy: bool = False) -> dict:
+    """An optimizer entry (nerfstudio's config): Adam (LazyAdam if `lazy`) at `lr` after a linear warm-up from 0
+    over `warmup` steps, decaying exponentially to 1e-5 at `steps`."""
     from nerfstudio.engine.optimizers import AdamOptimizerConfig
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
-    return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15),
+    from lazy_adam import LazyAdamOptimizerConfig
+
+    return {"optimizer": (LazyAdamOptimizerConfig if lazy else AdamOptimizerConfig)(lr=lr, eps=1e-15),
             "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=steps, warmup_steps=warmup,
                                                          lr_pre_warmup=0.0)}
 
@@ -105,6 +110,28 @@ def train_and_score(name: str, data: Path, steps: int, overrides: dict, out: Pat
     metrics = trainer.pipeline.get_average_eval_image_metrics(step=steps)
     writer.EVENT_WRITERS.clear()
     return metrics, seconds, trainer.pipeline
+
+
+def record_every(every: int, last: int, measure, into: list) -> None:
+    """Patch GeerModel's training callbacks with one that appends {"step": step, **measure(pipeline)} to `into`
+    every `every` steps and at the `last` step, where measure(pipeline) returns a dict (None: nothing recorded)."""
+    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+
+    from geer_ns.model import GeerModel
+
+    original = GeerModel.get_training_callbacks
+
+    def with_record(self, attributes):
+        def record(step):
+            if step % every == 0 or step == last:
+                measured = measure(attributes.pipeline)
+                if measured is not None:
+                    into.append({"step": step, **measured})
+
+        return [*original(self, attributes),
+                TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], record)]
+
+    GeerModel.get_training_callbacks = with_record
 
 
 def solved_test_metrics(pipeline, iterations: int = 2) -> dict:
