@@ -13,9 +13,10 @@ the refined training cameras are compared with the truth. Writes benchmarks/lens
 
 from __future__ import annotations
 
-from pose_bench import camera_errors
+from pose_bench import camera_errors, error_columns
 from refinement_runs import (OPTIMIZER_NAMES, ROOT, adam_entry, bench_args, dump, fresh, git_commit, load_average,
-                             model_options, record_every, short_schedule, small_dev_room, solved_test_metrics, train_and_score)
+                             model_options, record_every, short_schedule, small_dev_room, solved_test_metrics,
+                             train_and_score)
 
 
 def lens_errors(pipeline, truth: dict) -> dict:
@@ -55,9 +56,7 @@ def lens_map_error(cam, true: dict, scale: float) -> tuple:
 
 def trace_table(name: str, trace: list) -> str:
     """A run's camera errors along training (lens_bench --trace), as a markdown section."""
-    lines = "\n".join(f"| {t['step']} | {t['rotation_deg_mean']:.3f} / {t['rotation_deg_max']:.3f} | "
-                      f"{t['position_pct_mean']:.3f} / {t['position_pct_max']:.3f} | "
-                      f"{t['aligned_rotation_deg_mean']:.3f}, {t['aligned_position_pct_mean']:.3f} |" for t in trace)
+    lines = "\n".join(f"| {t['step']} | {error_columns(t)} |" for t in trace)
     return f"""
 ### {name}: camera errors along training
 
@@ -115,7 +114,7 @@ def main() -> None:
     extra = argparse.ArgumentParser(add_help=False)
     extra.add_argument("--lens-lr", type=float, default=2e-3)
     extra.add_argument("--pose-lr", type=float, default=5e-4, help="camera_opt's (SO3xR3) learning rate")
-    extra.add_argument("--pose-optimizer", choices=("adam", "lazy"), default="adam",
+    extra.add_argument("--pose-optimizer", choices=tuple(OPTIMIZER_NAMES), default="adam",
                        help="camera_opt's optimizer: torch's Adam, or benchmarks/lazy_adam.py")
     extra.add_argument("--pose-warmup", type=int, default=200,
                        help="camera_opt's warm-up: its learning rate rises from 0 over this many steps")
@@ -152,7 +151,7 @@ def main() -> None:
     schedule.update(model_options(args.set))
 
     optimizers = {"camera_opt": adam_entry(args.pose_lr, args.steps, args.pose_start + args.pose_warmup,
-                                        args.pose_optimizer == "lazy"),
+                                           args.pose_optimizer),
                   "lens_opt": adam_entry(args.lens_lr, args.steps, 200)}
     poses = {"camera_optimizer.mode": "SO3xR3", "pose_refinement_start": args.pose_start,
              "camera_optimizer.trans_l2_penalty": args.pose_penalty[0],
@@ -202,11 +201,8 @@ def main() -> None:
         record["runs"][name] = entry
         cam, lens_e = entry.get("cameras"), entry.get("lens")
         if cam:
-            errors = (f"{cam['rotation_deg_mean']:.3f} / {cam['rotation_deg_max']:.3f} | "
-                      f"{cam['position_pct_mean']:.3f} / {cam['position_pct_max']:.3f} | "
-                      f"{cam['aligned_rotation_deg_mean']:.3f}, {cam['aligned_position_pct_mean']:.3f} | "
-                      f"{lens_e['map_px_mean']:.3f} / {lens_e['map_px_max']:.3f} | {lens_e['focal_pct']:.3f} | "
-                      f"{lens_e['k1_abs']:.4f} | {lens_e['cx_px']:+.2f}, {lens_e['cy_px']:+.2f}")
+            errors = (f"{error_columns(cam)} | {lens_e['map_px_mean']:.3f} / {lens_e['map_px_max']:.3f} | "
+                      f"{lens_e['focal_pct']:.3f} | {lens_e['k1_abs']:.4f} | {lens_e['cx_px']:+.2f}, {lens_e['cy_px']:+.2f}")
         else:
             errors = "0 | 0 | 0 | 0 | 0 | 0 | 0"
         rows.append(f"| {name} | {metrics['psnr']:.2f} | {as_given:.2f} | {solved['psnr']:.2f} | {metrics['ssim']:.3f} | {errors} | "

@@ -55,6 +55,14 @@ def error_summary(c2w: np.ndarray, true: np.ndarray, scale: float, extent: float
     return errors
 
 
+def error_columns(errors: dict) -> str:
+    """error_summary's rotation, position and aligned errors as three markdown table cells: "rot mean / max |
+    pos mean / max | aligned rot, aligned pos" (the reports' shared columns)."""
+    return (f"{errors['rotation_deg_mean']:.3f} / {errors['rotation_deg_max']:.3f} | "
+            f"{errors['position_pct_mean']:.3f} / {errors['position_pct_max']:.3f} | "
+            f"{errors['aligned_rotation_deg_mean']:.3f}, {errors['aligned_position_pct_mean']:.3f}")
+
+
 def similarity_aligned(c2w: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """c2w [N,3,4] moved by the similarity that best maps its camera centres onto the truth's (Umeyama, least
     squares): the gauge (frame and scale) that training on images alone cannot fix, removed as BARF-style pose

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 
+from pose_bench import error_columns
 from refinement_runs import (OPTIMIZER_NAMES, ROOT, adam_entry, bench_args, git_commit, load_average, model_options,
                              record_every, short_schedule, small_dev_room, train_and_score)
 
@@ -34,7 +35,7 @@ def main() -> None:
 
     extra = argparse.ArgumentParser(add_help=False)
     extra.add_argument("--pose-lr", type=float, default=5e-4)
-    extra.add_argument("--pose-optimizer", choices=("adam", "lazy"), default="adam",
+    extra.add_argument("--pose-optimizer", choices=tuple(OPTIMIZER_NAMES), default="adam",
                        help="camera_opt's optimizer: torch's Adam, or benchmarks/lazy_adam.py")
     extra.add_argument("--pose-warmup", type=int, default=200, help="camera_opt's linear warm-up from 0 (steps)")
     extra.add_argument("--every", type=int, default=100)
@@ -49,8 +50,7 @@ def main() -> None:
     extent = scene_extent(clean.parent, json.loads(clean.read_text()))
     overrides = {**short_schedule(), "camera_optimizer.mode": "SO3xR3"}
     overrides.update(model_options(args.set))
-    optimizers = {"camera_opt": adam_entry(args.pose_lr, args.steps, args.pose_warmup,
-                                           args.pose_optimizer == "lazy")}
+    optimizers = {"camera_opt": adam_entry(args.pose_lr, args.steps, args.pose_warmup, args.pose_optimizer)}
     trace: list = []
     record_every(args.every, args.steps - 1, lambda pipeline: drift(pipeline, extent), trace)
     label = args.label or args.command
@@ -62,9 +62,7 @@ def main() -> None:
     stem = ROOT / "benchmarks" / f"pose_drift{args.suffix}"
     runs = json.loads(stem.with_suffix(".json").read_text()) if stem.with_suffix(".json").exists() else []
     stem.with_suffix(".json").write_text(json.dumps([*runs, record], indent=2) + "\n")
-    rows = "\n".join(f"| {t['step']} | {t['rotation_deg_mean']:.3f} / {t['rotation_deg_max']:.3f} | "
-                     f"{t['position_pct_mean']:.3f} / {t['position_pct_max']:.3f} | "
-                     f"{t['aligned_rotation_deg_mean']:.3f}, {t['aligned_position_pct_mean']:.3f} |" for t in trace)
+    rows = "\n".join(f"| {t['step']} | {error_columns(t)} |" for t in trace)
     section = f"""
 ## {label}
 

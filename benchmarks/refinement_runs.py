@@ -49,18 +49,19 @@ def short_schedule(densify_until: int = 1000) -> dict:
     return {"warmup_length": 300, "refine_every": 100, "stop_split_at": densify_until, "num_downscales": 0}
 
 
-OPTIMIZER_NAMES = {"adam": "Adam", "lazy": "LazyAdam (benchmarks/lazy_adam.py)"}  # adam_entry's lazy or not
+OPTIMIZER_NAMES = {"adam": "Adam", "lazy": "LazyAdam (benchmarks/lazy_adam.py)"}  # adam_entry's optimizers
 
 
-def adam_entry(lr: float, steps: int, warmup: int, lazy: bool = False) -> dict:
-    """An optimizer entry (nerfstudio's config): Adam (LazyAdam if `lazy`) at `lr` after a linear warm-up from 0
-    over `warmup` steps, decaying exponentially to 1e-5 at `steps`."""
+def adam_entry(lr: float, steps: int, warmup: int, optimizer: str = "adam") -> dict:
+    """An optimizer entry (nerfstudio's config): `optimizer` (an OPTIMIZER_NAMES key) at `lr` after a linear
+    warm-up from 0 over `warmup` steps, decaying exponentially to 1e-5 at `steps`."""
     from nerfstudio.engine.optimizers import AdamOptimizerConfig
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
     from lazy_adam import LazyAdamOptimizerConfig
 
-    return {"optimizer": (LazyAdamOptimizerConfig if lazy else AdamOptimizerConfig)(lr=lr, eps=1e-15),
+    config = {"adam": AdamOptimizerConfig, "lazy": LazyAdamOptimizerConfig}[optimizer]
+    return {"optimizer": config(lr=lr, eps=1e-15),
             "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=steps, warmup_steps=warmup,
                                                          lr_pre_warmup=0.0)}
 

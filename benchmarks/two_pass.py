@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from pose_bench import camera_errors
+from pose_bench import camera_errors, error_columns
 from refinement_runs import (ROOT, adam_entry, bench_args, fresh, git_commit, load_average, short_schedule,
                              small_dev_room, solved_test_metrics, train_and_score)
 
@@ -63,9 +63,7 @@ def main() -> None:
         solved = solved_test_metrics(pipeline)
         cam = camera_errors(pipeline, truth, refined=True)
         rows.append(f"| {name}: lr {lr:g}, warm-up {warmup} | {metrics['psnr']:.2f} | {solved['psnr']:.2f} | "
-                    f"{cam['rotation_deg_mean']:.3f} / {cam['rotation_deg_max']:.3f} | "
-                    f"{cam['position_pct_mean']:.3f} / {cam['position_pct_max']:.3f} | "
-                    f"{cam['aligned_rotation_deg_mean']:.3f}, {cam['aligned_position_pct_mean']:.3f} | {seconds:.0f} |")
+                    f"{error_columns(cam)} | {seconds:.0f} |")
         print(rows[-1], flush=True)
         if index == 0:
             refined = next((args.work / "runs" / tag).rglob("cameras_refined.json"))

@@ -21,7 +21,7 @@ def report_input_errors_in_one_line() -> None:
     line instead (exit status 1). Every other exception keeps its traceback. Installed by geer's trainer config for
     its own runs only."""
     previous = sys.excepthook
-    if getattr(previous, "geer_dataset_hook", False):
+    if getattr(previous, "geer_input_hook", False):
         return
 
     def hook(kind, value, traceback):
@@ -30,5 +30,5 @@ def report_input_errors_in_one_line() -> None:
         else:
             previous(kind, value, traceback)
 
-    hook.geer_dataset_hook = True  # type: ignore[attr-defined]
+    hook.geer_input_hook = True  # type: ignore[attr-defined]
     sys.excepthook = hook
