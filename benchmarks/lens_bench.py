@@ -14,8 +14,8 @@ the refined training cameras are compared with the truth. Writes benchmarks/lens
 from __future__ import annotations
 
 from pose_bench import camera_errors, error_columns
-from refinement_runs import (OPTIMIZER_NAMES, ROOT, adam_entry, bench_args, dump, fresh, git_commit, load_average,
-                             model_options, record_every, short_schedule, small_dev_room, solved_test_metrics,
+from refinement_runs import (OPTIMIZER_NAMES, ROOT, adam_entry, bench_args, dump, git_commit, load_average,
+                             model_options, perturbed_dev_room, record_every, short_schedule, solved_test_metrics,
                              train_and_score)
 
 
@@ -140,13 +140,10 @@ def main() -> None:
                        help="the training cameras' rotation (degrees) and move (fraction of the extent), the lens's "
                             "focal change (fraction) and k1 offset")
     args = bench_args(__doc__, 1000, "/tmp/geer_lens", extra)
-    from geer_ns.data.camera_perturbation import perturb_cameras
-
-    clean = small_dev_room(args.work, args.size)
-    noisy = fresh(args.work / f"lens_{args.size}")
     rotation_deg, position_fraction, focal_fraction, k1_offset = args.perturbation
-    truth = perturb_cameras(clean.parent, noisy, transforms=clean.name, rotation_deg=rotation_deg,
-                            position_fraction=position_fraction, focal_fraction=focal_fraction, k1_offset=k1_offset)
+    clean, perturbed, truth = perturbed_dev_room(
+        args.work, args.size, f"lens_{args.size}", rotation_deg=rotation_deg, position_fraction=position_fraction,
+        focal_fraction=focal_fraction, k1_offset=k1_offset)
     schedule = short_schedule(args.densify_until)
     schedule.update(model_options(args.set))
 
@@ -159,13 +156,13 @@ def main() -> None:
     lens_only = {"lens_refinement": "full", "lens_refinement_start": 200, "lens_refinement_aspect": args.aspect}
     lens = {**poses, **lens_only}
     solve = {"pose_solve_every": args.pose_solve_every, "pose_solve_iterations": args.pose_solve_iterations}
-    runs = {"perturbed, no refinement": (noisy / clean.name, {}),
-            "perturbed, SO3xR3 poses + lens full": (noisy / clean.name, lens),
+    runs = {"perturbed, no refinement": (perturbed, {}),
+            "perturbed, SO3xR3 poses + lens full": (perturbed, lens),
             "true cameras": (clean, {}),
-            "perturbed, SO3xR3 poses only": (noisy / clean.name, poses),
-            "perturbed, lens full (poses fixed)": (noisy / clean.name, lens_only),
-            "perturbed, SO3xR3 poses only + pose solve": (noisy / clean.name, {**poses, **solve}),
-            "perturbed, SO3xR3 poses + lens full + pose solve": (noisy / clean.name, {**lens, **solve})}
+            "perturbed, SO3xR3 poses only": (perturbed, poses),
+            "perturbed, lens full (poses fixed)": (perturbed, lens_only),
+            "perturbed, SO3xR3 poses only + pose solve": (perturbed, {**poses, **solve}),
+            "perturbed, SO3xR3 poses + lens full + pose solve": (perturbed, {**lens, **solve})}
     if args.only:
         runs = {k: v for k, v in runs.items() if any(part in k for part in args.only)}
     runs = {k: v for k, v in runs.items() if not any(part in k for part in args.skip)}

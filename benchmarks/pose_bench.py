@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from refinement_runs import ROOT, bench_args, dump, fresh, git_commit, load_average, small_dev_room, train_and_score
+from refinement_runs import ROOT, bench_args, dump, git_commit, load_average, perturbed_dev_room, train_and_score
 
 
 def camera_errors(pipeline, truth: dict, refined: bool) -> dict:
@@ -106,18 +106,14 @@ def main() -> None:
     from nerfstudio.engine.optimizers import AdamOptimizerConfig
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
-    from geer_ns.data.camera_perturbation import perturb_cameras
-
-    clean = small_dev_room(args.work, args.size)
-    noisy = fresh(args.work / f"poses_{args.size}")
-    truth = perturb_cameras(clean.parent, noisy, transforms=clean.name, rotation_deg=1.0, position_fraction=0.01)
+    clean, perturbed, truth = perturbed_dev_room(args.work, args.size, f"poses_{args.size}")
     schedule = {"warmup_length": 300, "refine_every": 100, "stop_split_at": 1000, "num_downscales": 0}
     camera_opt = {"camera_opt": {
         "optimizer": AdamOptimizerConfig(lr=5e-4, eps=1e-15),
         "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=args.steps, warmup_steps=200,
                                                      lr_pre_warmup=0.0)}}
-    runs = {"perturbed, no refinement": (noisy / clean.name, {}),
-            "perturbed, SO3xR3": (noisy / clean.name, {"camera_optimizer.mode": "SO3xR3"}), "true poses": (clean, {})}
+    runs = {"perturbed, no refinement": (perturbed, {}),
+            "perturbed, SO3xR3": (perturbed, {"camera_optimizer.mode": "SO3xR3"}), "true poses": (clean, {})}
     record = {"commit": git_commit(), "size": args.size, "steps": args.steps, "runs": {}}
     rows = []
     for name, (data, overrides) in runs.items():

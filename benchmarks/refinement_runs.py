@@ -83,6 +83,19 @@ def small_dev_room(work: Path, size: int, room: Path = DEV_ROOM) -> Path:
     return densification.resized_room(work, size) / "transforms_fisheye.json"
 
 
+def perturbed_dev_room(work: Path, size: int, name: str, **perturbation) -> tuple[Path, Path, dict]:
+    """(the dev room's transforms at size^2, the same room with its training cameras perturbed, written under
+    work/name, and the truth perturb_cameras returns). perturbation: perturb_cameras' keywords; 1 degree and 1 % of
+    the extent unless given (the perturbation benchmarks' default)."""
+    from geer_ns.data.camera_perturbation import perturb_cameras
+
+    clean = small_dev_room(work, size)
+    noisy = fresh(work / name)
+    truth = perturb_cameras(clean.parent, noisy, transforms=clean.name,
+                            **{"rotation_deg": 1.0, "position_fraction": 0.01, **perturbation})
+    return clean, noisy / clean.name, truth
+
+
 def train_and_score(name: str, data: Path, steps: int, overrides: dict, out: Path, optimizers: dict | None = None):
     """(ns-eval's averaged metrics of the eval split, seconds of training, the trained pipeline). overrides: model
     options (dotted: camera_optimizer.mode); optimizers: parameter group -> optimizer entry replacing geer's."""

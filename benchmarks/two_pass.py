@@ -15,8 +15,8 @@ import json
 from pathlib import Path
 
 from pose_bench import camera_errors, error_columns
-from refinement_runs import (ROOT, adam_entry, bench_args, fresh, git_commit, load_average, short_schedule,
-                             small_dev_room, solved_test_metrics, train_and_score)
+from refinement_runs import (ROOT, adam_entry, bench_args, fresh, git_commit, load_average, perturbed_dev_room,
+                             short_schedule, solved_test_metrics, train_and_score)
 
 
 def with_refined_poses(data: Path, refined: Path, out: Path) -> Path:
@@ -46,14 +46,10 @@ def main() -> None:
     extra.add_argument("--second-warmup", type=int, default=1000)
     extra.add_argument("--suffix", default="")
     args = bench_args(__doc__, 2000, "/tmp/geer_two_pass", extra)
-    from geer_ns.data.camera_perturbation import perturb_cameras
-
-    clean = small_dev_room(args.work, args.size)
-    noisy = fresh(args.work / f"two_pass_{args.size}")
-    truth = perturb_cameras(clean.parent, noisy, transforms=clean.name, rotation_deg=1.0, position_fraction=0.01)
+    _, perturbed, truth = perturbed_dev_room(args.work, args.size, f"two_pass_{args.size}")
     overrides = {**short_schedule(), "camera_optimizer.mode": "SO3xR3"}
 
-    rows, data = [], noisy / clean.name
+    rows, data = [], perturbed
     passes = (("pass 1", args.first_lr, 200), ("pass 2", args.second_lr, args.second_warmup))
     for index, (name, lr, warmup) in enumerate(passes):
         tag = name.replace(" ", "_")
@@ -67,7 +63,7 @@ def main() -> None:
         print(rows[-1], flush=True)
         if index == 0:
             refined = next((args.work / "runs" / tag).rglob("cameras_refined.json"))
-            data = with_refined_poses(noisy / clean.name, refined, fresh(args.work / f"two_pass_{args.size}_refined"))
+            data = with_refined_poses(perturbed, refined, fresh(args.work / f"two_pass_{args.size}_refined"))
     report = f"""# Pose refinement in two passes
 
 {__doc__.split(chr(10) + chr(10))[1]}
