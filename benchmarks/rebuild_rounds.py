@@ -38,8 +38,7 @@ def main() -> None:
         rows.append(f"| {index + 1} | {metrics['psnr']:.2f} | {error_columns(camera_errors(pipeline, truth, True))} "
                     f"| {seconds:.0f} |")
         print(rows[-1], flush=True)
-        refined = next((args.work / "runs" / tag).rglob("cameras_refined.json"))
-        data = with_refined_poses(perturbed, refined, fresh(args.work / f"{tag}_poses"))
+        data = with_refined_poses(perturbed, args.work / "runs" / tag, args.work / f"{tag}_poses")
     report = f"""# Pose refinement by rebuilding the scene
 
 {__doc__.split(chr(10) + chr(10))[1]}

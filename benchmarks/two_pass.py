@@ -19,12 +19,16 @@ from refinement_runs import (ROOT, adam_entry, bench_args, fresh, git_commit, lo
                              short_schedule, solved_test_metrics, train_and_score)
 
 
-def with_refined_poses(data: Path, refined: Path, out: Path) -> Path:
-    """A copy of the dataset folder holding `data` (a transforms file) at `out`, its frames' poses replaced by
-    those of the run's cameras_refined.json `refined` (matched by image file name); returns its transforms."""
+def with_refined_poses(data: Path, run: Path, out: Path) -> Path:
+    """A copy of the dataset folder holding `data` (a transforms file) at `out` (replaced if present), its frames'
+    poses replaced by those of the cameras_refined.json the training run under `run` exported (matched by image
+    file name); returns its transforms."""
     import shutil
 
-    shutil.copytree(data.parent, out)
+    refined = next(run.rglob("cameras_refined.json"), None)
+    if refined is None:
+        raise FileNotFoundError(f"{run}: the run exported no cameras_refined.json")
+    shutil.copytree(data.parent, fresh(out))
     meta = json.loads(data.read_text())
     poses = {Path(f["file_path"]).name: f["transform_matrix"] for f in json.loads(refined.read_text())["frames"]}
     replaced = 0
@@ -62,8 +66,7 @@ def main() -> None:
                     f"{error_columns(cam)} | {seconds:.0f} |")
         print(rows[-1], flush=True)
         if index == 0:
-            refined = next((args.work / "runs" / tag).rglob("cameras_refined.json"))
-            data = with_refined_poses(perturbed, refined, fresh(args.work / f"two_pass_{args.size}_refined"))
+            data = with_refined_poses(perturbed, args.work / "runs" / tag, args.work / f"two_pass_{args.size}_refined")
     report = f"""# Pose refinement in two passes
 
 {__doc__.split(chr(10) + chr(10))[1]}
