@@ -1,7 +1,7 @@
-"""Exposure / white balance / vignetting compensation on the dev fisheye room (geer_ns/appearance.py).
+"""Exposure / white balance / vignetting compensation on the dev fisheye room (geer_ns/refinement/appearance.py).
 
 The dev room at --size^2 gets per-frame exposure (+-0.7 stops) and white balance (sigma 0.15) and a
-cos(theta/2)^4 vignetting, in linear light (geer_ns/data/appearance_variant.py; the test frames keep the
+cos(theta/2)^4 vignetting, in linear light (benchmarks/appearance_variant.py; the test frames keep the
 neutral exposure, the vignetting is the camera's). Two runs of --steps steps from the same seed: without
 compensation and with --pipeline.model.appearance exposure; both scored on the test split as ns-eval does
 (plain PSNR / SSIM and the colour-corrected psnr_cc / ssim_cc). Writes benchmarks/appearance.md.
@@ -16,7 +16,7 @@ from refinement_runs import ROOT, bench_args, dump, fresh, git_commit, load_aver
 
 def main() -> None:
     args = bench_args(__doc__, 1000, "/tmp/geer_appearance")
-    from geer_ns.data.appearance_variant import make_variant
+    from benchmarks.appearance_variant import make_variant
 
     clean = small_dev_room(args.work, args.size)
     variant = fresh(args.work / f"exposure_{args.size}")
@@ -36,11 +36,11 @@ def main() -> None:
     report = f"""# Exposure, white balance and vignetting compensation
 
 - data: the dev fisheye room at {args.size}x{args.size} (`benchmarks/refinement_runs.small_dev_room`), through
-  `geer_ns/data/appearance_variant.py` (per-frame exposure +-0.7 stops, white balance sigma 0.15, vignetting
+  `benchmarks/appearance_variant.py` (per-frame exposure +-0.7 stops, white balance sigma 0.15, vignetting
   cos(theta/2)^4, in linear light; test frames at neutral exposure, with the camera's vignetting)
 - runs: {args.steps} steps each, warm-up 300, refinement every 100 until step 1000, full resolution, same seed;
   scored on the test split (6 views) as ns-eval does (valid pixels; psnr_cc / ssim_cc after a per-image affine
-  colour fit to the ground truth: geer_ns/color_metrics.py)
+  colour fit to the ground truth: geer_ns/metrics/color_corrected.py)
 - device: CPU, 2 cores shared with other jobs (load average {load_average()} when written; one run each)
 - commit: {record['commit']} (+ the working tree that adds this file)
 - command: `python benchmarks/appearance_bench.py --size {args.size} --steps {args.steps}`

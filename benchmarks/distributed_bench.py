@@ -161,7 +161,7 @@ def run_worker(args, main=None) -> None:
         return
     from nerfstudio.scripts.train import launch
 
-    from geer_ns.distributed.trainer import install_run_fixes
+    from geer_ns.training.trainer import install_run_fixes
 
     install_run_fixes()  # what ns-train's main installs before it launches (geer's CPU worker among them)
     launch(main, num_devices_per_machine=args.processes, device_type="cpu", config=cfg)

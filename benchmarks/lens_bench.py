@@ -2,7 +2,7 @@
 
 The dev room at --size^2; every training camera turned by 1 degree about a random axis and moved by 1 % of the
 scene's extent, and the lens (every image's, test images' too) with its focal lengths 2 % long and k1 moved by
-0.02 (geer_ns/data/camera_perturbation.py, seed 0). Runs of --steps steps from the same seed: the true cameras,
+0.02 (benchmarks/camera_perturbation.py, seed 0). Runs of --steps steps from the same seed: the true cameras,
 the perturbed ones without refinement, with pose refinement only (SO3xR3), and with pose and lens refinement
 (`lens_refinement full`), each also with the Levenberg-Marquardt pose solve (`pose_solve_every`). Scored on
 the test split as ns-eval does (test images: true poses, the run's lens);
@@ -21,7 +21,7 @@ from refinement_runs import (OPTIMIZER_NAMES, ROOT, adam_entry, bench_args, dump
 
 def lens_errors(pipeline, truth: dict) -> dict:
     """Relative focal error (%, mean of fx and fy) and the k1 error of the (first) training camera."""
-    from geer_ns.refined_cameras import refined_cameras
+    from geer_ns.refinement.refined_cameras import refined_cameras
 
     cam = refined_cameras(pipeline)[0][0]
     scale = float(pipeline.datamanager.train_dataparser_outputs.cameras.width[0, 0]) / truth["intrinsics"]["w"] \
@@ -75,7 +75,7 @@ def _report(args, record: dict, rows: list, traces: list) -> str:
   equidistant fisheye; BEAP supervision, the crop circle keeps its rays within 84 degrees, so every BEAP target
   is resampled once through the perturbed lens and its cells rendered along the refined lens's rays), every
   training camera turned by {rot:g} degree(s) about a random axis and moved by {pos:g} % of the scene's extent,
-  the lens (all images) with focal lengths {focal:+g} % and k1 {k1:+g} (`geer_ns/data/camera_perturbation.py`,
+  the lens (all images) with focal lengths {focal:+g} % and k1 {k1:+g} (`benchmarks/camera_perturbation.py`,
   seed 0; test poses true)
 - runs: {args.steps} steps each, warm-up 300, refinement every 100 until step {args.densify_until}, full resolution
   unless options say otherwise, same seed; model options {record['options']}.
@@ -86,7 +86,7 @@ def _report(args, record: dict, rows: list, traces: list) -> str:
   `--pipeline.model.lens-refinement full --pipeline.model.lens-refinement-start 200`, Adam (lens_opt) lr
   {args.lens_lr:g} after a 200-step warm-up, decaying to 1e-5; gradients from the CPU build of the kernels. Pose
   solve: `--pipeline.model.pose-solve-every {args.pose_solve_every} --pipeline.model.pose-solve-iterations
-  {args.pose_solve_iterations}` (geer_ns/pose_solve.py)
+  {args.pose_solve_iterations}` (geer_ns/refinement/pose_solve.py)
 - lens map: how far (pixels) the refined lens moves each ray the true lens sees, mean / max over the image
   circle (independent of how focal and distortion coefficients trade off)
 - camera errors: training cameras against the truth mapped into the dataparser's frame (no re-alignment; mean /
@@ -95,7 +95,7 @@ def _report(args, record: dict, rows: list, traces: list) -> str:
   fix, removed as BARF-style benchmarks do); focal in % (mean of fx and fy), k1 absolute, principal point in pixels
 - scored on the test split (6 views, true poses, the run's lens: refined where refined) as ns-eval does: with
   pose refinement in the refined frame (the test poses moved by the similarity that maps the given training
-  poses onto the refined ones, geer_ns/refined_frame.py; the training cameras' errors are those of the poses as
+  poses onto the refined ones, geer_ns/refinement/refined_frame.py; the training cameras' errors are those of the poses as
   exported, mapped back); "as given": the test views at their given poses; "test poses solved": each test view's
   pose solved against the trained scene first (the test-time pose alignment of pose-refinement benchmarks:
   `refinement_runs.solved_test_metrics`)

@@ -1,4 +1,4 @@
-"""Pose refinement on the dev fisheye room with perturbed training poses (geer_ns/data/camera_perturbation.py).
+"""Pose refinement on the dev fisheye room with perturbed training poses (benchmarks/camera_perturbation.py).
 
 The dev room at --size^2; every training camera turned by 1 degree about a random axis and moved by 1 % of the
 scene's extent (test cameras true). Three runs of --steps steps from the same seed: the true poses, the
@@ -25,8 +25,8 @@ def camera_errors(pipeline, truth: dict, refined: bool) -> dict:
     outputs = pipeline.datamanager.train_dataparser_outputs
     cameras = pipeline.datamanager.train_dataset.cameras
     c2w = cameras.camera_to_worlds.detach().clone()
-    if refined:  # as the run exports them: in the given frame (geer_ns/refined_frame.py)
-        from geer_ns.refined_cameras import refined_poses
+    if refined:  # as the run exports them: in the given frame (geer_ns/refinement/refined_frame.py)
+        from geer_ns.refinement.refined_cameras import refined_poses
 
         c2w = refined_poses(pipeline).to(c2w.dtype)
     transform = torch.cat([outputs.dataparser_transform, torch.tensor([[0.0, 0.0, 0.0, 1.0]])]).double()
@@ -44,7 +44,7 @@ def error_summary(c2w: np.ndarray, true: np.ndarray, scale: float, extent: float
     """Mean / max rotation (degrees) and position (% of `extent`, a length in the data's units; `scale` the
     dataparser's) errors of camera-to-worlds [N, 3, 4] against `true`, as they are and (keys aligned_...) after
     similarity_aligned."""
-    from geer_ns.data.camera_perturbation import pose_errors
+    from benchmarks.camera_perturbation import pose_errors
 
     errors = {}
     for prefix, estimate in (("", c2w), ("aligned_", similarity_aligned(c2w, true))):
@@ -85,7 +85,7 @@ def _report(args, record: dict, truth: dict, rows: list) -> str:
 
 - data: the dev fisheye room at {args.size}x{args.size} (`benchmarks/refinement_runs.small_dev_room`), every
   training camera turned by 1 degree about a random axis and moved by 1 % of the scene's extent
-  (`geer_ns/data/camera_perturbation.py`, seed 0; test cameras true)
+  (`benchmarks/camera_perturbation.py`, seed 0; test cameras true)
 - runs: {args.steps} steps each, warm-up 300, refinement every 100 until step 1000, full resolution, same seed;
   SO3xR3: nerfstudio's camera optimizer, Adam lr 5e-4 after a 200-step warm-up, decaying to 1e-5; pose
   gradients from the CPU build of the kernels

@@ -21,7 +21,7 @@ from refinement_runs import (OPTIMIZER_NAMES, ROOT, adam_entry, bench_args, git_
 
 def drift(pipeline, extent: float) -> dict:
     """pose_bench.error_summary of the training cameras' adjusted poses against their given (true) ones."""
-    from geer_ns.refined_frame import adjusted_poses
+    from geer_ns.refinement.refined_frame import adjusted_poses
     from pose_bench import error_summary
 
     given = pipeline.datamanager.train_dataset.cameras.camera_to_worlds.detach().double()
@@ -44,7 +44,7 @@ def main() -> None:
     extra.add_argument("--label", default="", help="the run's name in the report")
     extra.add_argument("--suffix", default="")
     args = bench_args(__doc__, 2000, "/tmp/geer_drift", extra)
-    from geer_ns.data.camera_perturbation import scene_extent
+    from benchmarks.camera_perturbation import scene_extent
 
     clean = small_dev_room(args.work, args.size)
     extent = scene_extent(clean.parent, json.loads(clean.read_text()))

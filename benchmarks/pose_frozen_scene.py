@@ -86,7 +86,7 @@ def main() -> None:
 
     from nerfstudio.engine.optimizers import AdamOptimizerConfig
 
-    from geer_ns.data.camera_perturbation import scene_extent
+    from benchmarks.camera_perturbation import scene_extent
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--size", type=int, default=128)
@@ -97,7 +97,7 @@ def main() -> None:
     parser.add_argument("--rotation", type=float, default=1.0, help="degrees")
     parser.add_argument("--position", type=float, default=0.01, help="fraction of the scene's extent")
     parser.add_argument("--solver", choices=("adam", "lm"), default="adam",
-                        help="adam: the camera optimizer's steps; lm: one pass of geer_ns/pose_solve.py")
+                        help="adam: the camera optimizer's steps; lm: one pass of geer_ns/refinement/pose_solve.py")
     parser.add_argument("--iterations", type=int, default=2, help="--solver lm: iterations per blur level")
     parser.add_argument("--blur-levels", nargs="+", default=["4,2,1,0"],
                         help="--solver lm: blur schedules (pixels, coarse to fine, comma-separated), one pass each")
@@ -114,7 +114,7 @@ def main() -> None:
     outputs = pipeline.datamanager.train_dataparser_outputs
     extent = scene_extent(transforms.parent, json.loads(transforms.read_text())) * float(outputs.dataparser_scale)
     if args.solver == "lm":
-        from geer_ns.pose_solve import solve_poses
+        from geer_ns.refinement.pose_solve import solve_poses
 
         history = []
         for schedule_text in args.blur_levels:

@@ -3,7 +3,7 @@ Levenberg-Marquardt solve of every training camera against it.
 
 The dev room at --size^2 with every training camera turned by 1 degree and moved by 1 % of the extent (seed 0,
 test poses true, lens true). Each round trains a new scene for --steps steps with the poses held (camera_opt at
-lr 1e-8: no Adam wander), solves every camera at its last step (geer_ns/pose_solve.py, 2 iterations per blur
+lr 1e-8: no Adam wander), solves every camera at its last step (geer_ns/refinement/pose_solve.py, 2 iterations per blur
 level), and hands the solved poses (the run's cameras_refined.json) to the next round: alternation in which no
 scene keeps the memory of poses already corrected. Writes benchmarks/rebuild_rounds{suffix}.md.
 

@@ -87,7 +87,7 @@ def perturbed_dev_room(work: Path, size: int, name: str, **perturbation) -> tupl
     """(the dev room's transforms at size^2, the same room with its training cameras perturbed, written under
     work/name, and the truth perturb_cameras returns). perturbation: perturb_cameras' keywords; 1 degree and 1 % of
     the extent unless given (the perturbation benchmarks' default)."""
-    from geer_ns.data.camera_perturbation import perturb_cameras
+    from benchmarks.camera_perturbation import perturb_cameras
 
     clean = small_dev_room(work, size)
     noisy = fresh(work / name)
@@ -150,9 +150,9 @@ def record_every(every: int, last: int, measure, into: list) -> None:
 
 def solved_test_metrics(pipeline, iterations: int = 2) -> dict:
     """ns-eval's averaged metrics of the eval split after each test view's pose is solved against the trained
-    scene (geer_ns.pose_solve.solve_view_pose): the test-time pose alignment of pose-refinement benchmarks
+    scene (geer_ns.refinement.pose_solve.solve_view_pose): the test-time pose alignment of pose-refinement benchmarks
     (BARF's protocol), which takes out the small rigid motion between a refined scene and the given test poses."""
-    from geer_ns.pose_solve import solve_view_pose
+    from geer_ns.refinement.pose_solve import solve_view_pose
 
     views = [(solve_view_pose(pipeline.model, camera, batch, iterations), batch)
              for camera, batch in pipeline.datamanager.fixed_indices_eval_dataloader]

@@ -13,7 +13,7 @@ from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from geer_ns.data.datamanager import GeerDataManagerConfig
-from geer_ns.distributed.trainer import GeerMachineConfig, GeerTrainerConfig
+from geer_ns.training.trainer import GeerMachineConfig, GeerTrainerConfig
 from geer_ns.model import GeerModelConfig
 from geer_ns.options import OWN_OPTIONS_HELP
 from geer_ns.pipeline import GeerPipelineConfig

@@ -42,20 +42,20 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from geer_ns import compat, depth_supervision, resume
 from geer_ns import outputs as geer_outputs
-from geer_ns.appearance import Appearance
-from geer_ns.color_metrics import color_corrected_metrics
+from geer_ns.refinement.appearance import Appearance
+from geer_ns.metrics.color_corrected import color_corrected_metrics
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, host_camera_model, native_view
-from geer_ns.lens_refinement import LensRefinement
+from geer_ns.refinement.lens import LensRefinement
 from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angular_signal
 from geer_ns.densify.strategy import GeerDefaultStrategy, build_strategy
 from geer_ns.errors import OptionError
 from geer_ns.distributed.engine import EngineState
-from geer_ns.metrics import central_region, downscale_mask, masked_psnr, region_psnr
+from geer_ns.metrics.regions import central_region, downscale_mask, masked_psnr, region_psnr
 from geer_ns.options import GeerOwnOptions, ignored_options_set
-from geer_ns.perceptual import build_lpips_if_cached
-from geer_ns.pose_solve import PoseSolver
-from geer_ns.refined_frame import RefinedFrame, scene_pose
+from geer_ns.metrics.perceptual import build_lpips_if_cached
+from geer_ns.refinement.pose_solve import PoseSolver
+from geer_ns.refinement.refined_frame import RefinedFrame, scene_pose
 from geer_ns.render import render
 from geer_ns.render.backend import announce_backend
 from geer_ns.render.normals import render_normals
@@ -231,7 +231,7 @@ class GeerModel(SplatfactoModel):
     def view_for(self, camera: Cameras) -> View:
         """The ray grid a camera is rendered on: its cached BEAP view for BEAP-supervised training batches,
         else its own pixel rays (downscaled by splatfacto's resolution schedule while training); through the
-        refined lens when lens refinement is on (geer_ns/lens_refinement.py)."""
+        refined lens when lens refinement is on (geer_ns/refinement/lens.py)."""
         kind = (camera.metadata or {}).get(VIEW_KEY, "native") if self.training else "native"
         factor = self._get_downscale_factor()
         model = host_camera_model(camera)
@@ -313,7 +313,7 @@ class GeerModel(SplatfactoModel):
     def render_pose(self, camera: Cameras) -> Tensor:
         """[3, 4] the camera-to-world a render of `camera` (one camera) uses: while training, the training image's
         with its pose adjustment; otherwise the camera as given in the data's frame, mapped into the scene's when
-        poses are refined (geer_ns/refined_frame.py)."""
+        poses are refined (geer_ns/refinement/refined_frame.py)."""
         if self.training:
             if not self.refining_poses:
                 return camera.camera_to_worlds[0]

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import List, Literal, Optional, Tuple
 
-from geer_ns.lens_refinement import LensMode
+from geer_ns.refinement.lens import LensMode
 from geer_ns.render.backend import Backend
 from geer_ns.render.pbf import LambdaMode
 from geer_ns.selftest.sentinel import DEFAULT_EVERY
@@ -52,14 +52,14 @@ class GeerOwnOptions:
     appearance: Literal["off", "exposure"] = "off"
     """"exposure": a per-image exposure and white balance and the camera's vignetting (radial falloff in the
     ray's angle from the optical axis), applied in linear light to each rendered training image; evaluation
-    renders neutral exposure with the learnt vignetting (geer_ns/appearance.py). use-bilateral-grid is the other
+    renders neutral exposure with the learnt vignetting (geer_ns/refinement/appearance.py). use-bilateral-grid is the other
     option."""
     appearance_reg: float = 0.1
     """appearance=exposure: weight pulling the images' mean log gain to zero."""
     lens_refinement: LensMode = "off"
     """Refine each training camera's intrinsics (per distinct camera, not per image): "focal" (focal lengths),
     "focal+principal" (and the principal point) or "full" (and every distortion coefficient), through the rays
-    they define (geer_ns/lens_refinement.py; optimizer lens_opt). The refined cameras go to
+    they define (geer_ns/refinement/lens.py; optimizer lens_opt). The refined cameras go to
     <run>/cameras_refined.json and colmap/cameras.txt with every checkpoint."""
     lens_refinement_start: int = 500
     """lens-refinement: the step from which renders use (and train) the refined intrinsics."""
@@ -72,7 +72,7 @@ class GeerOwnOptions:
     sets in around them: a later start keeps good (SfM) poses good; rough ones need 0 (docs/refinement.md)."""
     pose_solve_every: int = 0
     """With camera-optimizer.mode SO3xR3 or SE3: every this many steps, hold the scene and solve each training
-    camera's pose adjustments by Levenberg-Marquardt on its image's residuals (0: off; geer_ns/pose_solve.py).
+    camera's pose adjustments by Levenberg-Marquardt on its image's residuals (0: off; geer_ns/refinement/pose_solve.py).
     Adam's one-image steps leave poses short of where the scene puts them (docs/refinement.md)."""
     pose_solve_iterations: int = 2
     """pose-solve-every: Levenberg-Marquardt iterations per camera at each of the solve's four blur levels (an
@@ -81,7 +81,7 @@ class GeerOwnOptions:
     """With camera-optimizer.mode SO3xR3 or SE3: render cameras from outside training (ns-eval's test views, the
     viewer's, ns-render's) in the frame the scene and its refined cameras drifted to together, moved by the
     similarity that best maps the given training poses onto the refined ones; the refined poses are exported
-    mapped back into the given frame (geer_ns/refined_frame.py). False: render them as given."""
+    mapped back into the given frame (geer_ns/refinement/refined_frame.py). False: render them as given."""
     mcmc_cap_max: int = 1_000_000
     """strategy=mcmc: most Gaussians (gsplat MCMCStrategy cap_max)."""
     mcmc_noise_lr: float = 5e5

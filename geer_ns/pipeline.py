@@ -21,8 +21,8 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineC
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from geer_ns.data.views import camera_kind
-from geer_ns.lens_refinement import attach
-from geer_ns.refined_frame import RefinedFrame
+from geer_ns.refinement.lens import attach
+from geer_ns.refinement.refined_frame import RefinedFrame
 
 # Per-image timings are not split by camera kind (ns-eval's fps is not a render speed anyway).
 _NOT_SPLIT = ("num_rays_per_sec", "fps")

@@ -1,4 +1,4 @@
-"""Exposure / white balance / vignetting (geer_ns/appearance.py) and the colour-corrected metrics."""
+"""Exposure / white balance / vignetting (geer_ns/refinement/appearance.py) and the colour-corrected metrics."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from geer_ns.appearance import Appearance, linear_to_srgb, ray_angles, srgb_to_linear
-from geer_ns.color_metrics import affine_color_fit, color_corrected_metrics
+from geer_ns.refinement.appearance import Appearance, linear_to_srgb, ray_angles, srgb_to_linear
+from geer_ns.metrics.color_corrected import affine_color_fit, color_corrected_metrics
 
 
 def test_srgb_curve_matches_the_standard():
@@ -123,27 +123,3 @@ def test_model_applies_the_appearance_while_training_and_reports_psnr_cc(kind, m
     gt = (out["rgb"] * 0.8 * 255).round().to(torch.uint8)  # the test image at another exposure
     metrics, _ = model.get_image_metrics_and_images(out, {"image": gt})
     assert metrics["psnr_cc"] > metrics["psnr"] + 10 and "ssim_cc" in metrics
-
-
-def test_variant_records_its_gains_and_leaves_eval_frames_neutral(tmp_path):
-    import json
-
-    import cv2
-    from conftest import copy_room
-
-    from geer_ns.data.appearance_variant import TRUTH_NAME, make_variant
-
-    src = copy_room(tmp_path / "room", 4, n_eval=1)
-    truth = make_variant(src, tmp_path / "variant", exposure_stops=0.5, white_balance=0.1, vignetting=4.0)
-    meta = json.loads((tmp_path / "variant" / "transforms.json").read_text())
-    assert json.loads((tmp_path / "variant" / TRUTH_NAME).read_text()) == truth
-    assert truth["frames"][meta["test_filenames"][0]] == [0.0, 0.0, 0.0]
-    size = meta["w"]
-    for frame, old in zip(meta["frames"], json.loads((src / "transforms.json").read_text())["frames"]):
-        new = cv2.imread(str(tmp_path / "variant" / frame["file_path"]))[..., ::-1] / 255.0
-        ref = cv2.imread(str(src / old["file_path"]))[..., ::-1] / 255.0
-        c = size // 2  # the optical axis: no vignetting, the gains alone (in linear light)
-        lin = lambda x: np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)  # noqa: E731
-        centre = (slice(c - 2, c + 2), slice(c - 2, c + 2))
-        ratio = lin(new[centre]).sum((0, 1)) / lin(ref[centre]).sum((0, 1))
-        assert np.allclose(np.log(ratio), truth["frames"][frame["file_path"]], atol=0.03)

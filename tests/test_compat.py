@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from geer_ns import compat, perceptual
+from geer_ns import compat
+from geer_ns.metrics import perceptual
 from geer_ns.data.datamanager import pin_if_possible
 from geer_ns.data.ply import read_ply_points
 

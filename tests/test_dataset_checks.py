@@ -261,7 +261,7 @@ def test_ns_train_ends_on_a_broken_dataset_with_its_line_not_a_traceback():
 
     def run(error: str) -> subprocess.CompletedProcess:
         # What ns-train's main does first for a geer config (GeerTrainerConfig.set_timestamp installs the run fixes).
-        code = ("from geer_ns.distributed.trainer import install_run_fixes\ninstall_run_fixes()\n"
+        code = ("from geer_ns.training.trainer import install_run_fixes\ninstall_run_fixes()\n"
                 f"from geer_ns.data.dataset_checks import DatasetError\nraise {error}")
         return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
 

@@ -48,7 +48,7 @@ def _launch(config, log: Path, main=harness.main) -> None:
     """Two CPU processes through nerfstudio's launcher, their output in `log`."""
     from nerfstudio.scripts.train import launch
 
-    from geer_ns.distributed.trainer import install_run_fixes
+    from geer_ns.training.trainer import install_run_fixes
 
     install_run_fixes()  # what ns-train's main does first for a geer config (GeerTrainerConfig.set_timestamp)
     with _output_to(log):

@@ -1,4 +1,4 @@
-"""Lens refinement (geer_ns/lens_refinement.py): the gradient of a rendered image with respect to a camera's
+"""Lens refinement (geer_ns/refinement/lens.py): the gradient of a rendered image with respect to a camera's
 focal lengths, principal point and distortion against float64 central differences of the whole render (the
 camera module's own unprojection of the moved intrinsics, independent of the refinement's Newton refresh), the
 refreshed rays against that unprojection, and a few steps of refinement pulling a perturbed focal length back
@@ -17,7 +17,7 @@ from test_pose_gradients import with_dirs
 from geer_ns.cameras import FOVCamera, MeiCamera, OpenCVFisheyeCamera, PinholeCamera
 from geer_ns.data.beap import resample_to_beap
 from geer_ns.data.views import NativeView, beap_view
-from geer_ns.lens_refinement import LensRefinement, refined_fields, refined_parameters
+from geer_ns.refinement.lens import LensRefinement, refined_fields, refined_parameters
 from geer_ns.render import RayGrid, render
 
 F64 = torch.float64
@@ -221,7 +221,7 @@ def test_model_trains_each_cameras_lens_and_vignetting(ops):
     through camera 1's refined lens."""
     from nerfstudio.cameras.cameras import Cameras as NsCameras
 
-    from geer_ns.lens_refinement import attach
+    from geer_ns.refinement.lens import attach
     from test_nerfstudio_model import fisheye_camera, make_model
 
     model = make_model(n=60, appearance="exposure", lens_refinement="focal+principal", lens_refinement_start=0)

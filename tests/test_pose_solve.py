@@ -1,4 +1,4 @@
-"""The Levenberg-Marquardt pose solve (geer_ns/pose_solve.py): the solver on least-squares problems of known
+"""The Levenberg-Marquardt pose solve (geer_ns/refinement/pose_solve.py): the solver on least-squares problems of known
 minimum, and the solve of a geer model's training poses (and of a held-out view's pose) against images rendered
 at ground-truth poses."""
 
@@ -9,7 +9,7 @@ import math
 import pytest
 import torch
 
-from geer_ns.pose_solve import adjusted_camera, coarse_to_fine, levenberg_marquardt, solve_poses, solve_view_pose
+from geer_ns.refinement.pose_solve import adjusted_camera, coarse_to_fine, levenberg_marquardt, solve_poses, solve_view_pose
 
 F64 = torch.float64
 
@@ -141,7 +141,7 @@ def test_adjusted_camera_moves_as_nerfstudios_camera_optimizer():
 
 
 def test_blurred_is_the_identity_at_zero_and_a_normalised_gaussian_inside_the_mask():
-    from geer_ns.pose_solve import blurred
+    from geer_ns.refinement.pose_solve import blurred
 
     image = torch.zeros(31, 31, 1, dtype=F64)  # a delta far enough from the edges that the mask is all ones
     image[15, 15] = 1.0
@@ -173,7 +173,7 @@ def test_solver_survives_a_coordinate_the_residuals_ignore():
 def test_the_callback_solves_at_multiples_of_every_and_resets_the_momentum(monkeypatch, start, solved_at):
     from types import SimpleNamespace
 
-    import geer_ns.pose_solve as pose_solve
+    import geer_ns.refinement.pose_solve as pose_solve
 
     calls, steps = [], []
     monkeypatch.setattr(pose_solve, "solve_poses", lambda model, dm, indices, iterations: calls.append(

@@ -1,4 +1,4 @@
-"""cameras_refined.json and colmap/ (geer_ns/refined_cameras.py) read back by geer's transforms.json parser (mapped
+"""cameras_refined.json and colmap/ (geer_ns/refinement/refined_cameras.py) read back by geer's transforms.json parser (mapped
 into the run's frame), by `geer-process-data --calibration` and by pycolmap: the refined intrinsics and poses
 come back. The reference is what was written (the lens module's refined cameras, nerfstudio's camera optimizer),
 read through code that does not write; and the model-level hook: a training step of a tiny model refines the lens
@@ -20,9 +20,9 @@ from geer_ns.cameras import FOVCamera, Fisheye624Camera, MeiCamera, OpenCVFishey
 from geer_ns.data.nerfstudio_parser import GeerNerfstudioDataParserConfig
 from geer_ns.data.synthetic_room import default_scene_dir
 from geer_ns.data.views import camera_model
-from geer_ns.lens_refinement import LensRefinement
+from geer_ns.refinement.lens import LensRefinement
 from geer_ns.process_data.camera import read_calibration
-from geer_ns.refined_cameras import FILE_NAME, colmap_camera, nerfstudio_intrinsics, refined_poses, write_refined_cameras
+from geer_ns.refinement.refined_cameras import FILE_NAME, colmap_camera, nerfstudio_intrinsics, refined_poses, write_refined_cameras
 
 pytestmark = pytest.mark.filterwarnings("ignore:Using a non-tuple sequence:UserWarning")
 

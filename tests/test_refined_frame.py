@@ -1,4 +1,4 @@
-"""The refined frame (geer_ns/refined_frame.py): the similarity fit on poses moved by a known one, its
+"""The refined frame (geer_ns/refinement/refined_frame.py): the similarity fit on poses moved by a known one, its
 degenerate cases, and a whole pipeline whose scene and training cameras drifted together by a rigid motion (the
 gauge no image sees): ns-eval's test view then scores as before the drift, and the exported refined poses are the
 given ones."""
@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from conftest import copy_room, tiny_trainer_config
-from geer_ns.refined_frame import RefinedFrame, fit_similarity
+from geer_ns.refinement.refined_frame import RefinedFrame, fit_similarity
 
 F64 = torch.float64
 
@@ -159,8 +159,8 @@ def test_a_test_view_renders_as_before_the_scene_and_cameras_drifted_together(dr
 
 
 def test_the_exported_refined_poses_are_the_given_ones_when_only_the_gauge_moved(drifted):
-    from geer_ns.refined_cameras import refined_poses
-    from geer_ns.refined_frame import adjusted_poses
+    from geer_ns.refinement.refined_cameras import refined_poses
+    from geer_ns.refinement.refined_frame import adjusted_poses
 
     pipeline = drifted[0]
     given = pipeline.datamanager.train_dataset.cameras.camera_to_worlds.double()

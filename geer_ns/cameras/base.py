@@ -23,7 +23,7 @@ def _safe_norm(v: Tensor) -> Tensor:
 
 def _is_zero(value) -> bool:
     """True for a coefficient that is exactly 0 and fixed; a tensor (a coefficient being refined, maybe 0 now)
-    is never 'zero', so that the terms it scales stay in the graph (geer_ns/lens_refinement.py)."""
+    is never 'zero', so that the terms it scales stay in the graph (geer_ns/refinement/lens.py)."""
     return not isinstance(value, Tensor) and value == 0
 
 

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from geer_ns.cameras import CameraModel, OpenCVFisheyeCamera, PinholeCamera
 from geer_ns.compare.resample import landing, resample, to_uint8
-from geer_ns.metrics import central_region
+from geer_ns.metrics.regions import central_region
 
 _SPLITS = ("train_filenames", "val_filenames", "test_filenames")
 _CAMERA_KEYS = ("camera_model", "fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2",

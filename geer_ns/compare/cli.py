@@ -42,7 +42,7 @@ class Compare:
         from geer_ns.compare.capture import load_capture
         from geer_ns.compare.methods import plan
         from geer_ns.compare.run import lpips_metric, run_method
-        from geer_ns.perceptual import alexnet_weights_path
+        from geer_ns.metrics.perceptual import alexnet_weights_path
 
         if self.steps < 1:
             raise ValueError(f"--steps {self.steps}: must be at least 1")

@@ -12,7 +12,7 @@ from typing import Dict, List, Optional
 import torch
 from torch import Tensor
 
-from geer_ns.metrics import masked_psnr as psnr_where
+from geer_ns.metrics.regions import masked_psnr as psnr_where
 from geer_ns.cameras import CameraModel, EquidistantCamera, PinholeCamera
 from geer_ns.compare.capture import Capture
 from geer_ns.compare.methods import Method, schedule
@@ -148,7 +148,7 @@ def run_method(method: Method, steps: int, capture: Capture, out_dir: Path, lpip
 
 def lpips_metric(device: Optional[torch.device] = None):
     """torchmetrics' LPIPS (AlexNet) when its weights are cached, else None (no download)."""
-    from geer_ns import perceptual
+    from geer_ns.metrics import perceptual
 
     metric = perceptual.build_lpips_if_cached()
     return None if metric is None else metric.to(device or "cpu")

@@ -8,7 +8,7 @@ host pitfalls (../shared/HOST-PITFALLS.md) worked around only inside these runs:
 * splatfacto never passes `camera_model` to gsplat: `gsplat_camera_model` ("fisheye": gsplat's EWA with the
   equidistant fisheye Jacobian, FisheyeGS-like) is added to its call;
 * torchmetrics' LPIPS downloads AlexNet when the model is built: it is built only from cached weights
-  (geer_ns.perceptual.build_lpips_if_cached), else a NaN stand-in (geer-compare scores LPIPS itself);
+  (geer_ns.metrics.perceptual.build_lpips_if_cached), else a NaN stand-in (geer-compare scores LPIPS itself);
 * nerfstudio-data's point cloud is read with open3d (needs libusb): read with plyfile instead;
 * `cache_images="cpu"` pins memory (fails without a GPU): the images are cached on the training device.
 
@@ -30,7 +30,7 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, Nerfst
 from nerfstudio.models import splatfacto as splatfacto_module
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 
-from geer_ns import perceptual
+from geer_ns.metrics import perceptual
 from geer_ns.data.ply import read_ply_points
 from geer_ns.compare import ewa_cpu
 

@@ -6,7 +6,7 @@ cropped) and then treats every camera as a pinhole. geer renders any camera exac
 * every image keeps its camera type, distortion and size;
 * every image gets a validity mask: camera-valid, ``mask_path`` mask, fisheye crop circle
   (``fisheye_crop_radius``, or, for a fisheye without either, the image circle detected from its images);
-* training views are cached in the view each camera is supervised in (geer_ns.data.supervision: BEAP,
+* training views are cached in the view each camera is supervised in (geer_ns.data.view_choice: BEAP,
   resampled once into the camera's BEAP grid, the same grid object the model renders, or native rays for
   a camera whose rays reach 90 degrees); the choice and the pixel counts are said once at start-up;
 * eval views stay in native pixels with their validity mask, so metrics are computed where the camera
@@ -39,7 +39,7 @@ from geer_ns.data.dataset_checks import check_transforms_json
 from geer_ns.data.depth import TARGET_KEY, sensor_distance
 from geer_ns.data.image_circle import detect_image_circle_from_files
 from geer_ns.data.nerfstudio_parser import CROP_RADIUS_KEY, GeerNerfstudio, GeerNerfstudioDataParserConfig
-from geer_ns.data.supervision import Supervision, SupervisionReport, beap_covered, choose_view
+from geer_ns.data.view_choice import Supervision, SupervisionReport, beap_covered, choose_view
 from geer_ns.data.ply import read_ply_points
 from geer_ns.data.views import HOST_MODEL_KEY, beap_view, camera_kind, camera_model, native_view
 

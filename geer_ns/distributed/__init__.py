@@ -10,7 +10,8 @@
     gaussian_parallel   the engine of Gaussian-parallel training: a shard per process, the scene-wide budget
     streamed_checkpoint one checkpoint file written shard by shard, nothing gathered on one device
     launch              nerfstudio's launcher routed to a worker without its CUDA-only asserts (geer runs only)
-    trainer             the training step (nerfstudio's Trainer with images per step, an engine, rank-0 duties)
+
+The training step that drives an engine is geer_ns.training.trainer.
 
 The processes are started by nerfstudio's launcher (`ns-train geer --machine.num-devices N`, with
 `--machine.num-machines M --machine.machine-rank r --machine.dist-url tcp://HOST:PORT` across machines).

@@ -1,7 +1,7 @@
 """What a training engine and the model it trains offer each other.
 
 An engine (image_parallel.ImageParallel, gaussian_parallel.GaussianParallel) shares a step's images and the
-scene's Gaussians out over the processes; geer_ns.distributed.trainer drives it through `Engine`. The engine
+scene's Gaussians out over the processes; geer_ns.training.trainer drives it through `Engine`. The engine
 uses only the model's public side, `EngineModel` (GeerModel's); the model reads only the engine's
 `EngineState`, which the engine writes and attaches to the model (GeerModel.attach). A model no engine trains
 (ns-eval, ns-render, the viewer of a finished run, tests) keeps the default EngineState: one image per step,
@@ -32,7 +32,7 @@ class EngineState:
 
 
 class Engine(Protocol):
-    """What geer_ns.distributed.trainer asks of an engine (`--pipeline.model.distributed` picks it)."""
+    """What geer_ns.training.trainer asks of an engine (`--pipeline.model.distributed` picks it)."""
 
     name: str
     state: EngineState

@@ -47,7 +47,7 @@ PIPELINE_GAUSS_PREFIX = "_model." + resume.GAUSS_PREFIX  # a Gaussian parameter'
 
 
 class GaussianParallel:
-    """The engine of Gaussian-parallel training (module docstring), for geer_ns.distributed.trainer."""
+    """The engine of Gaussian-parallel training (module docstring), for geer_ns.training.trainer."""
 
     name = "gaussians"
 

@@ -28,7 +28,7 @@ from geer_ns.errors import OptionError
 
 
 class ImageParallel:
-    """The engine of image-parallel training (module docstring), for geer_ns.distributed.trainer."""
+    """The engine of image-parallel training (module docstring), for geer_ns.training.trainer."""
 
     name = "images"
 

@@ -151,7 +151,7 @@ def render_batch(
     its own. Each view is what `render` gives for it (checks included), outputs and gradients. Views are
     rendered one after the other: their lists and pairs differ, and one view's pairs at a time is what bounds
     the memory (a training step with several images also runs each image's backward before the next image's
-    forward: geer_ns/distributed/trainer.py)."""
+    forward: geer_ns/training/trainer.py)."""
     check_shape("viewmats", viewmats, (None, 4, 4))
     views = viewmats.shape[0]
     grids = [grids] * views if isinstance(grids, RayGrid) else list(grids)

@@ -1,6 +1,6 @@
 """A copy of a nerfstudio-format dataset whose images have per-frame exposure / white balance and vignetting.
 
-    python -m geer_ns.data.appearance_variant SRC OUT [--transforms transforms.json] [--exposure-stops 0.7]
+    python -m benchmarks.appearance_variant SRC OUT [--transforms transforms.json] [--exposure-stops 0.7]
         [--white-balance 0.15] [--vignetting 4] [--seed 0]
 
 Each image is decoded to linear light (sRGB curve), multiplied by its frame's gains and the camera's

@@ -5,7 +5,7 @@ training cameras drift together by a small rotation, translation and scale that 
 outside the run (the test views ns-eval scores, the viewer's and ns-render's cameras) is given in the data's
 frame, so a render outside training maps its camera into the scene's frame by the similarity that best maps the
 given training poses onto their refined ones; the refined training poses are exported mapped back
-(geer_ns/refined_cameras.py), so that every pose a run reads or writes lives in the given frame.
+(geer_ns/refinement/refined_cameras.py), so that every pose a run reads or writes lives in the given frame.
 docs/refinement.md says what this changes in the scores.
 """
 

@@ -32,7 +32,7 @@ from geer_ns.cameras import (
     ThinPrismFisheyeCamera,
 )
 from geer_ns.cameras.convert import _COLMAP_MODELS
-from geer_ns.refined_frame import adjusted_poses
+from geer_ns.refinement.refined_frame import adjusted_poses
 
 FILE_NAME = "cameras_refined.json"
 COLMAP_DIR = "colmap"
@@ -80,7 +80,7 @@ def nerfstudio_intrinsics(camera: CameraModel) -> Dict[str, object]:
 
 def refined_poses(pipeline) -> torch.Tensor:
     """[N, 3, 4] float64 the training images' refined camera-to-worlds in the run's given frame: the camera
-    optimizer's corrections applied, then the similarity the scene drifted by taken out (geer_ns/refined_frame.py),
+    optimizer's corrections applied, then the similarity the scene drifted by taken out (geer_ns/refinement/refined_frame.py),
     so that they sit beside the poses the run was given (its test views')."""
     model = pipeline.model
     given = pipeline.datamanager.train_dataset.cameras.camera_to_worlds
@@ -115,7 +115,7 @@ def _applied_transform(datamanager) -> Optional[torch.Tensor]:
 
 def refined_cameras(pipeline) -> Tuple[List[CameraModel], List[int]]:
     """(the distinct training cameras with refined intrinsics, each training image's index into them)."""
-    from geer_ns.lens_refinement import training_camera_groups
+    from geer_ns.refinement.lens import training_camera_groups
 
     lens = pipeline.model.lens
     if lens is not None:

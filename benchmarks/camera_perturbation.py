@@ -1,6 +1,6 @@
 """A copy of a nerfstudio-format dataset with noisy training poses and a perturbed lens, the truth beside it.
 
-    python -m geer_ns.data.camera_perturbation SRC OUT [--transforms transforms.json] [--rotation-deg 1]
+    python -m benchmarks.camera_perturbation SRC OUT [--transforms transforms.json] [--rotation-deg 1]
         [--position-fraction 0.01] [--focal-fraction 0.0] [--k1-offset 0.0] [--seed 0]
 
 Every training frame's camera is turned by --rotation-deg about a random axis through its center and moved by

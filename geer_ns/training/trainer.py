@@ -44,7 +44,7 @@ from geer_ns.distributed.schedule import (
 from geer_ns.distributed.gaussian_parallel import GaussianParallel, shard_checkpoint
 from geer_ns.distributed.world import current_world
 from geer_ns.errors import report_input_errors_in_one_line
-from geer_ns.refined_cameras import write_refined_cameras
+from geer_ns.refinement.refined_cameras import write_refined_cameras
 
 
 @dataclass
@@ -311,7 +311,7 @@ class GeerTrainer(Trainer):
         if not self.engine.write_checkpoint(step, partial):
             return
         os.replace(partial, path)
-        if self.world.is_main:  # the refined cameras beside it (geer_ns/refined_cameras.py; refinement runs only)
+        if self.world.is_main:  # the refined cameras beside it (geer_ns/refinement/refined_cameras.py; refinement runs only)
             write_refined_cameras(self.pipeline, self.base_dir)
         if self.config.save_only_latest_checkpoint:
             for old in self.checkpoint_dir.glob("*.ckpt"):
