@@ -266,6 +266,12 @@ class GeerModel(SplatfactoModel):
             return colors, min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
         return exact_activation(torch.sigmoid, params["features_dc"]), None
 
+    def render_options(self) -> Dict[str, object]:
+        """The renderer options every render of this model passes (its own, the sharded engines', the split
+        evaluation's): the backend the kernel sentinel leaves in use, the PBF lambda rule, the pair budget."""
+        return dict(backend=self.sentinel.backend(self.config.renderer_backend), lambda_mode=self.config.lambda_mode,
+                    max_pairs=self.config.max_pairs)
+
     @staticmethod
     def activated(params: Dict[str, Tensor]) -> Tuple[Tensor, Tensor]:
         """(scales, opacities) the renderer takes: exp of the log-scales, sigmoid of the opacity logits."""
@@ -289,25 +295,23 @@ class GeerModel(SplatfactoModel):
             probe = self.probe(view, means, viewmat, scales, opacities)
             means = probe.displace(means, viewmat)
         colors, sh_degree = self.colors(params)
-        announce_backend(self.config.renderer_backend, means.device, say=CONSOLE.log)
+        options = self.render_options()
+        announce_backend(options["backend"], means.device, say=CONSOLE.log)
         grid = view.rays.to(means.device)
         out = render(
-            means, params["quats"], scales, opacities, colors, viewmat, grid,
-            sh_degree=sh_degree, background=background, lambda_mode=self.config.lambda_mode,
-            max_pairs=self.config.max_pairs, backend=self.config.renderer_backend,
+            means, params["quats"], scales, opacities, colors, viewmat, grid, sh_degree=sh_degree,
+            background=background, **options,
             **({} if probe is None or probe.absgrad is None else {"absgrad": (probe.signal.lateral, probe.absgrad)}),
         )
-        if probe is not None and self.sentinel.check(self.step, self.config.renderer_backend, ViewInputs(
+        if probe is not None:  # a disagreement makes the sentinel's backend "torch" for every later render
+            self.sentinel.check(self.step, options["backend"], ViewInputs(
                 means, params["quats"], scales, opacities, colors, viewmat, grid, sh_degree, background,
-                self.config.lambda_mode)):
-            self.config.renderer_backend = "torch"  # every later render of this run, sharded engines' too
-        if probe is not None:
+                self.config.lambda_mode))
             self.views.append(probe.record(out.visible.detach(), out.max_weight))
         normals = None
         if not self.training:  # forward only: no loss reads normals
             normals = render_normals(means, params["quats"], scales, opacities, viewmat, view.rays.to(means.device),
-                                     lambda_mode=self.config.lambda_mode, backend=self.config.renderer_backend,
-                                     max_pairs=self.config.max_pairs)
+                                     **options)
         return self.view_outputs(out, view, background, camera, normals)
 
     def render_pose(self, camera: Cameras) -> Tensor:

@@ -39,10 +39,10 @@ def test_the_sentinel_switches_a_disagreeing_run_to_the_pytorch_renderer(tmp_pat
         out = model.get_outputs(fisheye_camera(24))
         out["rgb"].sum().backward()
     if not planted:
-        assert said == [] and model.config.renderer_backend == "auto" and model.sentinel.last_step == 4
+        assert said == [] and model.render_options()["backend"] == "auto" and model.sentinel.last_step == 4
         return
     assert len(said) == 1 and "at step 2 the cpu renderer disagreed with the PyTorch renderer (rgb" in said[0]
-    assert model.config.renderer_backend == "torch"
+    assert model.render_options()["backend"] == "torch" and model.config.renderer_backend == "auto"
     report = torch.load(model.sentinel.report, weights_only=False)
     assert str(model.sentinel.report) in said[0] and report["step"] == 2 and report["backend"] == "cpu"
     assert report["means"].shape == (60, 3) and report["grid"]["dirs"].shape[-1] == 3

@@ -93,6 +93,9 @@ class EngineModel(Protocol):
     def activated(self, params: Dict[str, Tensor]) -> Tuple[Tensor, Tensor]:
         """(scales, opacities) as the renderer takes them."""
 
+    def render_options(self) -> Dict[str, Any]:
+        """The renderer options (backend, lambda_mode, max_pairs) every render of the model passes."""
+
     def render_pose(self, camera: Any) -> Tensor:
         """The camera-to-world a render of a nerfstudio camera uses (a training camera's refined pose while
         training; otherwise the given pose, in the scene's frame)."""

@@ -236,8 +236,8 @@ def sharded_outputs(model, cameras, me: int) -> Dict[str, Tensor]:
     absgrad = record and model.config.use_absgrad
     out, seen = render_sharded(
         means, params["quats"], None, None, viewmats, grids, rows_of, rows=rows,
-        background=background, lambda_mode=model.config.lambda_mode, backend=model.config.renderer_backend,
-        max_pairs=model.config.max_pairs, absgrad_sinks=[p.absgrad for p in probes] if absgrad else None,
+        background=background, **model.render_options(),
+        absgrad_sinks=[p.absgrad for p in probes] if absgrad else None,
         lateral=lateral_basis)
     for q, probe in enumerate(probes):
         model.views.append(probe.record(torch.ones_like(seen.rows[q], dtype=torch.bool), seen.max_weight[q]))

@@ -131,8 +131,7 @@ def _render_band(model, rows: Tensor, viewmat: Tensor, grid: RayGrid, background
     """([h W, CHANNELS] a band's pixels rendered from the rows it sees, whether the render gave a median)."""
     means, quats, scales, opacities, rgb = rows.split([3, 4, 3, 1, 3], dim=1)
     opacities = opacities.squeeze(1)
-    options = dict(lambda_mode=model.config.lambda_mode, backend=model.config.renderer_backend,
-                   max_pairs=model.config.max_pairs)
+    options = model.render_options()
     out = render(means, quats, scales, opacities, rgb, viewmat, grid, background=background, **options)
     normals = render_normals(means, quats, scales, opacities, viewmat, grid, **options)
     median = out.median_distance if out.median_distance is not None else torch.zeros_like(out.depth)

@@ -64,6 +64,11 @@ class KernelSentinel:
         self.last_step = -1
         self.report: Path | None = None  # the disagreement file, once one was found
 
+    def backend(self, configured: str) -> str:
+        """The backend renders use: the configured one, or the PyTorch renderer once a check found the compiled
+        renderer disagreeing (the run's configuration stays as the user gave it)."""
+        return "torch" if self.report is not None else configured
+
     def due(self, step: int) -> bool:
         return self.every > 0 and step > 0 and step % self.every == 0 and step != self.last_step and self.report is None
 
