@@ -1,8 +1,5 @@
 """A copy of a nerfstudio-format dataset whose images have per-frame exposure / white balance and vignetting.
 
-    python -m benchmarks.appearance_variant SRC OUT [--transforms transforms.json] [--exposure-stops 0.7]
-        [--white-balance 0.15] [--vignetting 4] [--seed 0]
-
 Each image is decoded to linear light (sRGB curve), multiplied by its frame's gains and the camera's
 vignetting, clipped (the sensor saturates) and encoded again, as a camera records before its tone curve:
 
@@ -17,7 +14,6 @@ appearance_truth.json: per frame its log gains (natural log, per channel) and th
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import shutil
@@ -107,22 +103,3 @@ def make_variant(src: Path, out: Path, transforms: str = "transforms.json", expo
     path.write_text(json.dumps(meta, indent=2) + "\n")
     (out / TRUTH_NAME).write_text(json.dumps(truth, indent=2) + "\n")
     return truth
-
-
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("src", type=Path)
-    parser.add_argument("out", type=Path)
-    parser.add_argument("--transforms", default="transforms.json")
-    parser.add_argument("--exposure-stops", type=float, default=0.7)
-    parser.add_argument("--white-balance", type=float, default=0.15)
-    parser.add_argument("--vignetting", type=float, default=4.0)
-    parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args(argv)
-    make_variant(args.src, args.out, args.transforms, args.exposure_stops, args.white_balance, args.vignetting,
-                 args.seed)
-    print(f"wrote {args.out} ({TRUTH_NAME}: the frames' gains)")
-
-
-if __name__ == "__main__":
-    main()

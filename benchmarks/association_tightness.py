@@ -12,7 +12,7 @@ the images' largest difference between the variants.
          mean weight 0 / 1/6, covariance weight 2 / 1/6) through the camera's own projection, + eps2d 0.3, the same
          3-sigma square and tiles; a Gaussian whose mean's projection is undefined (behind a pinhole) is culled.
 
-    .venv/bin/python benchmarks/association_tightness.py --run /tmp/i29/train/room128/geer/t [--out benchmarks/...]
+    python -m benchmarks.association_tightness --run RUN     # RUN: a geer run on the dev room (docs/benchmarks.md)
 """
 
 from __future__ import annotations
@@ -20,17 +20,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import platform
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-DEV_ROOM = Path("/work/shared/data/fisheye_room_dev")
+from benchmarks.common import BENCHMARKS, header, test_data
+
 SIZE, TILE = 512, 16
 
 
@@ -50,7 +46,7 @@ def test_viewmat(run: Path) -> torch.Tensor:
     """World-to-camera (OpenCV) of the dev room's first held-out view, in the run's dataparser frame."""
     from geer_ns.render.transforms import world_to_camera_opencv
 
-    meta = json.loads((DEV_ROOM / "transforms_fisheye.json").read_text())
+    meta = json.loads(test_data("fisheye_room_dev", "transforms_fisheye.json").read_text())
     name = meta["test_filenames"][0]
     frame = next(f for f in meta["frames"] if f["file_path"] == name)
     tf = json.loads((run / "dataparser_transforms.json").read_text())
@@ -62,10 +58,10 @@ def test_viewmat(run: Path) -> torch.Tensor:
     return world_to_camera_opencv(c2w[:3].float())
 
 
-def equidistant_rays(fov_deg: float):
-    """([S,S,3] unit rays, [S,S] valid) of an equidistant fisheye whose inscribed circle spans fov_deg."""
-    f = (SIZE / 2) / math.radians(fov_deg / 2)
-    c = (torch.arange(SIZE, dtype=torch.float64) + 0.5) - SIZE / 2
+def equidistant_rays(fov_deg: float, size: int = SIZE):
+    """([S,S,3] unit rays, [S,S] valid, focal) of an equidistant fisheye whose inscribed circle spans fov_deg."""
+    f = (size / 2) / math.radians(fov_deg / 2)
+    c = (torch.arange(size, dtype=torch.float64) + 0.5) - size / 2
     v, u = torch.meshgrid(c, c, indexing="ij")
     ang = torch.sqrt(u * u + v * v) / f
     psi = torch.atan2(v, u)
@@ -231,7 +227,7 @@ def _stats(counts: torch.Tensor) -> tuple[float, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--run", type=Path, required=True, help="a geer run's output folder (checkpoint inside)")
-    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "association_tightness.md")
+    parser.add_argument("--out", type=Path, default=BENCHMARKS / "association_tightness.md")
     args = parser.parse_args()
     from geer_ns.render.cuda_backend import load_cpu_ops
 
@@ -253,16 +249,11 @@ def main() -> None:
 
 
 def write_report(args, rows, scene, step) -> None:
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout
     lines = [
-        "# Association tightness: (tile, Gaussian) pairs per tile, geer's PBF against EWA and UT (paper Tab. K.6)",
-        "",
-        f"- device: CPU, {platform.machine()}, 2 cores shared with other sessions (times are one run each, noisy; the "
-        f"before/after ratio is measured in one process on the same inputs); torch {torch.__version__}",
-        f"- commit: {commit.strip()} (+ the working tree at the time of the run)",
-        f"- command: `.venv/bin/python benchmarks/association_tightness.py --run {args.run}`",
-        f"- scene: the dev room (fisheye_room_dev) trained by `ns-train geer` on its 128^2 fisheye views to step {step} "
-        f"({scene[0].shape[0]:,} Gaussians); view: its first held-out pose; 512 x 512 rays, 16 x 16 tiles.",
+        header("Association tightness: (tile, Gaussian) pairs per tile, geer's PBF against EWA and UT (paper Tab. K.6)",
+               "times: one run each (the box / box+cone ratio is measured in one process on the same inputs)",
+               f"scene: the dev room (fisheye_room_dev) trained by `ns-train geer` on its 128^2 fisheye views to step "
+               f"{step} ({scene[0].shape[0]:,} Gaussians); view: its first held-out pose; 512 x 512 rays, 16 x 16 tiles."),
         "- pairs per tile: mean and standard deviation over all tiles of the image (1024; geer lists nothing on tiles "
         "without a valid ray, EWA/UT count every tile in the image). geer: box = the (theta, phi) PBF test alone "
         "(before), box+cone = with the cone test (docs/association.md). EWA: gsplat 1.4's own projection and "
@@ -293,7 +284,7 @@ def write_report(args, rows, scene, step) -> None:
                      f"{ratio(after, ewa)} | {ratio(floor, ewa)} | {ratio(after, ut)} | {1e3 * t0[0]:.0f} / {1e3 * t1[0]:.0f} | "
                      f"{1e3 * t0[1]:.0f} / {1e3 * t1[1]:.0f} | "
                      f"{diff:.1e} |")
-    args.out.write_text("\n".join(lines) + "\n")
+    args.out.write_text(lines[0] + "\n".join(lines[1:]) + "\n")
     print(args.out.read_text())
 
 

@@ -1,19 +1,15 @@
 """A copy of a nerfstudio-format dataset with noisy training poses and a perturbed lens, the truth beside it.
 
-    python -m benchmarks.camera_perturbation SRC OUT [--transforms transforms.json] [--rotation-deg 1]
-        [--position-fraction 0.01] [--focal-fraction 0.0] [--k1-offset 0.0] [--seed 0]
-
-Every training frame's camera is turned by --rotation-deg about a random axis through its center and moved by
---position-fraction of the scene's extent (the diagonal of the seed points' bounding box) in a random
+Every training frame's camera is turned by `rotation_deg` about a random axis through its center and moved by
+`position_fraction` of the scene's extent (the diagonal of the seed points' bounding box) in a random
 direction; frames in val_filenames / test_filenames keep their true pose (they score the scene). The lens
-(top-level intrinsics, all frames) gets its focal lengths scaled by 1 + --focal-fraction and k1 moved by
---k1-offset. cameras_truth.json holds the true camera-to-world of every frame, the true intrinsics, the extent
+(top-level intrinsics, all frames) gets its focal lengths scaled by 1 + `focal_fraction` and k1 moved by
+`k1_offset`. cameras_truth.json holds the true camera-to-world of every frame, the true intrinsics, the extent
 and the perturbation.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import shutil
@@ -86,23 +82,3 @@ def pose_errors(c2w: np.ndarray, truth: np.ndarray) -> tuple:
     skew = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], -1)
     angle = np.arctan2(0.5 * np.linalg.norm(skew, axis=-1), 0.5 * (np.trace(rel, axis1=1, axis2=2) - 1.0))
     return np.degrees(angle), np.linalg.norm(c2w[:, :3, 3] - truth[:, :3, 3], axis=-1)
-
-
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("src", type=Path)
-    parser.add_argument("out", type=Path)
-    parser.add_argument("--transforms", default="transforms.json")
-    parser.add_argument("--rotation-deg", type=float, default=1.0)
-    parser.add_argument("--position-fraction", type=float, default=0.01)
-    parser.add_argument("--focal-fraction", type=float, default=0.0)
-    parser.add_argument("--k1-offset", type=float, default=0.0)
-    parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args(argv)
-    perturb_cameras(args.src, args.out, args.transforms, args.rotation_deg, args.position_fraction,
-                    args.focal_fraction, args.k1_offset, args.seed)
-    print(f"wrote {args.out} ({TRUTH_NAME}: the true cameras)")
-
-
-if __name__ == "__main__":
-    main()

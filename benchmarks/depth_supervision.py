@@ -5,55 +5,31 @@ The room (geer_ns.data.synthetic_room, 180-degree fisheye) gets radial distance 
 steps, one with --pipeline.model.depth-loss-weight 0. Figures on the held-out test views (ns-eval's metrics):
 distance RMSE against the ray caster (dataparser units) and PSNR. One process, both runs in it.
 
-    .venv/bin/python benchmarks/depth_supervision.py [--steps 400] [--size 64] [--views 16]
+    python -m benchmarks.depth_supervision [--steps 600] [--size 64] [--views 16]    # writes benchmarks/depth_supervision.md
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import platform
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
-OUT = ROOT / "benchmarks" / "depth_supervision.md"
+from benchmarks.common import BENCHMARKS, header, run_config, train_and_score
 
 
 def run(room: Path, out: Path, name: str, steps: int, weight: float) -> dict:
-    from conftest import tiny_trainer_config, train_in_process
-
-    config = tiny_trainer_config(room / "transforms_fisheye_depth.json", out, name, steps)
-    config.pipeline.model.depth_loss_weight = weight
-    config.pipeline.model.warmup_length = steps // 4
-    config.pipeline.model.refine_every = max(steps // 8, 1)
-    config.pipeline.model.stop_split_at = steps
-    config.pipeline.model.renderer_backend = "cpu"
+    config = run_config(room / "transforms_fisheye_depth.json", out, name, steps, {
+        "depth_loss_weight": weight, "warmup_length": steps // 4, "refine_every": max(steps // 8, 1),
+        "stop_split_at": steps, "renderer_backend": "cpu", "num_downscales": 1, "resolution_schedule": 1_000_000})
     config.machine.seed = 42
-    config.set_timestamp()
-    config.timestamp = "run"
-    config.save_config()  # config.yml, for eval_setup
-    start = time.perf_counter()
-    checkpoint = train_in_process(config)
-    seconds = time.perf_counter() - start
-    from nerfstudio.utils.eval_utils import eval_setup
-
-    config_path = config.get_base_dir() / "config.yml"
-    _, pipeline, _, _ = eval_setup(config_path, test_mode="test")
-    metrics = pipeline.get_average_eval_image_metrics()
-    return {"name": name, "weight": weight, "seconds": seconds, "checkpoint": str(checkpoint.name),
-            "gaussians": pipeline.model.num_points,
+    metrics, seconds, pipeline = train_and_score(config)
+    return {"name": name, "weight": weight, "seconds": seconds, "gaussians": pipeline.model.num_points,
             **{k: metrics[k] for k in ("psnr", "distance_rmse", "depth_rmse") if k in metrics}}
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--steps", type=int, default=400)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--views", type=int, default=16)
     ap.add_argument("--weight", type=float, default=0.2)
@@ -66,19 +42,12 @@ def main() -> None:
     write_depth_variant(room, "fisheye")
     rows = [run(room, tmp / "runs", "rgb_only", args.steps, 0.0),
             run(room, tmp / "runs", "with_depth", args.steps, args.weight)]
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout
-    command = f"python benchmarks/depth_supervision.py --steps {args.steps} --size {args.size} --views {args.views}"
     lines = [
-        "# Depth supervision on the synthetic room",
-        "",
-        f"Machine: {platform.node()} ({platform.processor() or platform.machine()}), CPU build, shared with other "
-        f"jobs (times are indicative only). Commit {commit.strip()}. Command: `{command}` (written by it).",
-        "",
-        f"180-degree fisheye room, {args.views} views of {args.size}x{args.size} (every 8th held out for test), "
-        f"{args.steps} steps each, same seed; distances are the room's analytic ray caster's (radial, dataparser "
-        "units). Depth loss: huber on the relative error, scale 0.05. The first run's time includes the process's "
-        "one-time start-up (extension load, caches).",
-        "",
+        header("Depth supervision on the synthetic room",
+               f"180-degree fisheye room, {args.views} views of {args.size}x{args.size} (every 8th held out for test), "
+               f"{args.steps} steps each, same seed; distances are the room's analytic ray caster's (radial, "
+               "dataparser units). Depth loss: huber on the relative error, scale 0.05. The first run's time "
+               "includes the process's one-time start-up (extension load, caches)."),
         "| run | depth-loss-weight | test distance RMSE | test depth (z) RMSE | test PSNR (dB) | Gaussians | train s |",
         "| --- | --- | --- | --- | --- | --- | --- |",
     ]
@@ -89,9 +58,8 @@ def main() -> None:
     base, depth = rows
     lines += ["", f"Distance RMSE ratio (with / without): {depth['distance_rmse'] / base['distance_rmse']:.3f}; "
               f"PSNR difference: {depth['psnr'] - base['psnr']:+.2f} dB.", ""]
-    OUT.write_text("\n".join(lines))
+    (BENCHMARKS / "depth_supervision.md").write_text("\n".join(lines))
     print("\n".join(lines))
-    print(json.dumps(rows))
 
 
 if __name__ == "__main__":

@@ -12,25 +12,22 @@ opacity lambda rule: every pair with alpha >= 1/255), beside geer's forward time
                            gsplat's default 2-D dilation (eps2d 0.3, as splatfacto renders) and without it (eps2d 0:
                            the projection's own error).
 
-    .venv/bin/python benchmarks/error_vs_time.py --run /tmp/i29/train/room128/geer/t
-writes benchmarks/error_vs_time.md and benchmarks/error_vs_time.png.
+    python -m benchmarks.error_vs_time --run RUN     # RUN: a geer run on the dev room (docs/benchmarks.md)
+writes benchmarks/error_vs_time.md.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
-import platform
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
+from benchmarks.association_tightness import equidistant_rays, load_scene, test_viewmat
+from benchmarks.common import BENCHMARKS, header
+
 SIZE, TILE = 256, 16
 
 
@@ -38,15 +35,12 @@ def cameras():
     """name -> (RayGrid, gsplat camera model, focal in pixels, field of view in degrees)."""
     from geer_ns.render import RayGrid
 
-    c = (torch.arange(SIZE, dtype=torch.float64) + 0.5) - SIZE / 2
-    v, u = torch.meshgrid(c, c, indexing="ij")
     out = {}
     for fov in (60.0, 120.0, 180.0):
-        f = (SIZE / 2) / math.radians(fov / 2)
-        ang, psi = torch.sqrt(u * u + v * v) / f, torch.atan2(v, u)
-        dirs = torch.stack([ang.sin() * psi.cos(), ang.sin() * psi.sin(), ang.cos()], -1)
-        grid = RayGrid.from_rays(dirs.float(), ang <= math.radians(fov / 2), TILE)
-        out[f"fisheye {fov:.0f}"] = (grid, "fisheye", f, fov)
+        dirs, valid, f = equidistant_rays(fov, SIZE)
+        out[f"fisheye {fov:.0f}"] = (RayGrid.from_rays(dirs, valid, TILE), "fisheye", f, fov)
+    c = (torch.arange(SIZE, dtype=torch.float64) + 0.5) - SIZE / 2
+    v, u = torch.meshgrid(c, c, indexing="ij")
     for fov in (60.0, 120.0):
         f = (SIZE / 2) / math.tan(math.radians(fov / 2))
         dirs = torch.nn.functional.normalize(torch.stack([u / f, v / f, torch.ones_like(u)], -1), dim=-1)
@@ -54,28 +48,16 @@ def cameras():
     return out
 
 
-def geer_image(ops, scene, viewmat, grid, dtype, paper_lambda: bool):
-    """(rgb [R,3] float64, seconds) of the CPU build's forward (preprocess, association, render)."""
-    from geer_ns.render.associate import pbf_cull_pieces
-    from geer_ns.render.cones import gaussian_cone_form
-    from geer_ns.render.cuda_backend import associate_pairs
-    from geer_ns.render.pbf import pbf_lambda_sq
+def geer_image(scene, viewmat, grid, dtype, lambda_mode: str):
+    """(rgb [R,3] float64, seconds) of geer's forward on the CPU build (no background)."""
+    from geer_ns.render import render
 
-    means, quats, scales, opac, colors = (t.to(dtype) for t in scene)
-    vm = viewmat.to(dtype)
+    tensors = [t.to(dtype) for t in scene]
     start = time.perf_counter()
     with torch.no_grad():
-        rot = vm[:3, :3].contiguous()
-        means_c = (means @ rot.T + vm[:3, 3]).contiguous()
-        w, o_u, _, bounds, alive, inside = ops.preprocess_forward(
-            means_c, quats, scales, opac, means.new_zeros(means.shape[0], 0, 3), means_c, rot, -1, paper_lambda)
-        lam2 = pbf_lambda_sq(opac, "paper" if paper_lambda else "opacity")[0]
-        form = gaussian_cone_form(w, o_u, lam2, inside)
-        ids, ranges, _, _ = associate_pairs(ops, bounds, alive, means_c.norm(dim=-1), grid, form)
-        rgb, *_ = ops.render_forward(w, o_u, colors.contiguous(), opac, pbf_cull_pieces(bounds), grid.dirs.to(dtype),
-                                     grid.ray_cull_bounds(dtype), grid.warp_cull_bounds(dtype), grid.valid, ids, ranges,
-                                     grid.height, grid.width, grid.tile_size, False)
-    return rgb.double(), time.perf_counter() - start
+        out = render(*tensors, viewmat.to(dtype), grid, background=tensors[0].new_zeros(3), lambda_mode=lambda_mode,
+                     backend="cpu")
+    return out.rgb.reshape(-1, 3).double(), time.perf_counter() - start
 
 
 def ewa_image(scene, viewmat, kind: str, focal: float, eps2d: float = 0.3) -> torch.Tensor:
@@ -127,26 +109,21 @@ def _psnr(img: torch.Tensor, ref: torch.Tensor, valid: torch.Tensor) -> float:
 
 
 def main() -> None:
-    from association_tightness import load_scene, test_viewmat
-
-    from geer_ns.render.cuda_backend import load_cpu_ops
-
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--run", type=Path, required=True, help="a geer run's output folder (checkpoint inside)")
     args = parser.parse_args()
-    ops = load_cpu_ops()
     *scene, step = load_scene(args.run)
     viewmat = test_viewmat(args.run)
     rows = []
     for name, (grid, kind, focal, fov) in cameras().items():
-        ref, _ = geer_image(ops, scene, viewmat, grid, torch.float64, False)
-        valid = grid.valid
+        ref, _ = geer_image(scene, viewmat, grid, torch.float64, "opacity")
+        valid = grid.valid.reshape(-1)
         row = {"name": name, "fov": fov, "kind": kind}
-        for label, paper in (("geer", False), ("geer paper lambda", True)):
-            geer_image(ops, scene, viewmat, grid, torch.float32, paper)  # warm-up
+        for label, rule in (("geer", "opacity"), ("geer paper lambda", "paper")):
+            geer_image(scene, viewmat, grid, torch.float32, rule)  # warm-up
             times = []
             for _ in range(3):
-                img, t = geer_image(ops, scene, viewmat, grid, torch.float32, paper)
+                img, t = geer_image(scene, viewmat, grid, torch.float32, rule)
                 times.append(t)
             row[label] = (float((img - ref)[valid].abs().max()), _psnr(img, ref, valid), sorted(times)[1])
         for label, eps2d in (("EWA", 0.3), ("EWA eps2d 0", 0.0)):
@@ -158,23 +135,13 @@ def main() -> None:
 
 
 def write(args, rows, scene, step) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout
-    out = ROOT / "benchmarks" / "error_vs_time.md"
+    out = BENCHMARKS / "error_vs_time.md"
     lines = [
-        "# Run time against error: geer's CPU build and EWA splatting against the float64 exact image",
-        "",
-        f"- device: CPU, {platform.machine()}, 2 cores shared with other sessions (times: median of 3 after a "
-        f"warm-up, noisy); torch {torch.__version__}",
-        f"- commit: {commit.strip()} (+ the working tree at the time of the run)",
-        f"- command: `.venv/bin/python benchmarks/error_vs_time.py --run {args.run}`",
-        f"- scene: the dev room trained by `ns-train geer` on its 128^2 fisheye views to step {step} "
-        f"({scene[0].shape[0]:,} Gaussians, colours: SH band 0); first held-out pose; {SIZE} x {SIZE} rays, "
-        "equidistant fisheyes (field of view across the inscribed circle) and pinholes.",
+        header("Run time against error: geer's CPU build and EWA splatting against the float64 exact image",
+               "times: median of 3 after a warm-up",
+               f"scene: the dev room trained by `ns-train geer` on its 128^2 fisheye views to step {step} "
+               f"({scene[0].shape[0]:,} Gaussians, colours: SH band 0); first held-out pose; {SIZE} x {SIZE} rays, "
+               "equidistant fisheyes (field of view across the inscribed circle) and pinholes."),
         "- reference: geer's CPU build in float64 with the opacity lambda rule (every pair with alpha >= 1/255); "
         "errors over the camera's valid pixels, colours in [0, 1], no background. EWA: gsplat 1.4's projection "
         "composited per pixel (see the script); its time is not given (a Python loop, not gsplat's rasterizer).",
@@ -187,20 +154,7 @@ def write(args, rows, scene, step) -> None:
         g, p, e, e0 = r["geer"], r["geer paper lambda"], r["EWA"], r["EWA eps2d 0"]
         lines.append(f"| {r['name']} | {g[0]:.1e} | {g[1]:.1f} | {1e3 * g[2]:.0f} | {p[0]:.1e} | {p[1]:.1f} | "
                      f"{1e3 * p[2]:.0f} | {e[0]:.2f} | {e[1]:.1f} | {e0[0]:.2f} | {e0[1]:.1f} |")
-    lines += ["", "![PSNR against the exact image](error_vs_time.png)", ""]
-    out.write_text("\n".join(lines))
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for kind, marker in (("fisheye", "o"), ("pinhole", "s")):
-        sel = [r for r in rows if r["kind"] == kind]
-        fovs = [r["fov"] for r in sel]
-        for label, color in (("geer", "C0"), ("geer paper lambda", "C1"), ("EWA", "C3"), ("EWA eps2d 0", "C2")):
-            ax.plot(fovs, [min(r[label][1], 100.0) for r in sel], marker=marker, color=color,
-                    linestyle="-" if kind == "fisheye" else "--", label=f"{label} ({kind})")
-    ax.set_xlabel("field of view (degrees)")
-    ax.set_ylabel("PSNR against the float64 exact image (dB, capped at 100)")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(ROOT / "benchmarks" / "error_vs_time.png", dpi=100)
+    out.write_text(lines[0] + "\n".join(lines[1:]) + "\n")
     print(out.read_text())
 
 

@@ -61,7 +61,7 @@ GEER_HD void make_frame(const T* w, const T* o_u, const T* rgb, T opacity, const
 // Per-ray cull before any per-pair arithmetic: a ray whose own mirror-domain bounds (RayGrid.ray_cull_bounds:
 // its BEAP angles, widened by a slack far above the PBF's rounding) miss the Gaussian's PBF has alpha < 1/255,
 // so eval_pair would not keep it either (the association's tile test, one ray at a time). On a tile's list
-// most rays lie outside most PBFs (65-71 % of the pairs on benchmarks/cpu_render_cull.md's views).
+// most rays lie outside most PBFs (65-71 % of the pairs on the views of docs/renderer.md).
 // ray_bounds: the lane's 4 bounds (theta lo, hi, phi lo, hi), each an L.
 template <typename T, typename L>
 GEER_HD typename Lane<L>::Mask ray_meets_pbf(const GaussFrame<T>& g, const L* ray_bounds) {

@@ -31,7 +31,7 @@ def install() -> None:
 
 
 def allow_nerfstudio_checkpoints() -> bool:
-    """nerfstudio issue 3683: torch >= 2.6 loads with weights_only=True and nerfstudio's checkpoint loaders
+    """A nerfstudio bug: torch >= 2.6 loads with weights_only=True and nerfstudio's checkpoint loaders
     pass no weights_only. Allow-lists exactly the non-tensor globals a nerfstudio checkpoint holds (numpy
     scalars and dtypes of the optimizer / scheduler state). False on a torch without add_safe_globals (< 2.4),
     which does not default to weights_only either."""

@@ -204,7 +204,7 @@ class GeerModel(SplatfactoModel):
         return self.engine_state.scene_gaussians
 
     # ------------------------------------------------------------------------------------- resume
-    # nerfstudio 1.1.5 issue 3554: splatfacto's load_state_dict replaces the Parameters the trainer's
+    # A nerfstudio 1.1.5 bug (docs/training.md): splatfacto's load_state_dict replaces the Parameters the trainer's
     # optimizers hold, so `--load-dir` trained nothing. Resize in place and keep the strategy state,
     # step and RNG states with the checkpoint (geer_ns/resume.py).
     def load_state_dict(self, state_dict, strict: bool = True, **kwargs):  # type: ignore[override]

@@ -1,7 +1,7 @@
 """Cameras the model cannot render must not kill nerfstudio's viewer render thread.
 
 nerfstudio's viewer renders in a thread whose loop catches only its own interrupt exception: any other
-error ends the thread and the tab stays black for the rest of the session. Its cameras can be degenerate:
+error ends the thread and the tab stays black from then on. Its cameras can be degenerate:
 the render panel starts with `preview_fov = 0`, which gives an infinite focal length; a user can type a
 zero resolution; a broken camera path can hold NaN poses. geer checks each camera first; a camera that
 cannot be rendered gives the last good frame (or the background) and one log line per distinct problem.

@@ -1,6 +1,6 @@
 """Checkpoint state that makes `ns-train --load-dir` continue training exactly where it stopped.
 
-nerfstudio 1.1.5 issue 3554: splatfacto's `load_state_dict` swaps fresh `nn.Parameter`s into
+A nerfstudio 1.1.5 bug (docs/training.md): splatfacto's `load_state_dict` swaps fresh `nn.Parameter`s into
 `gauss_params` after the trainer built the optimizers (and gsplat's strategy state) on the old ones, so
 a resumed run steps parameters nobody renders (every loaded Gaussian stays bit-identical, Adam's step
 count stalls) and the first refinement indexes the stale optimizer state out of bounds. geer instead:

@@ -14,13 +14,13 @@ PIP=(.venv/bin/python -m pip --disable-pip-version-check -q)
 # Some machines' pip config lists local package folders that do not exist; drop those warnings only.
 quiet() { "$@" 2>&1 | { grep -v "is ignored: it is neither a file nor a directory" || true; }; }
 stamp=.venv/.geer_ns_installed
-if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
-  echo "[setup] installing geer-ns and its dependencies (torch 2.14.1, nerfstudio 1.1.5, gsplat 1.4.0, ...)"
-  quiet "${PIP[@]}" install -e '.[test]'
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ constraints.txt -nt "$stamp" ]; then
+  echo "[setup] installing geer-ns and its dependencies, the versions of constraints.txt (torch, nerfstudio, gsplat, ...)"
+  quiet "${PIP[@]}" install -e '.[test]' -c constraints.txt
   # nerfstudio pins opencv-python-headless and nuscenes-devkit pulls opencv-python: all three wheels
   # write the same cv2/ package and whichever pip installed last wins. Put the contrib build back on top
   # so cv2.omnidir and cv2.fisheye exist whatever pip's install order was.
-  quiet "${PIP[@]}" install --force-reinstall --no-deps opencv-contrib-python-headless==4.10.0.84
+  quiet "${PIP[@]}" install --force-reinstall --no-deps "$(grep '^opencv-contrib-python-headless==' constraints.txt)"
   touch "$stamp"
 fi
 # Earlier versions wrote a start-up hook into site-packages; geer changes nothing outside its own runs now.

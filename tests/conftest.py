@@ -1,14 +1,16 @@
-"""Shared fixtures: seeded random scenes, reference ray sets and the location of ../shared/data."""
+"""Shared fixtures: seeded random scenes, reference ray sets and the location of the external test data."""
 
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import pytest
 import torch
 
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+# The external test data (docs/test_data.md): $GEER_TEST_DATA, else ../shared/data beside the checkout.
+SHARED_DATA = Path(os.environ.get("GEER_TEST_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 
 
 def start_in_thread(fn, daemon: bool = False):
@@ -29,10 +31,10 @@ def start_in_thread(fn, daemon: bool = False):
 
 
 def shared_data(*parts: str) -> Path:
-    """Path under ../shared/data; skips the test, saying why, when that data is not beside the checkout."""
+    """Path under the external test data; skips the test, saying why, when that data is not there."""
     path = SHARED_DATA.joinpath(*parts)
     if not path.exists():
-        pytest.skip(f"shared test data not found at {path} (expected ../shared/data beside the checkout)")
+        pytest.skip(f"test data not found at {path} (set GEER_TEST_DATA: docs/test_data.md)")
     return path
 
 

@@ -65,7 +65,7 @@ _references: dict = {}
 
 
 def _reference(grid_name: str):
-    """The per-pixel reference of a grid's scene, computed once per session (the slowest part here)."""
+    """The per-pixel reference of a grid's scene, computed once per test run (the slowest part here)."""
     if grid_name not in _references:
         scene, viewmat, lateral = _scene(grid_name)
         grid = small_grid(grid_name)

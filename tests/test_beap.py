@@ -7,13 +7,13 @@ equidistant model r = f theta, and smooth functions of the ray direction.
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import torch
 
+from conftest import SHARED_DATA
 from geer_ns.cameras import CameraModel, EquidistantCamera, PinholeCamera, from_pycolmap
 from geer_ns.data.beap import (
     DEFAULT_MAX_HALF_ANGLE,
@@ -25,7 +25,7 @@ from geer_ns.data.beap import (
     resample_to_beap,
 )
 
-T265 = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "t265_fisheye"
+T265 = SHARED_DATA / "t265_fisheye"
 LIM = DEFAULT_MAX_HALF_ANGLE
 
 
@@ -220,7 +220,7 @@ def test_antialiasing_when_beap_is_coarser() -> None:
 @pytest.fixture(scope="module")
 def t265() -> tuple[CameraModel, list[np.ndarray]]:
     if not (T265 / "cameras.txt").is_file():
-        pytest.skip(f"T265 data not found at {T265} (expected ../shared/data beside the checkout)")
+        pytest.skip(f"T265 data not found at {T265} (set GEER_TEST_DATA: docs/test_data.md)")
     import pycolmap
 
     cams = {}

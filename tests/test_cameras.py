@@ -15,6 +15,7 @@ import pycolmap
 import pytest
 import torch
 
+from conftest import SHARED_DATA
 from geer_ns.cameras import (
     CameraModel,
     EquidistantCamera,
@@ -31,8 +32,7 @@ from geer_ns.cameras import (
 )
 
 PX_TOL = 1e-3
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-T265 = DATA / "t265_fisheye"
+T265 = SHARED_DATA / "t265_fisheye"
 W, H = 640, 480
 
 
@@ -300,7 +300,7 @@ def test_pycolmap_non_finite_param_raises() -> None:
 def t265_cameras() -> dict[int, pycolmap.Camera]:
     path = T265 / "cameras.txt"
     if not path.is_file():
-        pytest.skip(f"T265 calibration not found at {path} (expected ../shared/data beside the checkout)")
+        pytest.skip(f"T265 calibration not found at {path} (set GEER_TEST_DATA: docs/test_data.md)")
     return read_colmap_cameras_txt(path)
 
 

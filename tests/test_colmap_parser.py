@@ -17,6 +17,7 @@ import pytest
 import torch
 from PIL import Image
 
+from conftest import SHARED_DATA
 from geer_ns import cameras as gc
 from geer_ns.data.dataset_checks import DatasetError
 from geer_ns.data.frustum_seed import seed_count
@@ -28,7 +29,6 @@ from geer_ns.data.colmap_parser import (
 )
 from nerfstudio.cameras.cameras import CameraType
 
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 # (camera_id, model, width, height, params)
 CAMERAS = [
@@ -290,7 +290,7 @@ def test_nerfstudio_colmap_parser_rejects_fisheye_k4_but_geer_loads_it(tmp_path)
         assert "K4" in str(e)
     else:
         pytest.fail("nerfstudio's colmap dataparser now accepts OPENCV_FISHEYE with k4 != 0: the host changed "
-                    "(issue 3611 fixed?); revisit why geer ships its own parser")
+                    "(its fisheye k4 bug fixed?); revisit why geer ships its own parser")
     out = load(tmp_path)  # finds colmap/sparse/0 by itself
     assert [s.params[7] for s in out.metadata["geer_colmap_cameras"]] == [0.0042] * 3
     np.testing.assert_allclose(out.cameras.distortion_params[:, 3].numpy(), 0.0042, rtol=1e-6)
@@ -475,7 +475,7 @@ def _assert_seeds_inside_frusta(out) -> None:
 def test_real_t265_calibration(tmp_path):
     src = SHARED_DATA / "t265_fisheye"
     if not (src / "cameras.txt").exists():
-        pytest.skip(f"shared test data not found at {src} (expected ../shared/data beside the checkout)")
+        pytest.skip(f"test data not found at {src} (set GEER_TEST_DATA: docs/test_data.md)")
     # The kapture export writes comma-separated images.txt and names the files cam00<id>_frame_<n>.jpg:
     # rewrite into a standard COLMAP text model and the images/<name> layout the parser expects.
     model = tmp_path / "sparse" / "0"

@@ -27,7 +27,7 @@ def _save_checkpoint_like(path):
 
 @pytest.mark.skipif(not TORCH_WEIGHTS_ONLY_DEFAULT, reason="torch < 2.6 does not default to weights_only")
 def test_checkpoint_loading_fails_without_the_fix(tmp_path):
-    """nerfstudio issue 3683 is real here: a plain torch.load of such a checkpoint raises."""
+    """The nerfstudio bug is real here: a plain torch.load of such a checkpoint raises."""
     path = tmp_path / "step-000000007.ckpt"
     _save_checkpoint_like(path)
     code = f"import torch; torch.load({str(path)!r}, map_location='cpu')"

@@ -2,7 +2,7 @@
 CI's guarantee that a kernel that does not compile, or one a GPU would refuse to launch, cannot land.
 
 The .cu files hold no torch headers, so plain nvcc compiles them (sm_90, C++17) without a GPU, all in parallel
-and once per session (`build` fixture). ptxas's resource report (-Xptxas -v) and the PTX (.maxntid: the
+and once per test run (`build` fixture). ptxas's resource report (-Xptxas -v) and the PTX (.maxntid: the
 kernel's __launch_bounds__) give each kernel's registers per thread, spills and largest block; a block needs
 registers x threads <= 65,536 (the register file of one multiprocessor, sm_50 to sm_90), and float32 kernels
 must not spill (float64 may, a little, in the 1024-thread tile build). A kernel without __launch_bounds__ can

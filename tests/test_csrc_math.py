@@ -5,7 +5,7 @@ functions, geer_associate.h's tile search and geer_blocks.h's per-block orchestr
 warp-reduction order) behind the CUDA extension's operation names, so
 `cuda_backend.render_cuda(..., ops=cpu_ops)` drives the whole CUDA-backend pipeline (autograd Functions,
 association with keys and ranges, front-to-back blending, back-to-front analytic backward, preprocess
-backward) on the CPU. What remains for a GPU session: shared
+backward) on the CPU. What only a GPU exercises: shared
 memory, shuffles and atomics, the radix sort (tests/test_cuda_gpu.py, skipped without CUDA).
 
 Forward quantities match the twin to float rounding (1e-5 in float32 where values are continuous; a

@@ -1,4 +1,4 @@
-"""The densification statistics mean the same at every field of view and projection, in the view's pixels (#18).
+"""The densification statistics mean the same at every field of view and projection, in the view's pixels.
 
 One scene of small Gaussians near the optical axis, off by a small turn, seen by one pose through five
 cameras: a 90-degree pinhole, the same at twice the resolution, a 180-degree equidistant fisheye supervised in

@@ -132,17 +132,46 @@ def test_ewa_cpu_compositing_matches_direct_evaluation():
     assert torch.allclose(image[8, 9], expected, atol=1e-9)
 
 
-def test_ewa_report_separates_exact_and_splatting():
-    """A large Gaussian close to the camera: EWA's linearisation is visibly off (finite PSNR), and the report
-    is a number per view."""
-    view = PinholeView(torch.eye(4, dtype=torch.float64), torch.tensor([[12.0, 0, 12.0], [0, 12.0, 12.0],
-                       [0, 0, 1.0]], dtype=torch.float64), 24, 24)
-    means = torch.tensor([[0.3, 0.0, 1.2]], dtype=torch.float64)
-    report = compare(means, torch.tensor([[0.9, 0.1, 0.3, 0.0]], dtype=torch.float64),
-                     torch.tensor([[0.6, 0.2, 0.4]], dtype=torch.float64), torch.tensor([0.8], dtype=torch.float64),
+def _one_gaussian_images(mean, quat, scale, opacity, color, f, size):
+    """(exact, EWA) [H, W] images of one Gaussian (black background) in numpy float64, from their definitions:
+    exact: opacity x exp(-D^2 / 2), D^2 the smallest Mahalanobis distance of the half-line through the pixel
+    centre (closed form); EWA: the covariance projected by the Jacobian at the mean, plus 0.3 px^2. Both skip
+    alpha < 1/255."""
+    w, x, y, z = np.asarray(quat) / np.linalg.norm(quat)
+    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    cov = rot @ np.diag(np.square(scale)) @ rot.T
+    prec, mu = np.linalg.inv(cov), np.asarray(mean)
+    v, u = np.meshgrid(np.arange(size) + 0.5, np.arange(size) + 0.5, indexing="ij")
+    rays = np.stack([(u - size / 2) / f, (v - size / 2) / f, np.ones_like(u)], -1)
+    t = np.maximum((rays @ prec @ mu) / np.einsum("hwi,ij,hwj->hw", rays, prec, rays), 0.0)  # nearest along the ray
+    d = t[..., None] * rays - mu
+    exact = opacity * np.exp(-0.5 * np.einsum("hwi,ij,hwj->hw", d, prec, d))
+    jac = np.array([[f / mu[2], 0, -f * mu[0] / mu[2] ** 2], [0, f / mu[2], -f * mu[1] / mu[2] ** 2]])
+    cov2d = jac @ cov @ jac.T + 0.3 * np.eye(2)
+    centre = f * mu[:2] / mu[2] + size / 2
+    e = np.stack([u, v], -1) - centre
+    ewa = opacity * np.exp(-0.5 * np.einsum("hwi,ij,hwj->hw", e, np.linalg.inv(cov2d), e))
+    return [np.where(a >= 1 / 255, a, 0.0)[..., None] * np.asarray(color) for a in (exact, ewa)]
+
+
+def test_ewa_report_is_the_psnr_between_the_exact_and_the_splatted_image():
+    """A large Gaussian close to the camera, where EWA's linearisation is visibly off: the report's PSNR is the
+    one between the two images computed from their definitions (_one_gaussian_images), to 0.01 dB (24.4 dB
+    here: a wrong image on either side moves it by more)."""
+    f, size = 12.0, 24
+    view = PinholeView(torch.eye(4, dtype=torch.float64), torch.tensor([[f, 0, size / 2], [0, f, size / 2],
+                       [0, 0, 1.0]], dtype=torch.float64), size, size)
+    mean, quat, scale, opacity = [0.3, 0.0, 1.2], [0.9, 0.1, 0.3, 0.0], [0.6, 0.2, 0.4], 0.8
+    report = compare(torch.tensor([mean], dtype=torch.float64), torch.tensor([quat], dtype=torch.float64),
+                     torch.tensor([scale], dtype=torch.float64), torch.tensor([opacity], dtype=torch.float64),
                      torch.ones(1, 1, 3, dtype=torch.float64), 0, [view])
-    assert len(report.psnr_db) == 1 and 5.0 < report.psnr_db[0] < 60.0
-    assert "PSNR" in report.line()
+    color = [0.28209479177387814 + 0.5] * 3  # SH band 0 of 1.0, plus 0.5
+    exact, ewa = _one_gaussian_images(mean, quat, scale, opacity, color, f, size)
+    expected = -10 * math.log10(float(np.mean((np.clip(exact, 0, 1) - np.clip(ewa, 0, 1)) ** 2)))
+    assert len(report.psnr_db) == 1 and report.psnr_db[0] == pytest.approx(expected, abs=0.01)
+    assert f"{expected:.2f} dB" in report.line()
 
 
 def test_export_command_on_a_checkpoint(tmp_path, capsys):

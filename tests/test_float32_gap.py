@@ -1,4 +1,4 @@
-"""Issue 33's float32 gap, as a randomized stress test: on a BEAP grid with 1-pixel tiles, scenes mixing a
+"""The float32 gap (docs/cuda.md), as a randomized stress test: on a BEAP grid with 1-pixel tiles, scenes mixing a
 Gaussian behind the camera, the camera inside a huge opaque Gaussian, scales of 1e-8, a quaternion of tiny
 norm and opacities of exactly 1 and 1/255 (geer_ns/selftest/scenes.gap_scene). The CPU build's float32
 gradients must be no further from the float64 gradient than 10x the PyTorch renderer's float32 ones (plus 1e-6

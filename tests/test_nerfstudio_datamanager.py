@@ -82,7 +82,7 @@ def test_no_pixel_inside_the_fisheye_circle_is_dropped(manager):
 
 
 def test_dev_fisheye_room_trains_on_full_fov_beap_views():
-    """The Blender-rendered 180-degree room in ../shared/data: full-FoV BEAP views, no in-circle pixel lost."""
+    """The Blender-rendered 180-degree room of the test data (docs/test_data.md): full-FoV BEAP views, no in-circle pixel lost."""
     json_path = shared_data("fisheye_room_dev", "transforms_fisheye.json")
     meta = json.loads(json_path.read_text())
     manager = GeerDataManagerConfig(

@@ -247,11 +247,24 @@ def test_training_loss_ignores_invalid_pixels():
     assert float(losses["main_loss"].detach()) < 0.01
 
 
-def test_bilateral_grid_option_trains_on_cpu():
+def test_bilateral_grid_applies_its_images_affine_colour_map_and_trains_only_that_grid():
+    """A grid holding one affine map A (3x4) in every cell maps each pixel's colour c to A [c; 1]; the loss
+    sum(w * rgb) then has d/dA summed over the cells = sum over pixels of w [c; 1]^T (the cells' interpolation
+    weights sum to 1), and no gradient reaches the other images' grids."""
     model = make_model(n=20, use_bilateral_grid=True)
     model.train()
     camera = fisheye_camera(32)
+    plain = model.get_outputs(camera)["rgb"].detach()  # no cam_idx: no grid
+    affine = torch.tensor([[0.8, 0.1, 0.0, 0.05], [0.0, 1.2, -0.1, 0.0], [0.1, 0.0, 0.7, -0.02]])
+    with torch.no_grad():
+        model.bil_grids.grids[1] = affine.reshape(12, 1, 1, 1)
     camera.metadata["cam_idx"] = 1
-    out = model.get_outputs(camera)
-    out["rgb"].sum().backward()
-    assert model.bil_grids.grids.grad is not None
+    rgb = model.get_outputs(camera)["rgb"]
+    colour1 = torch.cat([plain, torch.ones_like(plain[..., :1])], -1)  # [H, W, 4]
+    assert torch.allclose(rgb, colour1 @ affine.T, atol=1e-5)
+    weight = torch.rand(rgb.shape, generator=torch.Generator().manual_seed(0))
+    (rgb * weight).sum().backward()
+    grad = model.bil_grids.grids.grad
+    expected = torch.einsum("hwi,hwj->ij", weight, colour1)
+    assert torch.allclose(grad[1].sum((1, 2, 3)).reshape(3, 4), expected, rtol=1e-4, atol=1e-4)
+    assert float(grad[[0, 2, 3]].abs().max()) == 0.0

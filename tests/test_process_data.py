@@ -23,7 +23,7 @@ from geer_ns.process_data import ProcessDataConfig, ProcessDataError, run
 from geer_ns.process_data.evaluate import pose_errors
 from conftest import shared_data
 
-TRUE_FOCAL = 384 / math.pi  # 180-degree equidistant fisheye over 384 px (README of the shared data)
+TRUE_FOCAL = 384 / math.pi  # 180-degree equidistant fisheye over 384 px (docs/test_data.md)
 
 
 def _dev_room() -> Path:

@@ -1,4 +1,5 @@
-"""`ns-train geer --load-dir` continues training (nerfstudio 1.1.5 issue 3554, fixed in geer_ns/resume.py).
+"""`ns-train geer --load-dir` continues training (a nerfstudio 1.1.5 bug, fixed in geer_ns/resume.py:
+docs/training.md).
 
 Three runs of nerfstudio's own training loop (scripts.train.train_loop, what ns-train calls) on four frames
 of the embedded room: N steps, then M more resumed from its checkpoint with a refinement inside, against one uninterrupted

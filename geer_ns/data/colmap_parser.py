@@ -1,7 +1,7 @@
 """COLMAP dataparser for geer, built on ``pycolmap.Reconstruction``.
 
 Why not nerfstudio's own ``colmap`` dataparser: nerfstudio 1.1.5 raises for every OPENCV_FISHEYE calibration
-with k4 != 0 (nerfstudio issue 3611: it mistakes the fisheye k4 for OpenCV's rational k4) and maps
+with k4 != 0 (a nerfstudio bug: it mistakes the fisheye k4 for OpenCV's rational k4) and maps
 FULL_OPENCV, FOV and THIN_PRISM_FISHEYE to NotImplementedError. geer renders exact per-pixel rays of the
 calibrated model and never undistorts, so it must take those datasets as they are.
 

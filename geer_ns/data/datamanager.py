@@ -299,7 +299,7 @@ class GeerDataManager(FullImageDatamanager):
         self.train_cameras = self.train_dataset.cameras.to(self.device) if on_gpu else self.train_dataset.cameras
         return views
 
-    # Saved with checkpoints so that a resumed run draws the same images next (nerfstudio issue 3554).
+    # Saved with checkpoints so that a resumed run draws the same images next (docs/training.md, resume).
     def get_extra_state(self) -> Dict:
         return resume.sampler_state(self)
 
@@ -336,7 +336,7 @@ class GeerDataManager(FullImageDatamanager):
     def train_view(self, index: int) -> Tuple[Cameras, Dict]:
         """Training image `index` as nerfstudio's next_train gives it (a one-camera batch, its image on the
         device, `cam_idx`), with the view it is supervised in."""
-        data = dict(self.cached_train[index])  # a copy: the cache is not mutated (nerfstudio issue 3335)
+        data = dict(self.cached_train[index])  # a copy: the cache is not mutated (nerfstudio's is)
         data["image"] = data["image"].to(self.device)
         data.pop(VIEW_KEY)
         return self.train_camera(index), data

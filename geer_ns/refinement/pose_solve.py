@@ -3,7 +3,7 @@
 
 nerfstudio's camera optimizer moves each camera's six pose adjustments (SO3xR3 or SE3 tangent) by Adam steps on
 the training loss, one image a step: a camera's adjustments move only when its image is drawn, by steps the
-learning-rate schedule shrinks before they arrive (docs/refinement.md, benchmarks/pose_solve.md). Here, every
+learning-rate schedule shrinks before they arrive (docs/refinement.md). Here, every
 `every` steps the scene is held fixed and each training camera's adjustments are solved for: Gauss-Newton on
 the image's photometric residuals with a central-difference Jacobian (twelve renders of the image an iteration;
 the renderers give reverse-mode gradients, and a Jacobian needs one derivative per adjustment), damped
@@ -28,7 +28,7 @@ ROTATION_STEP = 1e-3
 # Coarse to fine, as image alignment goes: the residuals of both images blurred by these standard deviations
 # (pixels of the rendered image), `iterations` each. A sharp image's Jacobian holds only within a fraction of a
 # pixel; blurred, it holds over the pose error, and the last level is the unblurred images. A first level of
-# 2 px left 3 of 42 cameras in local minima where 4 px left none (benchmarks/pose_frozen_scene_lm.md).
+# 2 px left 3 of 42 cameras in local minima where 4 px left none (against a frozen scene: docs/refinement.md).
 BLUR_LEVELS_PX = (4.0, 2.0, 1.0, 0.0)
 
 

@@ -13,7 +13,7 @@ to front and passing dL/d(transmittance) from one piece to the previous. Peak me
     O(N) per-Gaussian inputs and gradients + O(tile lists) + O(rays) + c * max_pairs,
 
 with c the bytes one pair costs inside a piece (the backward's autograd graph of one piece: measured about
-300 bytes in float32, 520 in float64; benchmarks/camera_inside.md), independent of how many Gaussians each
+300 bytes in float32, 520 in float64), independent of how many Gaussians each
 ray sees (tests/test_blend_memory.py). The default max_pairs = 2^20 thus bounds the per-pair part at about
 0.3 GB (float32).
 

@@ -154,7 +154,7 @@ def build_and_load(name: str, sources: Sequence[Path], *, cuda: bool, cflags: Se
         from torch.utils import cpp_extension
 
         # torch up to 2.11 guards a build with a FileBaton: the file `lock` itself, which a killed build leaves
-        # behind and every later build then waits on for ever (pytorch/pytorch#189245, fixed by #190543). Holding
+        # behind and every later build then waits on for ever (fixed in torch's own lock after 2.11). Holding
         # the geer lock, no one else builds here.
         (folder / "lock").unlink(missing_ok=True)
         _say(f"geer: building {what} (first use of this configuration, {how_long}) in {folder} ...")

@@ -3,7 +3,7 @@
 Each scene is (means, quats, scales, opacities, colors) in the camera frame of an identity view (the camera at
 the origin looking along +z, OpenCV axes), meant to reach the renderer's rare paths: the stress Gaussians
 (disks, needles, the camera inside one, straddling z = 0, behind the camera, a scale below MIN_SCALE, non-unit
-quaternions, opacities exactly 0 and 1), and `gap_scene`, the randomized case of issue 33 that found a float32
+quaternions, opacities exactly 0 and 1), and `gap_scene`, the randomized case that found a float32
 gradient gap in the shared headers (docs/cuda.md).
 """
 
@@ -60,7 +60,7 @@ def stress_scene(seed: int = 3) -> Scene:
 
 
 def gap_scene(seed: int) -> Scene:
-    """Issue 33's float32 case, randomized (docs/cuda.md, "the float32 gap"): from `seed`, maybe a Gaussian
+    """The float32 gap's case, randomized (docs/cuda.md, "the float32 gap"): from `seed`, maybe a Gaussian
     behind the camera, maybe the camera inside a huge (10-1000 m) opaque Gaussian, up to three Gaussians with
     scales of 1e-8 on random axes and opacities of exactly 1, 1/255 or 0.5, maybe one quaternion of norm
     ~1e-20, then 4-20 random Gaussians, some with opacities of exactly 1 and 1/255."""

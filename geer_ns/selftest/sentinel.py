@@ -4,7 +4,7 @@ opacities), at the self-test's float32-vs-twin tolerances (suite.py). A disagree
 PyTorch renderer, says so once, and writes the view's inputs and what was measured to a file for a bug report.
 
 Cost: one compiled and one PyTorch render (forward and backward) per check; the PyTorch renderer is up to ~40x
-slower than the kernels' code (benchmarks/cpu_renderer.md), so checking every 5000 steps costs < 1 % of a run.
+slower than the kernels' code (geer-doctor's step times, docs/cuda.md), so checking every 5000 steps costs < 1 % of a run.
 """
 
 from __future__ import annotations
