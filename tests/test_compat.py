@@ -73,7 +73,7 @@ def test_model_construction_never_touches_lpips(monkeypatch):
         raise AssertionError("LPIPS built at model construction")
 
     monkeypatch.setattr(lpip.LearnedPerceptualImagePatchSimilarity, "__init__", no_download)
-    from test_nerfstudio_model import make_model  # tests/ is on sys.path under pytest
+    from test_nerfstudio_model import make_model  # tests/ is importable under pytest (rootdir conftest)
 
     make_model(n=10)
 

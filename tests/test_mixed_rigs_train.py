@@ -40,7 +40,7 @@ TRAIN_ARGS = [
 def _train_all(runs: dict) -> dict:
     """name -> (run folder, one-line log) of ns-train runs {name: (tmp, data, extra args)}, started together (each
     interpreter's imports take ~11 s of CPU; together they share the cores)."""
-    # This checkout's geer_ns, also for console scripts (whose sys.path starts at the venv's bin/).
+    # This checkout's geer_ns, also for console scripts (whose import path starts at the venv's bin/).
     path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)
     env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=path)
     running = {}
