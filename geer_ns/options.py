@@ -38,7 +38,7 @@ class GeerOwnOptions:
     """geer_ns.render backend: auto (CPU tensors: the kernels' math compiled for the CPU, JIT-built once, else
     the PyTorch renderer, said once; CUDA tensors: the kernels once they passed their self-test on this GPU,
     docs/cuda.md),
-    torch, cuda (opt in to the kernels) or cpu (the compiled CPU build; benchmarks/cpu_training.md)."""
+    torch, cuda (the kernels without a self-test) or cpu (the compiled CPU build; benchmarks/cpu_training.md)."""
     kernel_check_every: int = DEFAULT_EVERY
     """Every this many steps one training view is also rendered by the PyTorch renderer and compared with the
     compiled renderer; a disagreement switches the run to the PyTorch renderer (0: never; docs/cuda.md)."""
