@@ -78,9 +78,11 @@ def dev_room(work: Path, size: int) -> Path:
     return out
 
 
-def run_config(data: Path, out: Path, name: str, steps: int, options: dict | None = None):
+def run_config(data: Path, out: Path, name: str, steps: int, options: dict | None = None, seed: int = 42,
+               load_dir: Path | None = None):
     """geer's TrainerConfig for a benchmark run: no viewer, no evaluation or checkpoint during training, images
-    cached on the CPU; `options` set model options (dotted names reach into sub-configs: camera_optimizer.mode)."""
+    cached on the CPU; `options` set model options (dotted names reach into sub-configs: camera_optimizer.mode);
+    `seed` nerfstudio's machine seed and the training images' order; `load_dir` a checkpoint folder to start from."""
     from geer_ns.config import geer_trainer_config
     from geer_ns.model import GeerModelConfig
 
@@ -92,6 +94,8 @@ def run_config(data: Path, out: Path, name: str, steps: int, options: dict | Non
     config.max_num_iterations = steps
     config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = 0
     config.steps_per_save = 10**9
+    config.machine.seed = config.pipeline.datamanager.train_cameras_sampling_seed = seed
+    config.load_dir = load_dir
     for key, value in (options or {}).items():
         target = config.pipeline.model
         *path, leaf = key.split(".")

@@ -7,6 +7,7 @@
 #include <ATen/ATen.h>
 #include <torch/csrc/utils/pybind.h>
 
+#include <optional>
 #include <vector>
 
 #include "geer_associate.h"
@@ -53,7 +54,8 @@ template <typename F> void dispatch(const at::Tensor& t, F&& f) {
 template <typename T>
 geer::PreprocessArgs<T> preprocess_args(const at::Tensor& means_c, const at::Tensor& quats, const at::Tensor& scales,
                                         const at::Tensor& opacities, const at::Tensor& sh, const at::Tensor& sh_dirs,
-                                        const at::Tensor& rot_c, int64_t sh_degree, bool paper_lambda) {
+                                        const at::Tensor& rot_c, int64_t sh_degree, bool paper_lambda,
+                                        const std::optional<at::Tensor>& sh_degrees) {
     check_float(means_c, means_c, "means_c");
     check_float(quats, means_c, "quats");
     check_float(scales, means_c, "scales");
@@ -74,6 +76,11 @@ geer::PreprocessArgs<T> preprocess_args(const at::Tensor& means_c, const at::Ten
         a.sh = cptr<T>(sh);
         a.sh_k = int(sh.size(1));
         a.sh_dirs = cptr<T>(sh_dirs);
+        if (sh_degrees.has_value() && sh_degrees->numel() > 0) {
+            check_kind(*sh_degrees, at::kByte, "sh_degrees");
+            TORCH_CHECK(sh_degrees->numel() == a.n, "geer: sh_degrees must hold one degree per Gaussian");
+            a.sh_degrees = sh_degrees->data_ptr<uint8_t>();
+        }
     }
     check_view_constant(rot_c, means_c, 9, "rot_c");
     a.rot_c = cptr<T>(rot_c);
@@ -84,7 +91,8 @@ geer::PreprocessArgs<T> preprocess_args(const at::Tensor& means_c, const at::Ten
 // ------------------------------------------------------------------------------------ stage 1
 std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats, at::Tensor scales,
                                            at::Tensor opacities, at::Tensor sh, at::Tensor sh_dirs,
-                                           at::Tensor rot_c, int64_t sh_degree, bool paper_lambda) {
+                                           at::Tensor rot_c, int64_t sh_degree, bool paper_lambda,
+                                           std::optional<at::Tensor> sh_degrees) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(means_c));
     const int64_t n = means_c.size(0);
     auto opts = means_c.options();
@@ -93,7 +101,8 @@ std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats,
     auto alive = at::empty({n}, opts.dtype(at::kBool)), inside = at::empty({n}, opts.dtype(at::kBool));
     dispatch(means_c, [&](auto tag) {
         using T = decltype(tag);
-        auto a = preprocess_args<T>(means_c, quats, scales, opacities, sh, sh_dirs, rot_c, sh_degree, paper_lambda);
+        auto a = preprocess_args<T>(means_c, quats, scales, opacities, sh, sh_dirs, rot_c, sh_degree, paper_lambda,
+                                     sh_degrees);
         a.whiten = mptr<T>(whiten);
         a.o_u = mptr<T>(o_u);
         a.rgb = mptr<T>(rgb);
@@ -285,7 +294,8 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
 // ------------------------------------------------------------------------------------ stage 4
 std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats, at::Tensor scales, at::Tensor sh,
                                             at::Tensor sh_dirs, at::Tensor rot_c, int64_t sh_degree,
-                                            at::Tensor g_whiten, at::Tensor g_o_u, at::Tensor g_rgb, bool pose_grad) {
+                                            at::Tensor g_whiten, at::Tensor g_o_u, at::Tensor g_rgb, bool pose_grad,
+                                            std::optional<at::Tensor> sh_degrees) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(means_c));
     const int64_t n = means_c.size(0);
     auto opts = means_c.options();
@@ -295,7 +305,8 @@ std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats
     auto g_rot_c = pose_grad ? at::empty({n, 3, 3}, opts) : at::empty({0}, opts);
     dispatch(means_c, [&](auto tag) {
         using T = decltype(tag);
-        auto a = preprocess_args<T>(means_c, quats, scales, at::Tensor(), sh, sh_dirs, rot_c, sh_degree, false);
+        auto a = preprocess_args<T>(means_c, quats, scales, at::Tensor(), sh, sh_dirs, rot_c, sh_degree, false,
+                                     sh_degrees);
         check_float(g_whiten, means_c, "g_whiten");
         check_float(g_o_u, means_c, "g_o_u");
         if (sh_degree >= 0) check_float(g_rgb, means_c, "g_rgb");
@@ -323,10 +334,16 @@ at::Tensor launch_probe(at::Tensor like, int64_t threads) {
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.doc() = "3DGEER CUDA kernels (geer_ns.render.cuda_backend)";
-    m.def("preprocess_forward", &preprocess_forward);
+    namespace py = pybind11;
+    // sh_degrees (each Gaussian's own SH degree, uint8 [N]) last and optional: callers without it are unchanged.
+    m.def("preprocess_forward", &preprocess_forward, py::arg("means_c"), py::arg("quats"), py::arg("scales"),
+          py::arg("opacities"), py::arg("sh"), py::arg("sh_dirs"), py::arg("rot_c"), py::arg("sh_degree"),
+          py::arg("paper_lambda"), py::arg("sh_degrees") = py::none());
     m.def("associate", &associate);
     m.def("render_forward", &render_forward);
     m.def("render_backward", &render_backward);
-    m.def("preprocess_backward", &preprocess_backward);
+    m.def("preprocess_backward", &preprocess_backward, py::arg("means_c"), py::arg("quats"), py::arg("scales"),
+          py::arg("sh"), py::arg("sh_dirs"), py::arg("rot_c"), py::arg("sh_degree"), py::arg("g_whiten"),
+          py::arg("g_o_u"), py::arg("g_rgb"), py::arg("pose_grad"), py::arg("sh_degrees") = py::none());
     m.def("launch_probe", &launch_probe);
 }

@@ -20,6 +20,7 @@
 #include <torch/csrc/utils/pybind.h>
 
 #include <algorithm>
+#include <optional>
 #include <vector>
 
 #include "cpu_common.h"
@@ -37,11 +38,23 @@ using geer::Mat3;
 using geer::Vec3;
 
 // ------------------------------------------------------------------------------------ stage 1
+// Each Gaussian's own SH degree (uint8 [n]), or an empty tensor where none is given (every Gaussian at sh_degree).
+at::Tensor own_degrees(const std::optional<at::Tensor>& degrees, int64_t n) {
+    if (!degrees.has_value() || degrees->numel() == 0) return at::empty({0}, at::kByte);
+    TORCH_CHECK(degrees->scalar_type() == at::kByte && degrees->numel() == n,
+                "geer cpu_ops: sh_degrees must be uint8, one degree per Gaussian");
+    return cpu(*degrees);
+}
+
+const uint8_t* degrees_ptr(const at::Tensor& own) { return own.numel() ? own.data_ptr<uint8_t>() : nullptr; }
+
 std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats, at::Tensor scales,
                                               at::Tensor opacities, at::Tensor sh, at::Tensor sh_dirs,
-                                              at::Tensor rot_c, int64_t sh_degree, bool paper_lambda) {
+                                              at::Tensor rot_c, int64_t sh_degree, bool paper_lambda,
+                                              std::optional<at::Tensor> sh_degrees) {
     means_c = cpu(means_c); quats = cpu(quats); scales = cpu(scales); opacities = cpu(opacities);
     sh = cpu(sh); sh_dirs = cpu(sh_dirs); rot_c = cpu(rot_c);
+    const at::Tensor own = own_degrees(sh_degrees, means_c.size(0));
     const int64_t n = means_c.size(0);
     auto opts = means_c.options();
     auto whiten = at::zeros({n, 3, 3}, opts), o_u = at::zeros({n, 3}, opts), rgb = at::zeros({n, 3}, opts);
@@ -61,7 +74,8 @@ std::vector<at::Tensor> preprocess_forward(at::Tensor means_c, at::Tensor quats,
             mbptr(inside)[i] = g.camera_inside;
             if (sh_degree >= 0) {
                 const Vec3<T> dir = geer::load3(ptr<T>(sh_dirs) + 3 * i);
-                geer::store3(mptr<T>(rgb) + 3 * i, geer::sh_to_color(ptr<T>(sh) + 3 * k * i, int(sh_degree), dir));
+                const int degree = geer::gaussian_sh_degree(int(sh_degree), degrees_ptr(own), i);
+                geer::store3(mptr<T>(rgb) + 3 * i, geer::sh_to_color(ptr<T>(sh) + 3 * k * i, degree, dir));
             }
         });
         return 0;
@@ -154,9 +168,10 @@ std::vector<at::Tensor> associate(at::Tensor bounds, at::Tensor alive, at::Tenso
 std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats, at::Tensor scales,
                                                at::Tensor sh, at::Tensor sh_dirs, at::Tensor rot_c,
                                                int64_t sh_degree, at::Tensor g_whiten, at::Tensor g_o_u,
-                                               at::Tensor g_rgb, bool pose_grad) {
+                                               at::Tensor g_rgb, bool pose_grad, std::optional<at::Tensor> sh_degrees) {
     means_c = cpu(means_c); quats = cpu(quats); scales = cpu(scales); sh = cpu(sh); sh_dirs = cpu(sh_dirs);
     rot_c = cpu(rot_c); g_whiten = cpu(g_whiten); g_o_u = cpu(g_o_u); g_rgb = cpu(g_rgb);
+    const at::Tensor own = own_degrees(sh_degrees, means_c.size(0));
     const int64_t n = means_c.size(0);
     auto opts = means_c.options();
     auto g_mc = at::zeros({n, 3}, opts), g_q = at::zeros({n, 4}, opts), g_s = at::zeros({n, 3}, opts);
@@ -176,7 +191,9 @@ std::vector<at::Tensor> preprocess_backward(at::Tensor means_c, at::Tensor quats
             if (sh_degree < 0) return;
             Vec3<T> gd;
             const Vec3<T> dir = geer::load3(ptr<T>(sh_dirs) + 3 * i);
-            geer::sh_backward(ptr<T>(sh) + 3 * k * i, int(sh_degree), dir, geer::load3(ptr<T>(g_rgb) + 3 * i),
+            // g_sh starts at zero: the bands above the Gaussian's degree stay 0.
+            const int degree = geer::gaussian_sh_degree(int(sh_degree), degrees_ptr(own), i);
+            geer::sh_backward(ptr<T>(sh) + 3 * k * i, degree, dir, geer::load3(ptr<T>(g_rgb) + 3 * i),
                               mptr<T>(g_sh) + 3 * k * i, gd);
             geer::store3(mptr<T>(g_dirs) + 3 * i, gd);
         });
@@ -215,10 +232,16 @@ at::Tensor interval_pieces(at::Tensor lo, at::Tensor hi) {
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.doc() = "the geer kernels' code on the CPU (backend='cpu' and the tests)";
-    m.def("preprocess_forward", &preprocess_forward);
+    namespace py = pybind11;
+    // sh_degrees (each Gaussian's own SH degree, uint8 [N]) last and optional: callers without it are unchanged.
+    m.def("preprocess_forward", &preprocess_forward, py::arg("means_c"), py::arg("quats"), py::arg("scales"),
+          py::arg("opacities"), py::arg("sh"), py::arg("sh_dirs"), py::arg("rot_c"), py::arg("sh_degree"),
+          py::arg("paper_lambda"), py::arg("sh_degrees") = py::none());
     m.def("associate", &associate);
     geer_cpu::register_render_ops(m);  // render_forward / _backward (+ _gpu_path), render_lanes, pair probes
-    m.def("preprocess_backward", &preprocess_backward);
+    m.def("preprocess_backward", &preprocess_backward, py::arg("means_c"), py::arg("quats"), py::arg("scales"),
+          py::arg("sh"), py::arg("sh_dirs"), py::arg("rot_c"), py::arg("sh_degree"), py::arg("g_whiten"),
+          py::arg("g_o_u"), py::arg("g_rgb"), py::arg("pose_grad"), py::arg("sh_degrees") = py::none());
     m.def("mirror_tangent", &mirror_tangent);
     m.def("interval_pieces", &interval_pieces);
 }

@@ -51,6 +51,7 @@ template <typename T> struct PreprocessArgs {
     const T* sh;         // [N,K,3] SH coefficients (null when sh_degree < 0: colours are given as RGB)
     int sh_k;            // K
     int sh_degree;       // active degree, -1 for RGB colours
+    const uint8_t* sh_degrees;  // [N] each Gaussian's own degree, capping sh_degree (null: none)
     const T* sh_dirs;    // [N,3] SH view directions: mean - camera centre in world axes, unnormalised, rounded
                          // from float64 by the caller (transforms.camera_offsets: exact far from the origin)
     // Per-view constant, read in place on the device (every thread reads the same 9 values, a broadcast):
@@ -151,7 +152,7 @@ template <typename T> struct PreprocessGradArgs {
     T* g_means_c;        // [N,3]
     T* g_quats;          // [N,4]
     T* g_scales;         // [N,3]
-    T* g_sh;             // [N,K,3] (bands above sh_degree written as 0; null when sh_degree < 0)
+    T* g_sh;             // [N,K,3] (bands above the Gaussian's degree written as 0; null when sh_degree < 0)
     T* g_sh_dirs;        // [N,3] w.r.t. the SH view directions (0 when sh_degree < 1)
     T* g_rot_c;          // [N,9] each Gaussian's share of dL/d(camera rotation R_c) (null: not wanted)
 };

@@ -8,7 +8,7 @@
 //   transmittance  ray frame, D^2 = |m_u / |d_u||^2, t*, the half-line rule q(max(t*, 0)), alpha =
 //                  min(0.99, sigma exp(-q/2)) kept where q <= 2 ln(255 sigma)
 //   composite.py   front-to-back blending, stop before T < 1e-4
-//   sh.py          real SH up to degree 3, +0.5, clamp at 0
+//   sh.py          real SH up to degree 3 (capped per Gaussian: gaussian_sh_degree), +0.5, clamp at 0
 // One rule at every clamp (subgradients.py): a value exactly on its clamp gets the clamped side's
 // derivative, 0; max(x, lo) passes the gradient where x > lo, min(x, hi) where x < hi (torch's rule).
 // and the analytic backward of each (paper App. C, two-stage layout: the per-pair part runs in the
@@ -392,6 +392,15 @@ GEER_HD GaussianForward<T> preprocess_gaussian(const Vec3<T>& mean_c, const T* q
 #define GEER_SH_C3_6 -0.5900435899266435
 
 GEER_HD constexpr int num_sh_bases(int degree) { return (degree + 1) * (degree + 1); }
+
+// The degree Gaussian i's colour is evaluated at: the active degree (the training schedule's), capped by the
+// Gaussian's own where `degrees` ([N], each Gaussian's kept degree) is given. The bands above it are neither read
+// nor written, forward or backward: their coefficients are zero and frozen (geer_ns/sh_degrees).
+GEER_HD int gaussian_sh_degree(int active, const uint8_t* degrees, int64_t i) {
+    if (degrees == nullptr || active < 0) return active;
+    const int own = int(degrees[i]);
+    return own < active ? own : active;
+}
 
 // Basis values b[k] (k < (degree+1)^2) at the unit direction (x, y, z); optionally their gradients.
 template <typename T>

@@ -18,9 +18,10 @@ template <typename T> __global__ void __launch_bounds__(kThreads) preprocess_for
     a.alive[i] = g.alive ? 1 : 0;
     a.inside[i] = g.camera_inside ? 1 : 0;
     if (a.sh_degree >= 0) {
-        // Only the bands up to the active degree are read.
+        // Only the bands up to the Gaussian's degree are read.
         const Vec3<T> dir = load3(a.sh_dirs + 3 * i);
-        store3(a.rgb + 3 * i, sh_to_color(a.sh + size_t(i) * a.sh_k * 3, a.sh_degree, dir));
+        store3(a.rgb + 3 * i, sh_to_color(a.sh + size_t(i) * a.sh_k * 3, gaussian_sh_degree(a.sh_degree, a.sh_degrees, i),
+                                          dir));
     }
 }
 

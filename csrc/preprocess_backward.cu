@@ -18,11 +18,11 @@ __global__ void __launch_bounds__(kThreads) preprocess_backward_kernel(const Pre
     store3(g.g_means_c + 3 * i, g_mean_c);
     if (a.sh_degree < 0) return;
     T* g_sh = g.g_sh + size_t(i) * a.sh_k * 3;
-    const int active = num_sh_bases(a.sh_degree);
-    for (int k = 3 * active; k < 3 * a.sh_k; ++k) g_sh[k] = T(0);  // bands above the active degree
+    const int degree = gaussian_sh_degree(a.sh_degree, a.sh_degrees, i);
+    for (int k = 3 * num_sh_bases(degree); k < 3 * a.sh_k; ++k) g_sh[k] = T(0);  // bands above its degree
     Vec3<T> g_dir;
     const Vec3<T> dir = load3(a.sh_dirs + 3 * i);
-    sh_backward(a.sh + size_t(i) * a.sh_k * 3, a.sh_degree, dir, load3(g.g_rgb + 3 * i), g_sh, g_dir);
+    sh_backward(a.sh + size_t(i) * a.sh_k * 3, degree, dir, load3(g.g_rgb + 3 * i), g_sh, g_dir);
     store3(g.g_sh_dirs + 3 * i, g_dir);
 }
 

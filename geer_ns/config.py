@@ -15,6 +15,7 @@ from nerfstudio.plugins.types import MethodSpecification
 from geer_ns.data.datamanager import GeerDataManagerConfig
 from geer_ns.training.trainer import GeerMachineConfig, GeerTrainerConfig
 from geer_ns.model import GeerModelConfig
+from geer_ns.optim.selective_adam import SelectiveAdamOptimizerConfig
 from geer_ns.options import OWN_OPTIONS_HELP
 from geer_ns.pipeline import GeerPipelineConfig
 
@@ -25,16 +26,22 @@ def _adam(lr: float, scheduler=None) -> dict:
     return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15), "scheduler": scheduler}
 
 
+def _gaussian_adam(lr: float, scheduler=None) -> dict:
+    """A Gaussian parameter group's Adam: torch's, stepping only the rows a step's views see when the model offers
+    them (--pipeline.model.optimizer-rows, geer_ns/optim/selective_adam.py)."""
+    return {"optimizer": SelectiveAdamOptimizerConfig(lr=lr, eps=1e-15), "scheduler": scheduler}
+
+
 def splatfacto_optimizers(max_steps: int = MAX_STEPS) -> dict:
     """splatfacto's per-parameter optimizers (nerfstudio 1.1.5 method_configs), and geer's appearance model's."""
     warm = dict(warmup_steps=1000, lr_pre_warmup=0)
     return {
-        "means": _adam(1.6e-4, ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=max_steps)),
-        "features_dc": _adam(0.0025),
-        "features_rest": _adam(0.0025 / 20),
-        "opacities": _adam(0.05),
-        "scales": _adam(0.005),
-        "quats": _adam(0.001),
+        "means": _gaussian_adam(1.6e-4, ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=max_steps)),
+        "features_dc": _gaussian_adam(0.0025),
+        "features_rest": _gaussian_adam(0.0025 / 20),
+        "opacities": _gaussian_adam(0.05),
+        "scales": _gaussian_adam(0.005),
+        "quats": _gaussian_adam(0.001),
         "camera_opt": _adam(1e-4, ExponentialDecaySchedulerConfig(lr_final=5e-7, max_steps=max_steps, **warm)),
         "bilateral_grid": _adam(2e-3, ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=max_steps, **warm)),
         # geer's appearance model (--pipeline.model.appearance exposure; docs/refinement.md)

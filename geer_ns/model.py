@@ -24,6 +24,7 @@ import torch
 from gsplat.strategy import MCMCStrategy
 from pytorch_msssim import SSIM
 from torch import Tensor
+from torch.fx.experimental.symbolic_shapes import guard_or_false
 import tyro
 
 from nerfstudio.cameras.cameras import Cameras
@@ -52,17 +53,20 @@ from geer_ns.densify.strategy import GeerDefaultStrategy, build_strategy
 from geer_ns.errors import OptionError
 from geer_ns.distributed.engine import EngineState
 from geer_ns.metrics.regions import central_region, downscale_mask, masked_psnr, region_psnr
-from geer_ns.options import GeerOwnOptions, ignored_options_set
+from geer_ns.options import GeerOwnOptions, ignored_options_set, skipping_line
 from geer_ns.metrics.perceptual import build_lpips_if_cached
 from geer_ns.refinement.pose_solve import PoseSolver
 from geer_ns.refinement.refined_frame import RefinedFrame, scene_pose
 from geer_ns.render import render
 from geer_ns.render.backend import announce_backend
+from geer_ns.render.cull import view_rows
 from geer_ns.render.normals import render_normals
 from geer_ns.render.pbf import pbf_lambda_sq
 from geer_ns.render.transforms import view_transform, world_to_camera_opencv
 from geer_ns.render_guard import RenderGuard, camera_problem, in_viewer_thread, is_viewer_interrupt
 from geer_ns.selftest.sentinel import KernelSentinel, ViewInputs
+from geer_ns.sh_degrees import packing as sh_packing
+from geer_ns.sh_degrees.choice import BandChoice, choice_step
 
 View = Union[BeapView, NativeView]
 
@@ -168,6 +172,7 @@ class GeerModel(SplatfactoModel):
         self._statistics: Optional[StepStatistics] = None  # the step's statistics, when the engine reduced them
         self._step_background: Optional[Tensor] = None  # one random background per step, for all its views
         self.render_guard = RenderGuard()
+        self._said_skipping = False
         self.sentinel = KernelSentinel(self.config.kernel_check_every, say=lambda line: CONSOLE.print(line, markup=False))
 
     def _initial_means(self) -> torch.nn.Parameter:
@@ -208,7 +213,7 @@ class GeerModel(SplatfactoModel):
     # optimizers hold, so `--load-dir` trained nothing. Resize in place and keep the strategy state,
     # step and RNG states with the checkpoint (geer_ns/resume.py).
     def load_state_dict(self, state_dict, strict: bool = True, **kwargs):  # type: ignore[override]
-        state_dict = dict(state_dict)
+        state_dict = sh_packing.unpacked_model_state(dict(state_dict), self.gauss_params["features_rest"].shape[1])
         if "means" in state_dict:  # splatfacto's backwards compatibility with pre-gauss_params checkpoints
             for name in ("means", "scales", "quats", "features_dc", "features_rest", "opacities"):
                 state_dict[resume.GAUSS_PREFIX + name] = state_dict.pop(name)
@@ -252,6 +257,9 @@ class GeerModel(SplatfactoModel):
         display = self.engine_state.display_gaussians
         shown = display if display is not None and not self.training else None
         params = {name: (self.gauss_params if shown is None else shown)[name] for name in names}
+        degrees = self.strategy_state.get(sh_packing.DEGREES)
+        if shown is None and degrees is not None:  # each Gaussian's own SH degree (geer_ns/sh_degrees)
+            params[sh_packing.DEGREES] = degrees
         if self.crop_box is not None and not self.training:
             keep = self.crop_box.within(self.means).squeeze()
             if keep.sum() == 0:
@@ -259,11 +267,16 @@ class GeerModel(SplatfactoModel):
             params = {name: p[keep] for name, p in params.items()}
         return params
 
-    def colors(self, params: Dict[str, Tensor]) -> Tuple[Tensor, Optional[int]]:
-        """The renderer's colors of `params` (SH coefficients, or sigmoid RGB) and the SH degree in use (None: RGB)."""
+    def colors(self, params: Dict[str, Tensor]) -> Tuple[Tensor, Union[int, Tensor, None]]:
+        """The renderer's colors of `params` (SH coefficients up to the schedule's degree, or sigmoid RGB) and the
+        SH degree: one for all, each Gaussian's own where params has its degrees ([N], at most the schedule's),
+        None for RGB."""
         if self.config.sh_degree > 0:
-            colors = torch.cat([params["features_dc"][:, None, :], params["features_rest"]], dim=1)
-            return colors, min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+            active = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+            rest = params["features_rest"][:, : num_sh_bases(active) - 1]  # the kernels read no band above
+            colors = torch.cat([params["features_dc"][:, None, :], rest], dim=1)
+            own = params.get(sh_packing.DEGREES)
+            return colors, active if own is None else own.clamp(max=active)
         return exact_activation(torch.sigmoid, params["features_dc"]), None
 
     def render_options(self) -> Dict[str, object]:
@@ -286,13 +299,16 @@ class GeerModel(SplatfactoModel):
         params = self.render_gaussians()
         if params is None:
             return self.get_empty_outputs(width, height, self.background_color)
+        background = self.render_background().to(params["means"])
+        viewmat = self.viewmat(self.render_pose(camera), params["means"].device)
+        rows = self.view_rows(params, viewmat, view.rays)
+        if rows is not None:  # the rows the view can see: the same render, for their work only
+            params = {name: p[rows] for name, p in params.items()}
         means = params["means"]
-        background = self.render_background().to(means)
-        viewmat = self.viewmat(self.render_pose(camera), means.device)
         scales, opacities = self.activated(params)
         probe = None
         if self.training and torch.is_grad_enabled():  # not for viewer renders during training
-            probe = self.probe(view, means, viewmat, scales, opacities)
+            probe = self.probe(view, means, viewmat, scales, opacities, rows)
             means = probe.displace(means, viewmat)
         colors, sh_degree = self.colors(params)
         options = self.render_options()
@@ -313,6 +329,25 @@ class GeerModel(SplatfactoModel):
             normals = render_normals(means, params["quats"], scales, opacities, viewmat, view.rays.to(means.device),
                                      **options)
         return self.view_outputs(out, view, background, camera, normals)
+
+    def view_rows(self, params: Dict[str, Tensor], viewmat: Tensor, grid) -> Optional[Tensor]:
+        """The rows of `params` a view (its ray grid) can see (geer_ns/render/cull.py), or None: every row (the cull
+        off, or every row seen)."""
+        if not self.config.view_cull:
+            return None
+        rows = view_rows(params["means"], torch.exp(params["scales"].detach().amax(-1)),
+                         torch.sigmoid(params["opacities"].detach()).reshape(-1), viewmat, grid, self.config.lambda_mode)
+        return None if guard_or_false(rows.shape[0] == params["means"].shape[0]) else rows  # symbolic: the rows
+
+    def step_rows(self) -> Tensor:
+        """[N] bool: the Gaussians this process's views of the step so far could see (their densification
+        records' visible rows): the rows a selective optimizer steps."""
+        seen = torch.zeros(self.num_points, dtype=torch.bool, device=self.device)
+        for record in self.views:
+            rows = record.rows.to(self.device) if record.rows is not None else torch.arange(self.num_points,
+                                                                                            device=self.device)
+            seen[rows[record.visible.to(self.device)]] = True
+        return seen
 
     def render_pose(self, camera: Cameras) -> Tensor:
         """[3, 4] the camera-to-world a render of `camera` (one camera) uses: while training, the training image's
@@ -418,6 +453,9 @@ class GeerModel(SplatfactoModel):
     def step_cb(self, optimizers, step):
         super().step_cb(optimizers, step)
         self._step_background = None
+        if not self._said_skipping:
+            self._said_skipping = True
+            CONSOLE.log(f"geer: {skipping_line(self.config, self.sh_choice_step(), self.scene_gaussians is not None)}")
         if step == self.config.pose_refinement_start > 0:
             CONSOLE.log(f"geer: step {step}: pose refinement starts ({self.camera_optimizer.config.mode}, "
                         "pose-refinement-start)")
@@ -454,11 +492,22 @@ class GeerModel(SplatfactoModel):
                              args=[training_callback_attributes.optimizers]),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.step_post_backward),
         ]
+        if self.sh_choice_step() is not None:
+            callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], BandChoice(
+                training_callback_attributes.pipeline, training_callback_attributes.optimizers, self.sh_choice_step(),
+                self.config.sh_budget_db, say=CONSOLE.log)))
         if self.config.pose_solve_every > 0:
             solver = PoseSolver(training_callback_attributes.pipeline, training_callback_attributes.optimizers,
                                 self.config.pose_solve_every, self.config.pose_solve_iterations, say=CONSOLE.log)
             callbacks.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], solver))
         return callbacks
+
+    def sh_choice_step(self) -> Optional[int]:
+        """The step each Gaussian's SH degree is chosen at (geer_ns/sh_degrees/choice.py), or None: not chosen
+        (sh-per-gaussian off, no SH, or Gaussians sharded over processes)."""
+        if not self.config.sh_per_gaussian or self.config.sh_degree == 0 or self.scene_gaussians is not None:
+            return None
+        return choice_step(self.config.stop_split_at, self.config.sh_degree, self.config.sh_degree_interval)
 
     # ------------------------------------------------------------------------------------- losses
     def supervised_mask(self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]) -> Tensor:

@@ -30,6 +30,22 @@ class GeerOwnOptions:
     prune_unseen: bool = True
     """Prune Gaussians whose blend weight stayed below 1/255 on every training ray for a whole pass over the
     training images (too faint, or hidden behind opaque surfaces in every view)."""
+    sh_per_gaussian: bool = True
+    """Each Gaussian keeps only the SH bands its training images show: chosen once, at the end of densification,
+    by measuring the training views' PSNR (sh-budget-db); the kernels evaluate and train each Gaussian only up to
+    its degree, and checkpoints and exports store only what it keeps (geer_ns/sh_degrees). False: every Gaussian
+    keeps every band (splatfacto). Not with --pipeline.model.distributed gaussians."""
+    sh_budget_db: float = 0.02
+    """sh-per-gaussian: the most PSNR the training views may lose, measured when the bands are chosen."""
+    optimizer_rows: Literal["visible", "all"] = "all"
+    """"all": every Gaussian, every step (torch's Adam). "visible": Adam steps only the Gaussians the step's views
+    can see (geer_ns/optim/selective_adam.py: torch's Adam on those rows, its bias correction; the others and their
+    moments wait), as gsplat's opt-in selective Adam: faster where a view sees a small part of a large scene, but
+    a Gaussian seen in few steps also misses its momentum's later steps, which cost 0.1-0.3 dB on the dev room in
+    a short run (benchmarks/skip_unneeded.md)."""
+    view_cull: bool = True
+    """Render and probe only the Gaussians a view can see (their bounding balls against the view's tiles: the same
+    images, gradients and densification statistics; geer_ns/render/cull.py). False: every Gaussian in every view."""
     distributed: Literal["images", "gaussians"] = "images"
     """With several processes (--machine.num-devices): "images", every process holds the whole model and trains
     on its own images; "gaussians", each holds a shard of the Gaussians (scenes larger than one device), and
@@ -101,7 +117,8 @@ OWN_OPTIONS_HELP = (
     "geer's own options: --pipeline.model.renderer-backend {auto,torch,cuda,cpu}, --pipeline.model.lambda-mode "
     "{opacity,paper}, --pipeline.model.strategy {default,mcmc}, "
     "--pipeline.model.max-gaussians, --pipeline.model.densify-min-pixels, --pipeline.model.prune-unseen, "
-    "--pipeline.model.distributed {images,gaussians}, "
+    "--pipeline.model.distributed {images,gaussians}, --pipeline.model.sh-per-gaussian, "
+    "--pipeline.model.sh-budget-db, --pipeline.model.optimizer-rows {visible,all}, --pipeline.model.view-cull, "
     "--pipeline.model.max-pairs, --pipeline.model.kernel-check-every, "
     "--pipeline.model.central-half-angles-deg, --pipeline.model.lens-refinement {off,focal,focal+principal,full}, "
     "--pipeline.model.pose-solve-every, --pipeline.model.pose-solve-iterations, --pipeline.model.refined-frame, "
@@ -117,3 +134,19 @@ def ignored_options_set(config, defaults) -> List[str]:
     the one start-up line that says geer does not use them."""
     return [f"{name}={getattr(config, name)!r}" for name in IGNORED_OPTIONS
             if getattr(config, name) != getattr(defaults, name)]
+
+
+def skipping_line(options: GeerOwnOptions, sh_choice_step: Optional[int], sharded: bool) -> str:
+    """The start-up line on what training skips: per-Gaussian SH degrees (chosen at `sh_choice_step`, None: not
+    chosen; never with Gaussians `sharded` over processes), the optimizer's rows and the view cull."""
+    if sh_choice_step is not None:
+        sh = (f"each Gaussian's SH degree chosen at step {sh_choice_step}, the end of densification (sh-per-gaussian, "
+              f"budget {options.sh_budget_db} dB)")
+    elif options.sh_per_gaussian and sharded:
+        sh = "every SH band kept (sh-per-gaussian is not chosen with Gaussians sharded over processes)"
+    else:
+        sh = "every SH band kept"
+    rows = ("Adam steps the Gaussians each step's views see (optimizer-rows visible)"
+            if options.optimizer_rows == "visible" else "Adam steps every Gaussian (optimizer-rows all)")
+    cull = "views render the Gaussians they can see" if options.view_cull else "views render every Gaussian"
+    return f"{sh}; {rows}; {cull}"

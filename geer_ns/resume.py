@@ -26,6 +26,8 @@ from typing import Any, Dict, Mapping, Optional
 import numpy as np
 import torch
 
+from geer_ns.sh_degrees.packing import packed_checkpoint
+
 GAUSS_PREFIX = "gauss_params."
 
 
@@ -93,11 +95,13 @@ def checkpoint_images_per_step(checkpoint: Mapping[str, Any]) -> int:
 
 def trainer_state(trainer, step: int) -> Dict[str, Any]:
     """nerfstudio's checkpoint of a Trainer at `step` (pipeline, optimizers, schedulers, scaler) with the RNG
-    states (rng_state), as a dict for torch.save."""
-    return {"step": step, "pipeline": trainer.pipeline.state_dict(),
-            "optimizers": {k: v.state_dict() for k, v in trainer.optimizers.optimizers.items()},
-            "schedulers": {k: v.state_dict() for k, v in trainer.optimizers.schedulers.items()},
-            "scalers": trainer.grad_scaler.state_dict(), "rng": rng_state()}
+    states (rng_state), as a dict for torch.save; with per-Gaussian SH degrees, features_rest and its moments
+    hold the kept coefficients only (geer_ns/sh_degrees/packing.py)."""
+    return packed_checkpoint({
+        "step": step, "pipeline": trainer.pipeline.state_dict(),
+        "optimizers": {k: v.state_dict() for k, v in trainer.optimizers.optimizers.items()},
+        "schedulers": {k: v.state_dict() for k, v in trainer.optimizers.schedulers.items()},
+        "scalers": trainer.grad_scaler.state_dict(), "rng": rng_state()})
 
 
 def strategy_state(state: Mapping[str, Any]) -> Dict[str, Any]:

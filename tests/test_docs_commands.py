@@ -29,6 +29,9 @@ def shown_commands() -> list[tuple[str, list[str]]]:
         lines += INLINE.findall(re.sub(r"```.*?```", "", text, flags=re.S))
         for line in lines:
             line = line.split(" #")[0].strip()
+            line = re.sub(r"^\w+=\$\((.*)\)$", r"\1", line)  # VAR=$(command ...): the command
+            if re.fullmatch(r"(export )?\w+=\S*", line):  # a plain shell assignment runs nothing
+                continue
             if line and not line.startswith("#"):
                 found.append((page.name, shlex.split(line.replace("<", "").replace(">", ""))))
     return found

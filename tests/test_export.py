@@ -3,6 +3,7 @@ stated precision; the EWA comparison's CPU compositing against a direct evaluati
 
 from __future__ import annotations
 
+import gzip
 import json
 import math
 
@@ -193,3 +194,31 @@ def test_export_command_on_a_checkpoint(tmp_path, capsys):
     gltf = pygltflib.GLTF2().load(str(tmp_path / "export" / "splat.glb"))
     assert gltf.accessors[0].count == trained.shape[0]
     assert gltf.asset.extras["ewa_vs_exact_psnr_db"] == meta["ewa_vs_exact_psnr_db"]
+
+
+def test_mixed_degrees_store_the_highest_kept(splats, tmp_path):
+    """Per-Gaussian degrees (geer_ns/sh_degrees): each file stores the highest degree kept, lower-degree Gaussians'
+    higher coefficients as the zeros they are; the files are smaller than at full degree."""
+    from dataclasses import replace
+
+    from plyfile import PlyData
+
+    degrees = np.random.default_rng(1).integers(0, 2, N).astype(np.uint8)  # 0 and 1 only
+    rest = splats.sh_rest.copy()
+    for i, d in enumerate(degrees):
+        rest[i, (d + 1) ** 2 - 1:] = 0.0
+    mixed = replace(splats, sh_rest=rest, sh_degrees=degrees)
+    assert mixed.sh_degree == 1
+    sizes = {}
+    for name, writer, full in (("ply", write_ply, splats), ("spz", write_spz, splats), ("glb", write_glb, splats)):
+        writer(mixed, tmp_path / f"m.{name}", META)
+        writer(full, tmp_path / f"f.{name}", META)
+        sizes[name] = (tmp_path / f"m.{name}").stat().st_size / (tmp_path / f"f.{name}").stat().st_size
+    v = PlyData.read(str(tmp_path / "m.ply"))["vertex"]
+    names = [p.name for p in v.properties if p.name.startswith("f_rest_")]
+    assert len(names) == 9
+    back = np.stack([v[n] for n in names], 1).reshape(N, 3, 3).transpose(0, 2, 1)
+    np.testing.assert_array_equal(back, rest[:, :3])
+    assert sizes["ply"] < 0.5 and sizes["glb"] < 0.5 and sizes["spz"] < 0.7, sizes
+    with gzip.open(tmp_path / "m.spz", "rb") as f:
+        assert f.read(16)[12] == 1  # SPZ header: SH degree

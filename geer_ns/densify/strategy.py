@@ -25,7 +25,8 @@ from geer_ns.gsplat_private import DefaultStrategyHooks
 from geer_ns.render.transforms import quat_to_rotmat
 
 VISIBLE_WEIGHT = 1.0 / 255.0  # the renderer's own threshold: a pair below it is skipped
-PER_GAUSSIAN_STATE = ("id", "grad2d", "count", "radii", "weight", "pixels")  # the strategy state's rows
+# the strategy state's rows (sh_degree: each Gaussian's own SH degree, geer_ns/sh_degrees, carried with its row)
+PER_GAUSSIAN_STATE = ("id", "grad2d", "count", "radii", "weight", "pixels", "sh_degree")
 
 # (wanted [N] Gaussians each row would add, over [N] strength, ids [N], rows N here, budget) -> allowed [N] bool
 Budget = Callable[[Tensor, Tensor, Tensor, int, int], Tensor]

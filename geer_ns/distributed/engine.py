@@ -52,6 +52,10 @@ class Engine(Protocol):
     def reduce_statistics(self, model: "EngineModel") -> None:
         """The step's densification statistics over every process, handed to model.use_step_statistics."""
 
+    def step_rows(self, model: "EngineModel") -> Tensor:
+        """The rows of this process's Gaussians the step's views (over every process) could see, ascending: the
+        rows a selective optimizer steps (geer_ns/optim/selective_adam.py)."""
+
     def callbacks(self) -> List[Any]:
         """nerfstudio TrainingCallbacks to run after the model's own."""
 
@@ -117,6 +121,9 @@ class EngineModel(Protocol):
 
     def use_step_statistics(self, statistics: Any) -> None:
         """The step's statistics over every process, for the densification after the step."""
+
+    def step_rows(self) -> Tensor:
+        """[N] bool: the Gaussians held here that this process's views of the step could see."""
 
     def get_outputs(self, camera: Any) -> Dict[str, Tensor]:
         """nerfstudio's render of one camera."""

@@ -113,6 +113,10 @@ class GaussianParallel:
     def reduce_statistics(self, model) -> None:
         model.use_step_statistics(model.step_statistics())  # complete already: every camera's gradient came home
 
+    def step_rows(self, model) -> Tensor:
+        """This shard's rows any camera of the step saw: its records hold every camera's (sharded_outputs)."""
+        return torch.nonzero(model.step_rows()).squeeze(1)
+
     def callbacks(self) -> List[TrainingCallback]:
         return [TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._after_step)]
 

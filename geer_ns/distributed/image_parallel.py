@@ -24,6 +24,7 @@ from geer_ns.distributed.consistency import (
 )
 from geer_ns.distributed.engine import EngineState
 from geer_ns.distributed.reductions import optimized_parameters, reduce_gradients, reduce_statistics
+from geer_ns.distributed.world import all_reduce_
 from geer_ns.errors import OptionError
 
 
@@ -62,6 +63,13 @@ class ImageParallel:
 
     def reduce_statistics(self, model) -> None:
         model.use_step_statistics(reduce_statistics(self.world, model.step_statistics()))
+
+    def step_rows(self, model):
+        """Every replica's views' rows: the same rows step on every replica."""
+        seen = model.step_rows().to(torch.uint8)
+        if self.world.distributed:
+            all_reduce_([seen], op="max")
+        return torch.nonzero(seen).squeeze(1)
 
     def callbacks(self):
         from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation

@@ -20,6 +20,7 @@ Rule (applied by default, said once at start-up): a step of kappa = N x B images
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any, Dict, List, Tuple
@@ -29,6 +30,7 @@ import torch
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 
 from geer_ns import resume
+from geer_ns.optim.selective_adam import SelectiveAdamOptimizerConfig
 
 # Step-valued options of the model config (splatfacto's, which geer keeps). reset_alpha_every counts
 # refinements, so it scales through refine_every.
@@ -80,10 +82,13 @@ def scaled_config(config, batch: EffectiveBatch):
             setattr(model, name, batch.steps(getattr(model, name)))
     for group, entry in config.optimizers.items():
         optimizer, scheduler = entry["optimizer"], entry.get("scheduler")
-        if type(optimizer) in (AdamOptimizerConfig, AdamBetasOptimizerConfig):
+        if type(optimizer) in (AdamOptimizerConfig, AdamBetasOptimizerConfig, SelectiveAdamOptimizerConfig):
             lr, eps, betas = batch.adam(optimizer.lr, optimizer.eps, getattr(optimizer, "betas", (0.9, 0.999)))
-            entry["optimizer"] = AdamBetasOptimizerConfig(lr=lr, eps=eps, betas=betas, max_norm=optimizer.max_norm,
-                                                          weight_decay=optimizer.weight_decay)
+            if type(optimizer) is SelectiveAdamOptimizerConfig:  # the Gaussian groups' (config.py)
+                entry["optimizer"] = dataclasses.replace(optimizer, lr=lr, eps=eps, betas=betas)
+            else:
+                entry["optimizer"] = AdamBetasOptimizerConfig(lr=lr, eps=eps, betas=betas, max_norm=optimizer.max_norm,
+                                                              weight_decay=optimizer.weight_decay)
             if scheduler is not None:
                 root = math.sqrt(batch.images)
                 for name in ("lr_final", "lr_pre_warmup"):

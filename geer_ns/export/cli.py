@@ -13,11 +13,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Literal
 
+import numpy as np
 import torch
 import tyro
 
 from geer_ns.export.ewa import EwaReport, compare, pinhole_at
 from geer_ns.export.formats import WRITERS, Splats
+from geer_ns.sh_degrees.packing import DEGREES
 
 Format = Literal["ply", "glb", "spz"]
 TRAINED_WITH = ("3DGEER exact ray evaluation (geer-ns): each Gaussian's closed-form response along every ray, "
@@ -43,8 +45,9 @@ class ExportConfig:
 def splats_of(model) -> Splats:
     """The model's Gaussians (splatfacto's parameters) as float32 numpy arrays."""
     p = {name: value.detach().float().cpu().numpy() for name, value in model.gauss_params.items()}
+    degrees = model.strategy_state.get(DEGREES)  # each Gaussian's own SH degree, where chosen
     return Splats(p["means"], p["scales"], p["quats"], p["opacities"].reshape(-1), p["features_dc"],
-                  p["features_rest"])
+                  p["features_rest"], None if degrees is None else degrees.cpu().numpy())
 
 
 def measure_ewa(model, cameras, views: int, size: int) -> EwaReport:
@@ -68,16 +71,21 @@ def export(config: ExportConfig) -> dict:
     splats = splats_of(model)
     metadata = {"trained_with": TRAINED_WITH, "renderer": "exact_ray_evaluation", "generator": "geer-ns",
                 "gaussians": splats.count, "sh_degree": splats.sh_degree, "step": step}
+    if splats.sh_degrees is not None:  # how many Gaussians keep each degree (the files store sh_degree for all)
+        metadata["sh_degree_counts"] = np.bincount(splats.sh_degrees, minlength=4).tolist()
     if config.ewa_views > 0:
         report = measure_ewa(model, pipeline.datamanager.train_dataset.cameras, config.ewa_views, config.ewa_size)
         print(f"geer-export: {report.line()}")
         metadata["ewa_vs_exact_psnr_db"] = round(report.mean_psnr_db, 3)
         metadata["ewa_vs_exact_method"] = report.method
+    if splats.sh_degrees is not None:
+        print(f"geer-export: Gaussians by their own SH degree 0-3: {metadata['sh_degree_counts']}; each format stores "
+              f"one degree for all, {splats.sh_degree} (lower-degree Gaussians store zeros above theirs)")
     config.output_dir.mkdir(parents=True, exist_ok=True)
     for name in config.formats:
         path = config.output_dir / f"splat.{name}"
         WRITERS[name](splats, path, metadata)
-        print(f"geer-export: wrote {path} ({splats.count} Gaussians)")
+        print(f"geer-export: wrote {path} ({splats.count} Gaussians, SH degree {splats.sh_degree})")
     return metadata
 
 

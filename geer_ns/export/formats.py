@@ -3,7 +3,9 @@ Niantic's SPZ (version 3, gzip). Written from the formats' specifications (docs/
 each stores, with the round-trip error the tests measure).
 
 Every writer takes a `Splats` in splatfacto's parameterization (log-scales, opacity logits, SH with the DC term
-first) and a metadata dict saying how the scene was trained, which each format keeps where it can.
+first) and a metadata dict saying how the scene was trained, which each format keeps where it can. Each format
+holds one SH degree for all its Gaussians: with per-Gaussian degrees (geer_ns/sh_degrees) the files store the
+highest degree any Gaussian keeps, a lower-degree Gaussian's higher coefficients as the zeros they are.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import json
 import struct
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -35,6 +38,7 @@ class Splats:
     opacity_logits: np.ndarray  # [N]
     sh_dc: np.ndarray  # [N, 3] SH degree-0 coefficients (color = 0.5 + SH_C0 * dc)
     sh_rest: np.ndarray  # [N, K, 3] higher-degree coefficients, K = (degree + 1)^2 - 1
+    sh_degrees: Optional[np.ndarray] = None  # [N] each Gaussian's own degree (its higher coefficients are zero)
 
     @property
     def count(self) -> int:
@@ -42,7 +46,16 @@ class Splats:
 
     @property
     def sh_degree(self) -> int:
-        return int(round((self.sh_rest.shape[1] + 1) ** 0.5)) - 1
+        """The degree the files store for every Gaussian (each format has one per file): the highest any
+        Gaussian keeps; a Gaussian of a lower degree stores zeros above it, which is what it has."""
+        held = int(round((self.sh_rest.shape[1] + 1) ** 0.5)) - 1
+        if self.sh_degrees is None or self.count == 0:
+            return held
+        return min(held, int(self.sh_degrees.max()))
+
+    def rest(self) -> np.ndarray:
+        """[N, (sh_degree + 1)^2 - 1, 3] the higher-degree coefficients the files store."""
+        return self.sh_rest[:, : (self.sh_degree + 1) ** 2 - 1]
 
     def unit_quats(self) -> np.ndarray:
         q = self.quats_wxyz.astype(np.float64)
@@ -59,11 +72,11 @@ def write_ply(splats: Splats, path: Path, metadata: dict) -> None:
     rot_0..3 (wxyz). The metadata goes into `comment` lines of the header."""
     from plyfile import PlyData, PlyElement
 
-    n, k = splats.count, splats.sh_rest.shape[1]
+    n, k = splats.count, splats.rest().shape[1]
     columns = {"x": splats.means[:, 0], "y": splats.means[:, 1], "z": splats.means[:, 2],
                "nx": np.zeros(n), "ny": np.zeros(n), "nz": np.zeros(n)}
     columns.update({f"f_dc_{c}": splats.sh_dc[:, c] for c in range(3)})
-    rest = splats.sh_rest.transpose(0, 2, 1).reshape(n, 3 * k)  # channel-major
+    rest = splats.rest().transpose(0, 2, 1).reshape(n, 3 * k)  # channel-major
     columns.update({f"f_rest_{i}": rest[:, i] for i in range(3 * k)})
     columns["opacity"] = splats.opacity_logits
     columns.update({f"scale_{i}": splats.log_scales[:, i] for i in range(3)})
@@ -115,7 +128,7 @@ def write_glb(splats: Splats, path: Path, metadata: dict) -> None:
     for degree in range(1, splats.sh_degree + 1):
         for n in range(2 * degree + 1):
             attributes[f"{prefix}SH_DEGREE_{degree}_COEF_{n}"] = _accessor(
-                blob, views, accessors, splats.sh_rest[:, index], "VEC3")
+                blob, views, accessors, splats.rest()[:, index], "VEC3")
             index += 1
     extension = {"kernel": "ellipse", "colorSpace": "srgb_rec709_display", "projection": "perspective",
                  "sortingMethod": "cameraDistance"}
@@ -185,7 +198,7 @@ def write_spz(splats: Splats, path: Path, metadata: dict) -> None:
     scales = _quantize((splats.log_scales.astype(np.float64) + 10.0) * 16.0, 0, 255)
     rotations = _smallest_three(splats.unit_quats()).astype("<u4").view(np.uint8).reshape(n, 4)
     k = (degree + 1) ** 2 - 1
-    sh = _quantize(splats.sh_rest[:, :k].astype(np.float64) * 128.0 + 128.0, 0, 255).reshape(n, 3 * k)
+    sh = _quantize(splats.rest()[:, :k].astype(np.float64) * 128.0 + 128.0, 0, 255).reshape(n, 3 * k)
     header = struct.pack("<IIIBBBB", SPZ_MAGIC, 3, n, degree, SPZ_FRACTIONAL_BITS, 0, 0)
     payload = b"".join(a.tobytes() for a in (positions, alphas, colors, scales, rotations, sh))
     with gzip.open(path, "wb") as f:

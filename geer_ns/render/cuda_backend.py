@@ -37,12 +37,12 @@ class _Preprocess(torch.autograd.Function):
     + PBF (no grad). R_c gets a gradient when it requires one (camera pose refinement)."""
 
     @staticmethod
-    def forward(ctx, means_c, quats, scales, sh, sh_dirs, opacities, rot_c, sh_degree, paper, ops):
+    def forward(ctx, means_c, quats, scales, sh, sh_dirs, opacities, rot_c, sh_degree, paper, ops, sh_degrees=None):
         whiten, o_u, rgb, bounds, alive, inside = ops.preprocess_forward(
-            means_c, quats, scales, opacities, sh, sh_dirs, rot_c, sh_degree, paper
+            means_c, quats, scales, opacities, sh, sh_dirs, rot_c, sh_degree, paper, sh_degrees
         )
         ctx.save_for_backward(means_c, quats, scales, sh, sh_dirs, rot_c)
-        ctx.sh_degree = sh_degree
+        ctx.sh_degree, ctx.sh_degrees = sh_degree, sh_degrees
         ctx.ops = ops
         ctx.mark_non_differentiable(bounds, alive, inside)
         return whiten, o_u, rgb, bounds, alive, inside
@@ -52,8 +52,8 @@ class _Preprocess(torch.autograd.Function):
     def backward(ctx, g_whiten, g_o_u, g_rgb, *_):
         pose_grad = ctx.needs_input_grad[6]
         g_mc, g_q, g_s, g_sh, g_dirs, g_rot_c = preprocess_grads(ctx.ops, ctx.saved_tensors, ctx.sh_degree, g_whiten,
-                                                                 g_o_u, g_rgb, pose_grad)
-        return (g_mc, g_q, g_s, g_sh, g_dirs, None, g_rot_c) + (None,) * 3
+                                                                 g_o_u, g_rgb, pose_grad, ctx.sh_degrees)
+        return (g_mc, g_q, g_s, g_sh, g_dirs, None, g_rot_c) + (None,) * 4
 
 
 class _Rasterize(torch.autograd.Function):
@@ -92,16 +92,18 @@ class _Rasterize(torch.autograd.Function):
 
 
 # ----------------------------------------------------------------------------------------- helpers
-def _sh_setup(colors: Tensor, sh_degree: int | None) -> int:
-    """Active SH degree (-1: colors are RGB), with sh.py's errors."""
+def _sh_setup(colors: Tensor, sh_degree: int | Tensor | None) -> tuple[int, Tensor | None]:
+    """(active SH degree (-1: colors are RGB), each Gaussian's own as uint8 [N] or None), with sh.py's errors. A
+    per-Gaussian sh_degree (validated by render) caps the degree colors' K holds."""
     if colors.ndim == 2:
-        return -1
-    degree = int(math.isqrt(colors.shape[1]) - 1) if sh_degree is None else sh_degree
+        return -1, None
+    own = sh_degree if isinstance(sh_degree, Tensor) else None
+    degree = int(math.isqrt(colors.shape[1]) - 1) if sh_degree is None or own is not None else sh_degree
     if not 0 <= degree <= 3:
         raise ValueError(f"sh_degree must be in 0..3, got {degree}")
     if colors.shape[1] < (degree + 1) ** 2:
         raise ValueError(f"colors: SH degree {degree} needs {(degree + 1) ** 2} coefficients, got {colors.shape[1]}")
-    return degree
+    return degree, None if own is None else own.clamp(max=degree).to(torch.uint8).contiguous()
 
 
 def depth_order_key(depth: Tensor) -> Tensor:
@@ -141,7 +143,7 @@ def render_cuda(
     viewmat: Tensor,
     grid: RayGrid,
     *,
-    sh_degree: int | None = None,
+    sh_degree: int | Tensor | None = None,
     background: Tensor | None = None,
     lambda_mode: LambdaMode = "opacity",
     ops: ModuleType | None = None,
@@ -166,7 +168,7 @@ def render_cuda(
     # gradient through all three: means_c and sh_dirs by autograd, rot_c from the preprocess backward.
     viewmat = viewmat.to(device=device)
     means_c = view_transform(means, viewmat)
-    degree = _sh_setup(colors, sh_degree)
+    degree, own_degrees = _sh_setup(colors, sh_degree)
     sh_dirs = camera_offsets(means, viewmat) if degree >= 0 else means.new_zeros(n, 3)
     rot_c = viewmat.to(dtype)[:3, :3]
     if means_c.requires_grad:
@@ -174,7 +176,7 @@ def render_cuda(
     sh = colors.contiguous() if degree >= 0 else means.new_zeros(n, 0, 3)
     whiten, o_u, rgb_sh, bounds, alive, inside = _Preprocess.apply(
         means_c.contiguous(), quats.contiguous(), scales.contiguous(), sh, sh_dirs.contiguous(),
-        opacities.detach().contiguous(), rot_c.contiguous(), degree, lambda_mode == "paper", ops,
+        opacities.detach().contiguous(), rot_c.contiguous(), degree, lambda_mode == "paper", ops, own_degrees,
     )
     rgb = colors.contiguous() if degree < 0 else rgb_sh
 

@@ -21,7 +21,7 @@ also carry absgrad's sink, that an operator cannot). Why: docs/gpu_correctness.m
 from __future__ import annotations
 
 from types import SimpleNamespace
-from typing import Tuple
+from typing import Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -54,16 +54,18 @@ def _one_device(op: str, *tensors: Tensor) -> torch.device:
 # ------------------------------------------------------------------------------------------ stage 1
 @torch.library.custom_op("geer::preprocess_forward", mutates_args=())
 def preprocess_forward(means_c: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor,
-                       sh_dirs: Tensor, rot_c: Tensor, sh_degree: int, paper: bool) -> T6:
-    """Per Gaussian -> (W [N,3,3], o_u [N,3], color [N,3], PBF bounds [N,4], alive [N], inside [N])."""
-    _one_device("preprocess_forward", means_c, quats, scales, opacities, sh, sh_dirs, rot_c)
+                       sh_dirs: Tensor, rot_c: Tensor, sh_degree: int, paper: bool,
+                       sh_degrees: Optional[Tensor] = None) -> T6:
+    """Per Gaussian -> (W [N,3,3], o_u [N,3], color [N,3], PBF bounds [N,4], alive [N], inside [N]). sh_degrees:
+    uint8 [N] each Gaussian's own SH degree, capping sh_degree (None: every Gaussian at sh_degree)."""
+    _one_device("preprocess_forward", means_c, quats, scales, opacities, sh, sh_dirs, rot_c, *_given(sh_degrees))
     return tuple(_build(means_c).preprocess_forward(means_c, quats, scales, opacities, sh, sh_dirs, rot_c,
-                                                    sh_degree, paper))
+                                                    sh_degree, paper, sh_degrees))
 
 
 @preprocess_forward.register_fake
-def _(means_c, quats, scales, opacities, sh, sh_dirs, rot_c, sh_degree, paper):
-    _one_device("preprocess_forward", means_c, quats, scales, opacities, sh, sh_dirs, rot_c)
+def _(means_c, quats, scales, opacities, sh, sh_dirs, rot_c, sh_degree, paper, sh_degrees=None):
+    _one_device("preprocess_forward", means_c, quats, scales, opacities, sh, sh_dirs, rot_c, *_given(sh_degrees))
     n = means_c.shape[0]
     new = means_c.new_empty
     return (new(n, 3, 3), new(n, 3), new(n, 3), new(n, 4), new(n, dtype=torch.bool), new(n, dtype=torch.bool))
@@ -71,17 +73,21 @@ def _(means_c, quats, scales, opacities, sh, sh_dirs, rot_c, sh_degree, paper):
 
 @torch.library.custom_op("geer::preprocess_backward", mutates_args=())
 def preprocess_backward(means_c: Tensor, quats: Tensor, scales: Tensor, sh: Tensor, sh_dirs: Tensor, rot_c: Tensor,
-                        sh_degree: int, g_whiten: Tensor, g_o_u: Tensor, g_rgb: Tensor, pose_grad: bool) -> T6:
+                        sh_degree: int, g_whiten: Tensor, g_o_u: Tensor, g_rgb: Tensor, pose_grad: bool,
+                        sh_degrees: Optional[Tensor] = None) -> T6:
     """-> gradients to (means_c, quats, scales, SH (empty without SH), SH directions) and, when `pose_grad`, each
-    Gaussian's share of dL/dR_c [N,3,3] (else empty). g_whiten carries the canonical moment K (render_backward)."""
-    _one_device("preprocess_backward", means_c, quats, scales, sh, sh_dirs, rot_c, g_whiten, g_o_u, g_rgb)
+    Gaussian's share of dL/dR_c [N,3,3] (else empty). g_whiten carries the canonical moment K (render_backward).
+    sh_degrees: as preprocess_forward's; a Gaussian's bands above its degree get exactly zero."""
+    _one_device("preprocess_backward", means_c, quats, scales, sh, sh_dirs, rot_c, g_whiten, g_o_u, g_rgb,
+                *_given(sh_degrees))
     return tuple(_build(means_c).preprocess_backward(means_c, quats, scales, sh, sh_dirs, rot_c, sh_degree, g_whiten,
-                                                     g_o_u, g_rgb, pose_grad))
+                                                     g_o_u, g_rgb, pose_grad, sh_degrees))
 
 
 @preprocess_backward.register_fake
-def _(means_c, quats, scales, sh, sh_dirs, rot_c, sh_degree, g_whiten, g_o_u, g_rgb, pose_grad):
-    _one_device("preprocess_backward", means_c, quats, scales, sh, sh_dirs, rot_c, g_whiten, g_o_u, g_rgb)
+def _(means_c, quats, scales, sh, sh_dirs, rot_c, sh_degree, g_whiten, g_o_u, g_rgb, pose_grad, sh_degrees=None):
+    _one_device("preprocess_backward", means_c, quats, scales, sh, sh_dirs, rot_c, g_whiten, g_o_u, g_rgb,
+                *_given(sh_degrees))
     n = means_c.shape[0]
     on_cpu = means_c.device.type == "cpu"  # the CPU build returns zeros like sh also without SH
     g_sh = torch.empty_like(sh) if sh_degree >= 0 or on_cpu else means_c.new_empty(0)
@@ -91,21 +97,23 @@ def _(means_c, quats, scales, sh, sh_dirs, rot_c, sh_degree, g_whiten, g_o_u, g_
 
 
 def _preprocess_setup(ctx, inputs, output) -> None:
-    means_c, quats, scales, _opacities, sh, sh_dirs, rot_c, sh_degree, _paper = inputs
+    means_c, quats, scales, _opacities, sh, sh_dirs, rot_c, sh_degree, _paper, *own = inputs
     ctx.save_for_backward(means_c, quats, scales, sh, sh_dirs, rot_c)
     ctx.sh_degree = sh_degree
+    ctx.sh_degrees = own[0] if own else None
 
 
-def preprocess_grads(kernels, saved, sh_degree: int, g_whiten, g_o_u, g_rgb, pose_grad: bool = False) -> T6:
+def preprocess_grads(kernels, saved, sh_degree: int, g_whiten, g_o_u, g_rgb, pose_grad: bool = False,
+                     sh_degrees: Optional[Tensor] = None) -> T6:
     """The preprocess stage's backward (missing gradients are zeros): to (means_c, quats, scales, SH, SH
     directions, the camera rotation R_c), SH's two None without SH, R_c's None unless `pose_grad`.
-    `kernels`: KERNELS or an extension module."""
+    `kernels`: KERNELS or an extension module; sh_degrees: each Gaussian's own SH degree (None: all at sh_degree)."""
     means_c = saved[0]
     n = means_c.shape[0]
     g_whiten, g_o_u, g_rgb = (_zeros_if_none(g, shape, means_c) for g, shape in
                               ((g_whiten, (n, 3, 3)), (g_o_u, (n, 3)), (g_rgb, (n, 3))))
     g_mc, g_q, g_s, g_sh, g_dirs, g_rot = kernels.preprocess_backward(*saved, sh_degree, g_whiten, g_o_u, g_rgb,
-                                                                      pose_grad)
+                                                                      pose_grad, sh_degrees)
     has_sh = sh_degree >= 0
     g_rot_c = g_rot.sum(0) if pose_grad else None  # the Gaussians' shares of dL/dR_c
     return g_mc, g_q, g_s, g_sh if has_sh else None, g_dirs if has_sh else None, g_rot_c
@@ -113,8 +121,8 @@ def preprocess_grads(kernels, saved, sh_degree: int, g_whiten, g_o_u, g_rgb, pos
 
 def _preprocess_backward(ctx, g_whiten, g_o_u, g_rgb, *_):
     g_mc, g_q, g_s, g_sh, g_dirs, g_rot_c = preprocess_grads(KERNELS, ctx.saved_tensors, ctx.sh_degree, g_whiten,
-                                                             g_o_u, g_rgb, ctx.needs_input_grad[6])
-    return g_mc, g_q, g_s, None, g_sh, g_dirs, g_rot_c, None, None  # opacities: the PBF only
+                                                             g_o_u, g_rgb, ctx.needs_input_grad[6], ctx.sh_degrees)
+    return g_mc, g_q, g_s, None, g_sh, g_dirs, g_rot_c, None, None, None  # opacities: the PBF only
 
 
 torch.library.register_autograd("geer::preprocess_forward", _preprocess_backward, setup_context=_preprocess_setup)
@@ -188,7 +196,8 @@ def _(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, va
     _one_device("render_backward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
                 ranges, t_final, n_contrib, g_rgb, g_depth, g_acc, absgrad_rows)
     n = whiten.shape[0]
-    absgrad = whiten.new_empty(n, ABSGRAD_VALUES) if absgrad_rows.numel() > 0 else whiten.new_empty(0)
+    # absgrad on: rows [N, 6] (N may be a symbolic count); off: an empty 1-D tensor
+    absgrad = whiten.new_empty(n, ABSGRAD_VALUES) if absgrad_rows.dim() == 2 else whiten.new_empty(0)
     g_dirs = whiten.new_empty(dirs.shape[0], 3) if dir_grad else whiten.new_empty(0)
     return whiten.new_empty(n, GRAD_VALUES), absgrad, g_dirs
 
@@ -205,7 +214,7 @@ def render_grads(kernels, saved, layout, g_rgb, g_depth, g_acc, rows: Tensor,
     grads, absgrad, g_dirs = kernels.render_backward(*saved[:11], *layout, *saved[11:], g_rgb, g_depth, g_acc, rows,
                                                      dir_grad)
     gw, go, gc, gs = grads.split([9, 3, 3, 1], dim=1)
-    return (gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1), (absgrad if rows.numel() else None),
+    return (gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1), (absgrad if rows.dim() == 2 else None),
             (g_dirs if dir_grad else None))
 
 
@@ -222,6 +231,11 @@ def _render_backward(ctx, g_rgb, g_depth, g_acc, *_):
 
 
 torch.library.register_autograd("geer::render_forward", _render_backward, setup_context=_render_setup)
+
+
+def _given(t: Optional[Tensor]) -> Tuple[Tensor, ...]:
+    """An optional tensor argument, for _one_device: itself, or nothing."""
+    return () if t is None else (t,)
 
 
 def _zeros_if_none(g, shape, like: Tensor) -> Tensor:

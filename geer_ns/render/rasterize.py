@@ -52,7 +52,7 @@ def preprocess(
     opacities: Tensor,
     colors: Tensor,
     viewmat: Tensor,
-    sh_degree: int | None = None,
+    sh_degree: int | Tensor | None = None,
     lambda_mode: LambdaMode = "opacity",
 ) -> Preprocessed:
     means_c, rot_v = to_view_space(means, quats, viewmat)
@@ -71,11 +71,11 @@ def preprocess(
     return Preprocessed(means_c, w, o_u, rgb, opacities, means_c.detach().norm(dim=-1), pbf)
 
 
-def _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background) -> None:
+def _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background, sh_degree=None) -> None:
     if not isinstance(grid, RayGrid):
         raise TypeError(f"grid: expected a RayGrid, got {type(grid).__name__}")
     check_gaussians(means, quats, scales, opacities, colors, viewmat=viewmat, background=background,
-                    grid=grid)  # one sync
+                    grid=grid, sh_degrees=sh_degree if isinstance(sh_degree, Tensor) else None)  # one sync
 
 
 def render(
@@ -87,7 +87,7 @@ def render(
     viewmat: Tensor,
     grid: RayGrid,
     *,
-    sh_degree: int | None = None,
+    sh_degree: int | Tensor | None = None,
     background: Tensor | None = None,
     lambda_mode: LambdaMode = "opacity",
     backend: Backend = "auto",
@@ -97,7 +97,8 @@ def render(
     """Render one view with 3DGEER.
 
     means [N,3], quats [N,4] (wxyz), scales [N,3] (> 0), opacities [N] in [0,1], colors [N,3] (RGB) or
-    [N,K,3] (SH coefficients, degree `sh_degree`, default the largest K allows), viewmat [4,4]
+    [N,K,3] (SH coefficients, degree `sh_degree`, default the largest K allows; a [N] integer tensor gives each
+    Gaussian its own degree, at most K's: bands above it are not evaluated and get no gradient), viewmat [4,4]
     world-to-camera (OpenCV axes, rigid: validate.ROTATION_TOLERANCE), grid: the view's rays. float32 or float64
     (everything follows means); every tensor, the grid's too, on the means' device.
     `max_pairs` caps the (ray, Gaussian) pairs the PyTorch renderer holds at once, forward and backward
@@ -106,7 +107,7 @@ def render(
     absolute sums of the gradient w.r.t. lateral offsets of the view-space means (absgrad.py); outputs and
     every other gradient are unchanged by it.
     """
-    _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background)
+    _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background, sh_degree)
     if absgrad is not None:
         check_absgrad(absgrad, means)
     chosen = resolve_backend(backend, means.device)
@@ -139,7 +140,7 @@ def render_batch(
     viewmats: Tensor,
     grids: RayGrid | Sequence[RayGrid],
     *,
-    sh_degree: int | None = None,
+    sh_degree: int | Tensor | None = None,
     background: Tensor | None = None,
     lambda_mode: LambdaMode = "opacity",
     backend: Backend = "auto",
@@ -175,7 +176,7 @@ def render_brute_force(
     viewmat: Tensor,
     grid: RayGrid,
     *,
-    sh_degree: int | None = None,
+    sh_degree: int | Tensor | None = None,
     background: Tensor | None = None,
     rays_per_group: int = 64,
     max_pairs: int = 1 << 20,
@@ -184,7 +185,7 @@ def render_brute_force(
 
     The tiled renderer must match it exactly whenever association is complete.
     """
-    _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background)
+    _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background, sh_degree)
     dirs = grid.dirs.to(means.dtype)
     pre = preprocess(means, quats, scales, opacities, colors, viewmat.to(means.dtype), sh_degree)
     order = torch.sort(pre.depth, stable=True).indices

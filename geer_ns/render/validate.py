@@ -101,6 +101,18 @@ def _rigid_viewmat(viewmat: Tensor) -> list[tuple[Tensor, object]]:
     ]
 
 
+def _sh_degrees(degrees: Tensor, colors: Tensor, n: int) -> list:
+    """Host checks of per-Gaussian SH degrees (raising here), and their value rule for the one reduction."""
+    if colors.ndim != 3:
+        raise ValueError("sh_degree: per-Gaussian degrees need SH colors [N, K, 3], got RGB [N, 3]")
+    if not isinstance(degrees, Tensor) or degrees.dtype.is_floating_point or degrees.dtype in (torch.bool,
+                                                                                               torch.complex64):
+        raise ValueError(f"sh_degree: per-Gaussian degrees must be an integer tensor, got {degrees!r:.60}")
+    if degrees.shape != (n,):
+        raise ValueError(f"sh_degree: expected one degree per Gaussian, shape [{n}], got {list(degrees.shape)}")
+    return [((degrees < 0).any(), "sh_degree: per-Gaussian degrees must be >= 0")]
+
+
 def grid_tensors(grid) -> dict[str, Tensor]:
     """A RayGrid's tensors by name (grid.dirs, grid.valid, ...), for the device check."""
     if not is_dataclass(grid):
@@ -118,9 +130,11 @@ def check_gaussians(
     viewmat: Tensor | None = None,
     background: Tensor | None = None,
     grid=None,
+    sh_degrees: Tensor | None = None,
 ) -> int:
-    """The Gaussians (and, when given, the view's matrix, background and RayGrid) of one render call: shapes,
-    dtypes and devices on the host, every value rule in one device reduction read with one sync. Returns N."""
+    """The Gaussians (and, when given, the view's matrix, background, RayGrid and each Gaussian's own SH degree)
+    of one render call: shapes, dtypes and devices on the host, every value rule in one device reduction read
+    with one sync. Returns N."""
     check_shape("means", means, (None, 3))
     n = means.shape[0]
     check_shape("quats", quats, (n, 4))
@@ -137,8 +151,10 @@ def check_gaussians(
     if background is not None:
         check_shape("background", background, (3,))
         named["background"] = background
-    check_same_device(means.device, {**named, **({} if grid is None else grid_tensors(grid))})
-    checks = [_non_finite(name, t) for name, t in named.items()]
+    degree_checks = [] if sh_degrees is None else _sh_degrees(sh_degrees, colors, n)
+    check_same_device(means.device, {**named, **({} if grid is None else grid_tensors(grid)),
+                                     **({} if sh_degrees is None else {"sh_degree": sh_degrees})})
+    checks = [_non_finite(name, t) for name, t in named.items()] + degree_checks
     if viewmat is not None:
         checks += _rigid_viewmat(viewmat)
     checks += [

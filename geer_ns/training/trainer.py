@@ -44,7 +44,9 @@ from geer_ns.distributed.schedule import (
 from geer_ns.distributed.gaussian_parallel import GaussianParallel, shard_checkpoint
 from geer_ns.distributed.world import current_world
 from geer_ns.errors import report_input_errors_in_one_line
+from geer_ns.optim.selective_adam import offer_rows
 from geer_ns.refinement.refined_cameras import write_refined_cameras
+from geer_ns.sh_degrees.packing import unpacked_checkpoint
 
 
 @dataclass
@@ -152,7 +154,8 @@ class GeerTrainer(Trainer):
         if path is None:
             CONSOLE.print("No Nerfstudio checkpoint to load, so training from scratch.")
             return
-        state = torch.load(path, map_location="cpu", mmap=True)
+        state = unpacked_checkpoint(torch.load(path, map_location="cpu", mmap=True),
+                                    self.pipeline.model.gauss_params["features_rest"].shape[1])
         if self.config.pipeline.model.distributed == "gaussians":
             state, total = shard_checkpoint(state, self.world.rank, self.world.size)
         self._start_step = state["step"] + 1
@@ -253,6 +256,8 @@ class GeerTrainer(Trainer):
             self.grad_scaler.scale(step_loss).backward()
         if model.needs_step_statistics:
             self.engine.reduce_statistics(model)
+        if model.config.optimizer_rows == "visible":  # Adam steps the Gaussians the step's views saw
+            offer_rows(self.optimizers.optimizers, lambda: self.engine.step_rows(model))
         self.optimizers.optimizer_scaler_step_some(
             self.grad_scaler, [g for g in self.optimizers.parameters if step % accumulate[g] == accumulate[g] - 1])
         if self.config.log_gradients:
