@@ -1,33 +1,86 @@
 #!/usr/bin/env bash
-# geer against splatfacto's variants (geer-compare) on the dev room at 128^2: the 180-degree fisheye views (geer,
-# splatfacto as shipped, splatfacto on a 120-degree pinhole undistortion, splatfacto with gsplat's fisheye EWA) and
-# the 90-degree pinhole views of the same poses (geer, splatfacto); one process after the other.
+# geer against splatfacto (geer-compare) on the dev room at 128^2, every method over the same seeds: the 180-degree
+# fisheye views (geer, geer on BEAP images, splatfacto with gsplat's fisheye EWA) and the 90-degree pinhole views of
+# the same poses (geer, geer on BEAP images, splatfacto); then what BEAP resampling loses by itself.
 #
-#   STEPS=1000 bash benchmarks/vs_splatfacto.sh      # writes benchmarks/vs_splatfacto.md and vs_splatfacto.png
+#   STEPS=1000 SEEDS="1 2 3" bash benchmarks/vs_splatfacto.sh   # writes benchmarks/vs_splatfacto.md and .png
+#   EXTRA=1 ...   also splatfacto as shipped and on a 120-degree pinhole undistortion of the fisheye (10-16 dB behind)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-$([ -x .venv/bin/python ] && echo .venv/bin/python || echo python)}
 STEPS=${STEPS:-1000}
+SEEDS=${SEEDS:-1 2 3}
 WORK=${WORK:-$(mktemp -d)}
-ROOM=$("$PY" -c "from pathlib import Path; from benchmarks.common import dev_room; print(dev_room(Path('$WORK'), 128))")
+ROOM=$("$PY" -m benchmarks.common --dev-room 128 --work "$WORK")
 COMMIT=$(git rev-parse --short HEAD)
-"$PY" -m geer_ns.compare --data "$ROOM/transforms_fisheye.json" --steps "$STEPS" \
-  --methods geer splatfacto splatfacto-pinhole splatfacto-fisheye --output-dir "$WORK/fisheye"
-"$PY" -m geer_ns.compare --data "$ROOM/transforms_pinhole.json" --steps "$STEPS" \
-  --methods geer splatfacto --output-dir "$WORK/pinhole"
-"$PY" - "$WORK" <<'PYEOF'
+FISHEYE="geer geer-beap splatfacto-fisheye${EXTRA:+ splatfacto splatfacto-pinhole}"
+# shellcheck disable=SC2086  # the method and seed lists are words
+"$PY" -m geer_ns.compare --data "$ROOM/transforms_fisheye.json" --steps "$STEPS" --seeds $SEEDS \
+  --methods $FISHEYE --output-dir "$WORK/fisheye"
+# shellcheck disable=SC2086
+"$PY" -m geer_ns.compare --data "$ROOM/transforms_pinhole.json" --steps "$STEPS" --seeds $SEEDS \
+  --methods geer geer-beap splatfacto --output-dir "$WORK/pinhole"
+"$PY" - "$WORK" "$ROOM" > "$WORK/summary.md" <<'PYEOF'
+import json, math, sys
+from pathlib import Path
 from PIL import Image
-import sys
-image = Image.open(f"{sys.argv[1]}/fisheye/compare.png")  # the first test view and its errors, in 128 colours
+from scipy.stats import t
+from geer_ns.compare.capture import load_capture
+from geer_ns.data.beap import beap_to_native
+from geer_ns.data.datamanager import to_beap
+from geer_ns.data.views import beap_view
+from geer_ns.metrics.regions import masked_psnr
+
+work, room = Path(sys.argv[1]), Path(sys.argv[2])
+image = Image.open(work / "fisheye" / "compare.png")  # the first test view and its errors, in 128 colours
 image.crop((0, 0, image.width, image.height // 3)).quantize(128).save("benchmarks/vs_splatfacto.png", optimize=True)
+print("## geer against the best splatfacto variant (difference of the means, 95 % Welch interval)\n")
+print("| views | figure | geer | best splatfacto variant | geer - it | reading |\n| --- | --- | ---: | ---: | ---: | --- |")
+for views in ("fisheye", "pinhole"):
+    runs = json.loads((work / views / "compare.json").read_text())["results"]
+    for key in ("psnr", "ssim", "central_psnr", "peripheral_psnr", "lpips"):
+        by = {}
+        for r in runs:
+            if r.get(key) is not None:
+                by.setdefault(r["method"], []).append(r[key])
+        splat = {m: v for m, v in by.items() if m.startswith("splatfacto")}
+        if "geer" not in by or not splat:
+            continue
+        sign = -1 if key == "lpips" else 1
+        best = max(splat, key=lambda m: sign * sum(splat[m]) / len(splat[m]))
+        a, b = by["geer"], splat[best]
+        stats = [(sum(x) / len(x), math.sqrt(sum((v - sum(x) / len(x)) ** 2 for v in x) / max(len(x) - 1, 1)), len(x))
+                 for x in (a, b)]
+        (ma, sa, na), (mb, sb, nb) = stats
+        se = math.sqrt(sa ** 2 / na + sb ** 2 / nb)
+        dof = se ** 4 / max((sa ** 2 / na) ** 2 / max(na - 1, 1) + (sb ** 2 / nb) ** 2 / max(nb - 1, 1), 1e-300)
+        half = float(t.ppf(0.975, dof)) * se if se > 0 else 0.0
+        diff = sign * (ma - mb)
+        reading = "geer ahead" if diff - half > 0 else "geer behind" if diff + half < 0 else "not distinguishable"
+        print(f"| {views} | {key} | {ma:.4g} | {mb:.4g} ({best}) | {ma - mb:+.4f} +- {half:.4f} | {reading} |")
+print("\n## What BEAP resampling loses by itself (test images to BEAP and back, PSNR against the originals)\n")
+print("| views | valid pixels | BEAP cells | round trip PSNR | central |\n| --- | ---: | ---: | ---: | ---: |")
+for views in ("fisheye", "pinhole"):
+    capture = load_capture(room / f"transforms_{views}.json", 45.0)
+    grid = beap_view(capture.camera).grid
+    full, central = [], []
+    for view in capture.views:
+        beap, ok = to_beap(view.image, view.camera, view.valid, 2)
+        back, covered = beap_to_native(beap, grid, view.camera, ok)
+        full.append(masked_psnr(back.double(), view.image.double(), view.valid & covered))
+        central.append(masked_psnr(back.double(), view.image.double(), view.valid & covered & view.central))
+    print(f"| {views} | {int(view.valid.sum())} | {grid.width * grid.height} | {sum(full) / len(full):.2f} | "
+          f"{sum(central) / len(central):.2f} |")
 PYEOF
 {
   echo "# geer against splatfacto (geer-compare), dev room at 128^2"
   echo
   echo "- device: $("$PY" -c 'from benchmarks.common import device; print(device())')"
   echo "- commit: $COMMIT"
-  echo "- command: \`STEPS=$STEPS bash benchmarks/vs_splatfacto.sh\`"
-  echo "- every method: $STEPS steps of nerfstudio's trainer, the same schedule options (docs/compare.md)"
+  echo "- command: \`STEPS=$STEPS SEEDS=\"$SEEDS\" ${EXTRA:+EXTRA=1 }bash benchmarks/vs_splatfacto.sh\`"
+  echo "- every method: $STEPS steps of nerfstudio's trainer, the same schedule options (docs/compare.md), seeds $SEEDS"
+  echo
+  cat "$WORK/summary.md"
   for views in fisheye pinhole; do
     echo; echo "## $views views"; echo
     sed -e '/^## geer-compare/d' "$WORK/$views/compare.md"

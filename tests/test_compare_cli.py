@@ -72,8 +72,60 @@ def test_geer_compare_runs_every_method(small_room, tmp_path, single_thread):
         if line.startswith("| ") and not line.startswith("| ---") and not line.startswith("| method"):
             cells = [c.strip() for c in line.strip("|").split("|")]
             assert all(cells), line
-            assert all(c != "n/a" for i, c in enumerate(cells) if i != 3), line  # LPIPS: only with cached weights
+            assert all(c != "n/a" for i, c in enumerate(cells) if i != 4), line  # LPIPS: only with cached weights
     picture = (tmp_path / "compare.png").read_bytes()
     assert picture[:8] == b"\x89PNG\r\n\x1a\n" and len(picture) > 10_000
     # the work-arounds were scoped to splatfacto's own calls
     assert splatfacto.rasterization is gsplat.rendering.rasterization and torch.Tensor.cuda is cuda
+
+
+def test_interval_is_students_t_over_the_seeds():
+    from geer_ns.compare.report import interval
+
+    mean, half = interval([27.0, 28.0, 29.0])  # sd 1, t(0.975, 2 df) = 4.302653 (tables)
+    assert mean == pytest.approx(28.0) and half == pytest.approx(4.302653 / math.sqrt(3), rel=1e-6)
+    mean, half = interval([25.5, float("nan")])  # one finite value: a mean, no interval
+    assert mean == 25.5 and math.isnan(half)
+
+
+def test_scored_cameras_are_the_captures_test_split(small_room, tmp_path):
+    """nerfstudio's eval dataset is the val split; geer-compare renders the test split and refuses another one."""
+    from types import SimpleNamespace
+
+    from geer_ns.compare.capture import load_capture
+    from geer_ns.compare.methods import Method
+    from geer_ns.compare.run import test_cameras
+    from geer_ns.data.nerfstudio_parser import GeerNerfstudioDataParserConfig
+
+    capture = load_capture(small_room, 45.0)
+    meta = json.loads(small_room.read_text())
+    meta["val_filenames"] = meta["train_filenames"][:2]  # val differs from test: the renders follow test
+    other = dict(meta, test_filenames=meta["train_filenames"][-3:])
+    for name, content in (("val_differs", meta), ("test_differs", other)):
+        path = small_room.parent / f"{name}.json"
+        path.write_text(json.dumps(content))
+
+    def pipeline(path):
+        parser = GeerNerfstudioDataParserConfig(data=path, load_3D_points=False, downscale_factor=1).setup()
+        return SimpleNamespace(datamanager=SimpleNamespace(dataparser=parser))
+
+    method = Method("geer", "", small_room.parent / "val_differs.json", None, None)
+    cameras = test_cameras(method, pipeline(method.data), capture)
+    assert len(cameras) == len(capture.views) == len(meta["test_filenames"])
+    with pytest.raises(RuntimeError, match="test split of .*test_differs.json is not the capture's"):
+        test_cameras(method, pipeline(small_room.parent / "test_differs.json"), capture)
+
+
+def test_native_and_beap_rows_over_two_seeds(small_room, tmp_path, single_thread):
+    from geer_ns.compare.cli import Compare
+
+    text = Compare(data=small_room, steps=8, methods=("geer-native", "geer-beap"), seeds=(1, 2),
+                   output_dir=tmp_path).main()
+    table = json.loads((tmp_path / "compare.json").read_text())
+    assert [(r["method"], r["seed"]) for r in table["results"]] == [
+        ("geer-native", 1), ("geer-native", 2), ("geer-beap", 1), ("geer-beap", 2)]
+    for summary in table["summary"]:
+        runs = [r["psnr"] for r in table["results"] if r["method"] == summary["method"]]
+        assert summary["seeds"] == [1, 2] and summary["psnr"][0] == pytest.approx(sum(runs) / 2)
+        assert summary["psnr"][1] == pytest.approx(12.706205 * abs(runs[0] - runs[1]) / 2)  # t(0.975, 1) sd/sqrt(2)
+    assert "+-" in text and "supervision native" in text and "supervision beap" in text

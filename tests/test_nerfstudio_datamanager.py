@@ -1,4 +1,5 @@
-"""GeerDataManager on the embedded synthetic room: no undistortion, BEAP training views, masks, seed points."""
+"""GeerDataManager on the embedded synthetic room: no undistortion, BEAP training views (on request), native ones
+(the default), masks, seed points."""
 
 from __future__ import annotations
 
@@ -30,6 +31,7 @@ def manager():
         data=default_scene_dir(),
         dataparser=NerfstudioDataParserConfig(load_3D_points=True),
         cache_images="cpu",
+        supervision="beap",
     )
     return config.setup(device="cpu", test_mode="val")
 
@@ -86,8 +88,8 @@ def test_dev_fisheye_room_trains_on_full_fov_beap_views():
     json_path = shared_data("fisheye_room_dev", "transforms_fisheye.json")
     meta = json.loads(json_path.read_text())
     manager = GeerDataManagerConfig(
-        data=json_path, dataparser=NerfstudioDataParserConfig(load_3D_points=True), cache_images="cpu"
-    ).setup(device="cpu", test_mode="val")
+        data=json_path, dataparser=NerfstudioDataParserConfig(load_3D_points=True), cache_images="cpu",
+        supervision="beap").setup(device="cpu", test_mode="val")
     grid = beap_view(camera_model(manager.train_dataset.cameras, 0)).grid
     assert math.degrees(grid.theta_max - grid.theta_min) >= 179.0
     assert math.degrees(grid.phi_max - grid.phi_min) >= 179.0
@@ -127,8 +129,9 @@ def test_seed_points_ignore_applied_transform(tmp_path):
     assert torch.allclose(seeds, seeds_t, atol=1e-5)
 
 
-def test_native_supervision_keeps_pixels(manager):
-    config = GeerDataManagerConfig(data=default_scene_dir(), cache_images="cpu", supervision="native")
+@pytest.mark.parametrize("supervision", ["native", "auto"])  # auto: native rays (geer_ns/data/view_choice.py)
+def test_native_supervision_keeps_pixels(manager, supervision):
+    config = GeerDataManagerConfig(data=default_scene_dir(), cache_images="cpu", supervision=supervision)
     native = config.setup(device="cpu", test_mode="val")
     camera, batch = native.next_train(0)
     assert camera.metadata["geer_view"] == "native"

@@ -75,9 +75,9 @@ def test_equirectangular_panorama_trains_on_all_pixels():
     assert entry.view == "native" and entry.supervised_pixels == entry.valid_pixels == 2 * 96 * 96 * entry.images
 
 
-def test_180_degree_room_keeps_beap_and_counts_its_rim():
-    """Today's behaviour: BEAP views; the pixels it cannot hold are exactly those beyond BEAP's +-89.5 deg."""
-    manager = _manager(default_scene_dir())
+def test_180_degree_room_in_beap_counts_its_rim():
+    """BEAP on request: the pixels it cannot hold are exactly those beyond BEAP's +-89.5 deg."""
+    manager = _manager(default_scene_dir(), supervision="beap")
     camera, _ = manager.next_train(0)
     assert camera.metadata["geer_view"] == "beap"
     (entry,) = manager.supervision_report("train").cameras.values()

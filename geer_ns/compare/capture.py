@@ -39,6 +39,7 @@ class Capture:
     meta: dict
     camera: CameraModel  # the capture's camera (one for every frame)
     views: List[TestView]
+    test_poses: Tensor  # [V, 3, 4] the test views' camera-to-world in the transforms file's frame
 
     @property
     def is_fisheye(self) -> bool:
@@ -126,7 +127,8 @@ def load_capture(data: Path, central_half_angle_deg: float) -> Capture:
         views.append(TestView(Path(image_path).name, camera, image, valid, central))
     if not views:
         raise ValueError(f"geer-compare: {path} has no test images")
-    return Capture(path, meta, camera, views)
+    poses = outputs.transform_poses_to_original_space(outputs.cameras.camera_to_worlds)
+    return Capture(path, meta, camera, views, poses)
 
 
 def write_resampled(capture: Capture, target: CameraModel, camera_model: str, out_dir: Path) -> Path:

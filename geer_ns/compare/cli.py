@@ -27,7 +27,11 @@ class Compare:
     steps: int = 2000
     """Training steps of every method (30000 and more: splatfacto's own schedule; fewer: docs/compare.md)."""
     methods: Tuple[str, ...] = DEFAULT_METHODS
-    """Any of geer, geer-mcmc, splatfacto, splatfacto-pinhole, splatfacto-fisheye (the last two: fisheye captures)."""
+    """Any of geer (its default supervision), geer-native, geer-beap (supervision forced), geer-mcmc, splatfacto,
+    splatfacto-pinhole, splatfacto-fisheye (the last two: fisheye captures)."""
+    seeds: Tuple[int, ...] = (42,)
+    """Every method trains once per seed; the tables give the mean and, with two seeds or more, the 95 % interval
+    of the mean (Student's t over the seeds)."""
     output_dir: Path = Path("outputs/compare")
     """Where the table, the picture, the training runs and the resampled captures go."""
     pinhole_fov_deg: float = 120.0
@@ -46,6 +50,8 @@ class Compare:
 
         if self.steps < 1:
             raise ValueError(f"--steps {self.steps}: must be at least 1")
+        if not self.seeds or len(set(self.seeds)) != len(self.seeds):
+            raise ValueError(f"--seeds {' '.join(map(str, self.seeds))}: give one or more distinct seeds")
         capture = load_capture(self.data, self.central_half_angle_deg)
         self.output_dir.mkdir(parents=True, exist_ok=True)
         methods, skipped = plan(capture, tuple(self.methods), self.output_dir, self.pinhole_fov_deg)
@@ -54,8 +60,9 @@ class Compare:
         lpips_reason = ("torchmetrics' LPIPS (AlexNet), the same for every method" if lpips is not None else
                         f"not computed: AlexNet's weights are not cached at {alexnet_weights_path()} (no download)")
         say = lambda text: CONSOLE.print(f"[bold yellow]{text}")  # noqa: E731
-        results = [run_method(m, self.steps, capture, self.output_dir, lpips, say) for m in methods]
-        lines = report.protocol(capture, self.central_half_angle_deg, self.steps, lpips_reason)
+        results = [run_method(m, self.steps, capture, self.output_dir, lpips, seed, say)
+                   for m in methods for seed in self.seeds]
+        lines = report.protocol(capture, self.central_half_angle_deg, self.steps, lpips_reason, self.seeds)
         text = report.write(self.output_dir, capture, results, skipped, lines)
         print(text)
         print(f"[geer-compare] wrote {self.output_dir / 'compare.md'}, compare.json and compare.png")

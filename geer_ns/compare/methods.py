@@ -10,7 +10,7 @@ from typing import Dict, List, Optional, Tuple
 from geer_ns.compare.capture import Capture, write_resampled
 from geer_ns.compare.resample import equidistant_like, widest_pinhole
 
-METHODS = ("geer", "geer-mcmc", "splatfacto", "splatfacto-pinhole", "splatfacto-fisheye")
+METHODS = ("geer", "geer-native", "geer-beap", "geer-mcmc", "splatfacto", "splatfacto-pinhole", "splatfacto-fisheye")
 DEFAULT_METHODS = ("geer", "splatfacto", "splatfacto-pinhole", "splatfacto-fisheye")
 
 
@@ -64,6 +64,13 @@ def plan(capture: Capture, names: Tuple[str, ...], work: Path, pinhole_fov_deg: 
         if name == "geer":
             methods.append(Method(name, "3DGEER, exact rendering of the capture's own camera", capture.transforms,
                                   geer_trainer_config("geer", GeerModelConfig()), None))
+        elif name in ("geer-native", "geer-beap"):  # geer on the capture's own pixels, or on BEAP resamples
+            view = name.removeprefix("geer-")
+            config = geer_trainer_config(name, GeerModelConfig())
+            config.pipeline.datamanager.supervision = view
+            what = "the capture's own pixel rays" if view == "native" else "BEAP images resampled from the capture"
+            methods.append(Method(name, f"3DGEER supervised on {what} (--pipeline.datamanager.supervision {view})",
+                                  capture.transforms, config, None))
         elif name == "geer-mcmc":
             methods.append(Method(name, "3DGEER with gsplat's MCMCStrategy", capture.transforms,
                                   geer_trainer_config("geer-mcmc", GeerModelConfig(strategy="mcmc")), None))

@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Dict, List
+from dataclasses import dataclass
+from typing import Dict, List, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -26,14 +27,17 @@ COLUMNS = (  # (header, key in Result.metrics or attribute, format)
 )
 
 
-def protocol(capture: Capture, central_half_angle_deg: float, steps: int, lpips_reason: str) -> List[str]:
+def protocol(capture: Capture, central_half_angle_deg: float, steps: int, lpips_reason: str,
+             seeds: Sequence[int] = (42,)) -> List[str]:
     cam = capture.camera
     return [
         f"Capture: `{capture.transforms}`, {capture.meta.get('camera_model', 'OPENCV')} {cam.width}x{cam.height}, "
         f"{len(capture.views)} test views (the file's test split).",
-        f"Every method trains {steps} steps with nerfstudio's trainer on the same training images, poses and seed, "
-        "with the same schedule options (docs/compare.md), and is scored on the same test images at the capture's "
-        "own camera and pixels.",
+        f"Every method trains {steps} steps with nerfstudio's trainer on the same training images and poses, once "
+        f"per seed ({', '.join(map(str, seeds))}), with the same schedule options (docs/compare.md), and is scored "
+        "on the same test images at the capture's own camera and pixels (each method's test split checked to be "
+        "the capture's poses). A cell is the mean over the seeds, +- the half-width of its 95 % interval (Student's "
+        "t) with two seeds or more.",
         "Scored pixels: the capture's valid pixels (inside the camera model's domain, the image mask and the fisheye "
         "crop circle), the same set for every method. Full-FoV PSNR / SSIM / LPIPS use all of them (SSIM / LPIPS "
         "with the pixels outside set to the ground truth).",
@@ -49,21 +53,63 @@ def protocol(capture: Capture, central_half_angle_deg: float, steps: int, lpips_
     ]
 
 
-def _cell(value, fmt: str) -> str:
-    if value is None or (isinstance(value, float) and math.isnan(value)):
+@dataclass
+class Summary:
+    """One method over its seeds: each figure's mean and the half-width of its 95 % interval (NaN: one seed)."""
+
+    name: str
+    description: str
+    rasterizer: str
+    seeds: List[int]
+    figures: Dict[str, Tuple[float, float]]  # metric keys, "train_seconds", "gaussians", "render_ms"
+
+
+def interval(values: Sequence[float]) -> Tuple[float, float]:
+    """(mean, half-width of the 95 % Student-t interval of the mean) of the finite values; NaNs where undefined."""
+    from scipy.stats import t
+
+    finite = [v for v in values if v is not None and not math.isnan(v)]
+    if not finite:
+        return float("nan"), float("nan")
+    mean = sum(finite) / len(finite)
+    if len(finite) < 2:
+        return mean, float("nan")
+    sd = math.sqrt(sum((v - mean) ** 2 for v in finite) / (len(finite) - 1))
+    return mean, float(t.ppf(0.975, len(finite) - 1)) * sd / math.sqrt(len(finite))
+
+
+def summarize(results: List[Result]) -> List[Summary]:
+    """The results grouped by method (in their order), each figure over the method's seeds."""
+    names = list(dict.fromkeys(r.name for r in results))
+    out = []
+    for name in names:
+        runs = [r for r in results if r.name == name]
+        keys = list(dict.fromkeys(k for r in runs for k in r.metrics))
+        figures = {k: interval([r.metrics.get(k, float("nan")) for r in runs]) for k in keys}
+        for attr in ("train_seconds", "gaussians", "render_ms"):
+            figures[attr] = interval([float(getattr(r, attr)) for r in runs])
+        out.append(Summary(name, runs[0].description, runs[0].rasterizer, [r.seed for r in runs], figures))
+    return out
+
+
+def _cell(figure: Tuple[float, float] | None, fmt: str) -> str:
+    if figure is None or math.isnan(figure[0]):
         return "n/a"
-    return fmt.format(value)
+    mean, half = figure
+    return fmt.format(mean) if math.isnan(half) else f"{fmt.format(mean)} +- {fmt.format(half)}"
 
 
 def markdown(results: List[Result], skipped: Dict[str, str], lines: List[str]) -> str:
-    header = ["method", *[c[0] for c in COLUMNS], "train s", "Gaussians", "render ms/view", "rasterizer"]
+    header = ["method", "seeds", *[c[0] for c in COLUMNS], "train s", "Gaussians", "render ms/view", "rasterizer"]
     rows = ["| " + " | ".join(header) + " |", "| --- |" + " ---: |" * (len(header) - 2) + " --- |"]
-    for r in results:
-        cells = [_cell(r.metrics.get(key), fmt) for _, key, fmt in COLUMNS]
-        rows.append(f"| {r.name} | " + " | ".join(cells) + f" | {r.train_seconds:.1f} | {r.gaussians:,} | "
-                    f"{r.render_ms:.1f} | {r.rasterizer} |")
+    summaries = summarize(results)
+    for m in summaries:
+        cells = [_cell(m.figures.get(key), fmt) for _, key, fmt in COLUMNS]
+        cells += [_cell(m.figures["train_seconds"], "{:.1f}"), _cell(m.figures["gaussians"], "{:,.0f}"),
+                  _cell(m.figures["render_ms"], "{:.1f}")]
+        rows.append(f"| {m.name} | {len(m.seeds)} | " + " | ".join(cells) + f" | {m.rasterizer} |")
     out = ["## geer-compare", "", *rows, "", "Methods:", ""]
-    out += [f"- **{r.name}**: {r.description}" for r in results]
+    out += [f"- **{m.name}**: {m.description}" for m in summaries]
     out += [f"- {name}: not run ({why})" for name, why in skipped.items()]
     out += ["", "Protocol:", ""] + [f"- {line}" for line in lines]
     return "\n".join(out) + "\n"
@@ -73,7 +119,11 @@ def as_json(results: List[Result], skipped: Dict[str, str], lines: List[str]) ->
     return {
         "protocol": lines,
         "skipped": skipped,
-        "results": [{"method": r.name, "description": r.description, "rasterizer": r.rasterizer, "steps": r.steps,
+        "summary": [{"method": m.name, "seeds": m.seeds,
+                     **{k: [None if math.isnan(v) else v for v in pair] for k, pair in m.figures.items()}}
+                    for m in summarize(results)],
+        "results": [{"method": r.name, "seed": r.seed, "description": r.description, "rasterizer": r.rasterizer,
+                     "steps": r.steps,
                      "train_seconds": r.train_seconds, "gaussians": r.gaussians, "render_ms": r.render_ms,
                      **{k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in r.metrics.items()}}
                     for r in results],
@@ -98,7 +148,9 @@ def _error_map(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor) -> np.
 
 
 def picture(capture: Capture, results: List[Result], path: Path, views: int = 3) -> Path:
-    """Per test view: ground truth then each method's render (top), each method's error map (below)."""
+    """Per test view: ground truth then each method's render (top), each method's error map (below); a method's
+    first seed."""
+    results = [r for i, r in enumerate(results) if r.name not in {q.name for q in results[:i]}]
     blocks = []
     scale = max(1, 200 // capture.camera.height)
     for i, view in enumerate(capture.views[:views]):

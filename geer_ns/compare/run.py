@@ -3,6 +3,7 @@ test views on the capture's own pixels."""
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from dataclasses import dataclass, field
@@ -25,6 +26,7 @@ class Result:
     description: str
     rasterizer: str
     steps: int
+    seed: int
     train_seconds: float
     gaussians: int
     metrics: Dict[str, float]  # averaged over the test views
@@ -32,13 +34,15 @@ class Result:
     renders: List[Tensor] = field(default_factory=list)  # [H, W, 3] on the capture's pixels
 
 
-def train(method: Method, steps: int, out_dir: Path):
-    """nerfstudio's Trainer on the method's config with the common schedule; returns (pipeline, seconds)."""
-    config = method.config
+def train(method: Method, steps: int, out_dir: Path, seed: int):
+    """nerfstudio's Trainer on a copy of the method's config with the common schedule and `seed`; returns
+    (pipeline, seconds)."""
+    config = copy.deepcopy(method.config)
+    config.machine.seed = seed
     config.data = config.pipeline.datamanager.data = method.data
     config.pipeline.datamanager.dataparser.data = method.data
     config.pipeline.datamanager.dataparser.downscale_factor = 1  # every method at the capture's resolution
-    config.output_dir, config.experiment_name, config.timestamp = out_dir / "runs", method.name, "run"
+    config.output_dir, config.experiment_name, config.timestamp = out_dir / "runs", method.name, f"seed{seed}"
     config.vis = "tensorboard"
     config.max_num_iterations = steps
     config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = 0
@@ -107,9 +111,7 @@ def evaluate(method: Method, pipeline, capture: Capture, lpips) -> Dict[str, obj
     """Render the method's test views, bring them to the capture's pixels, score them; averages and renders."""
     model = pipeline.model
     model.eval()
-    cameras = pipeline.datamanager.eval_dataset.cameras
-    if len(cameras) != len(capture.views):
-        raise RuntimeError(f"{method.name}: {len(cameras)} test views, the capture has {len(capture.views)}")
+    cameras = test_cameras(method, pipeline, capture)
     per_view, renders, times = [], [], []
     for i, view in enumerate(capture.views):
         camera = cameras[i:i + 1].to(model.device)
@@ -131,18 +133,34 @@ def evaluate(method: Method, pipeline, capture: Capture, lpips) -> Dict[str, obj
     return {"metrics": averages, "renders": renders, "render_ms": 1000 * sorted(times)[len(times) // 2]}
 
 
+def test_cameras(method: Method, pipeline, capture: Capture):
+    """The method's cameras of the capture's test split (nerfstudio's eval dataset is the val split, which
+    need not be the same images), checked to be the capture's test poses in the transforms file's frame."""
+    parser = pipeline.datamanager.dataparser
+    outputs = parser.get_dataparser_outputs("test")
+    cameras = outputs.cameras
+    poses = outputs.transform_poses_to_original_space(cameras.camera_to_worlds)
+    if poses.shape != capture.test_poses.shape or not torch.allclose(poses, capture.test_poses, atol=1e-4):
+        raise RuntimeError(f"{method.name}: the test split of {parser.config.data} is not the capture's ({len(cameras)} "
+                           f"views, {len(capture.views)} in {capture.transforms}, or other poses)")
+    return cameras
+
+
 def _mean(values: List[float]) -> float:
     finite = [v for v in values if not math.isnan(v)]
     return sum(finite) / len(finite) if finite else float("nan")
 
 
-def run_method(method: Method, steps: int, capture: Capture, out_dir: Path, lpips, say=print) -> Result:
-    say(f"[geer-compare] {method.name}: training {steps} steps on {method.data}")
-    pipeline, seconds = train(method, steps, out_dir)
-    say(f"[geer-compare] {method.name}: trained in {seconds:.1f} s, {pipeline.model.num_points} Gaussians; scoring")
+def run_method(method: Method, steps: int, capture: Capture, out_dir: Path, lpips, seed: int = 42,
+               say=print) -> Result:
+    """Train `method` with `seed` and score its test views."""
+    say(f"[geer-compare] {method.name}, seed {seed}: training {steps} steps on {method.data}")
+    pipeline, seconds = train(method, steps, out_dir, seed)
+    say(f"[geer-compare] {method.name}, seed {seed}: trained in {seconds:.1f} s, {pipeline.model.num_points} "
+        "Gaussians; scoring")
     found = evaluate(method, pipeline, capture, lpips)
     rasterizer = getattr(pipeline.model, "rasterizer_label", "geer_ns.render (3DGEER)")
-    return Result(method.name, method.description, rasterizer, steps, seconds, int(pipeline.model.num_points),
+    return Result(method.name, method.description, rasterizer, steps, seed, seconds, int(pipeline.model.num_points),
                   found["metrics"], found["render_ms"], found["renders"])
 
 

@@ -39,7 +39,7 @@ from geer_ns.data.dataset_checks import check_transforms_json
 from geer_ns.data.depth import TARGET_KEY, sensor_distance
 from geer_ns.data.image_circle import detect_image_circle_from_files
 from geer_ns.data.nerfstudio_parser import CROP_RADIUS_KEY, GeerNerfstudio, GeerNerfstudioDataParserConfig
-from geer_ns.data.view_choice import Supervision, SupervisionReport, beap_covered, choose_view
+from geer_ns.data.view_choice import AUTO_REASON, Supervision, SupervisionReport, beap_covered, choose_view
 from geer_ns.data.ply import read_ply_points
 from geer_ns.data.views import HOST_MODEL_KEY, beap_view, camera_kind, camera_model, native_view
 
@@ -53,8 +53,8 @@ class GeerDataOptions:
     a base after FullImageDatamanagerConfig comes first in the reversed MRO dataclasses collect fields along)."""
 
     supervision: Supervision = "auto"
-    """Training view per camera: "auto" = BEAP (the paper's setting) unless the camera's valid rays reach 90
-    degrees off-axis, then its native pixel rays (BEAP cannot hold them); "beap" or "native" for every camera."""
+    """Training view of every camera: "auto" = its native pixel rays (measured ahead of BEAP:
+    geer_ns/data/view_choice.py), "native" the same, "beap" the paper's BEAP images resampled from the captures."""
     mask_edge_fill: int = 2
     """Pixel rings extrapolated beyond the validity mask before BEAP resampling, so that BEAP cells at the
     edge of the image circle (whose bilinear footprint touches the first invalid pixel) stay supervised."""
@@ -266,7 +266,7 @@ class GeerDataManager(FullImageDatamanager):
                 f"its camera's height/width ({camera.height}, {camera.width})"
             )
         seen = self._valid_mask(dataset, idx, camera, data.get("mask"))
-        view = "native" if split == "eval" else choose_view(self.config.supervision, camera, seen)
+        view = "native" if split == "eval" else choose_view(self.config.supervision)
         valid, supervised = seen, seen
         if view == "beap":
             image, valid = to_beap(image, camera, seen, self.config.mask_edge_fill)
@@ -289,6 +289,8 @@ class GeerDataManager(FullImageDatamanager):
         CONSOLE.log(f"geer: caching {len(dataset)} {split} images (no undistortion)")
         views = [self._load_view(dataset, i, split) for i in range(len(dataset))]
         verb = "supervised" if split == "train" else "scored"
+        if split == "train" and self.config.supervision == "auto":
+            CONSOLE.log(f"geer: {AUTO_REASON}")
         for line in self._report[split].lines(verb):
             CONSOLE.log(f"geer: {split} images, {line}")
         on_gpu = cache_images_device == "gpu" and torch.device(self.device).type == "cuda"
