@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
 # geer against splatfacto (geer-compare) on the dev room at 128^2, every method over the same seeds: the 180-degree
 # fisheye views (geer, geer on BEAP images, splatfacto with gsplat's fisheye EWA) and the 90-degree pinhole views of
-# the same poses (geer, geer on BEAP images, splatfacto); then what BEAP resampling loses by itself.
+# the same poses (geer, geer on BEAP images, splatfacto); geer at splatfacto's density (geer-gsplat-units); then
+# what BEAP resampling loses by itself.
 #
 #   STEPS=1000 SEEDS="1 2 3" bash benchmarks/vs_splatfacto.sh   # writes benchmarks/vs_splatfacto.md and .png
 #   EXTRA=1 ...   also splatfacto as shipped and on a 120-degree pinhole undistortion of the fisheye (10-16 dB behind)
+#   WORK=DIR ...  keep the runs in DIR; a second call with the same DIR, steps and seeds reuses the finished tables
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-$([ -x .venv/bin/python ] && echo .venv/bin/python || echo python)}
@@ -12,14 +14,26 @@ STEPS=${STEPS:-1000}
 SEEDS=${SEEDS:-1 2 3}
 WORK=${WORK:-$(mktemp -d)}
 ROOM=$("$PY" -m benchmarks.common --dev-room 128 --work "$WORK")
-COMMIT=$(git rev-parse --short HEAD)
-FISHEYE="geer geer-beap splatfacto-fisheye${EXTRA:+ splatfacto splatfacto-pinhole}"
-# shellcheck disable=SC2086  # the method and seed lists are words
-"$PY" -m geer_ns.compare --data "$ROOM/transforms_fisheye.json" --steps "$STEPS" --seeds $SEEDS \
-  --methods $FISHEYE --output-dir "$WORK/fisheye"
-# shellcheck disable=SC2086
-"$PY" -m geer_ns.compare --data "$ROOM/transforms_pinhole.json" --steps "$STEPS" --seeds $SEEDS \
-  --methods geer geer-beap splatfacto --output-dir "$WORK/pinhole"
+
+compare() {  # VIEWS OUT METHOD...: one geer-compare call into WORK/OUT, unless a table of these steps and seeds is there
+  local views=$1 out=$2
+  shift 2
+  if [ -f "$WORK/$out/compare.json" ] && "$PY" -c "import json, sys; runs = json.load(open(sys.argv[1]))['results']
+sys.exit(sorted({(r['steps'], r['seed']) for r in runs}) != sorted((int(sys.argv[2]), int(s)) for s in sys.argv[3:]))" \
+      "$WORK/$out/compare.json" "$STEPS" $SEEDS; then
+    echo "[vs_splatfacto] $out: the table in $WORK/$out kept"
+    return
+  fi
+  # shellcheck disable=SC2086  # the seed list is words
+  "$PY" -m geer_ns.compare --data "$ROOM/transforms_$views.json" --steps "$STEPS" --seeds $SEEDS --methods "$@" \
+    --output-dir "$WORK/$out"
+  git rev-parse --short HEAD > "$WORK/$out/commit"
+}
+# shellcheck disable=SC2086  # EXTRA's methods are words
+compare fisheye fisheye geer geer-beap splatfacto-fisheye ${EXTRA:+splatfacto splatfacto-pinhole}
+compare pinhole pinhole geer geer-beap splatfacto
+compare fisheye fisheye_density geer-gsplat-units
+compare pinhole pinhole_density geer-gsplat-units
 "$PY" - "$WORK" "$ROOM" > "$WORK/summary.md" <<'PYEOF'
 import json, math, sys
 from pathlib import Path
@@ -35,20 +49,20 @@ work, room = Path(sys.argv[1]), Path(sys.argv[2])
 image = Image.open(work / "fisheye" / "compare.png")  # the first test view and its errors, in 128 colours
 image.crop((0, 0, image.width, image.height // 3)).quantize(128).save("benchmarks/vs_splatfacto.png", optimize=True)
 print("## geer against the best splatfacto variant (difference of the means, 95 % Welch interval)\n")
-print("| views | figure | geer | best splatfacto variant | geer - it | reading |\n| --- | --- | ---: | ---: | ---: | --- |")
-for views in ("fisheye", "pinhole"):
-    runs = json.loads((work / views / "compare.json").read_text())["results"]
+print("| views | figure | geer row | best splatfacto variant | geer - it | reading |\n| --- | --- | ---: | ---: | ---: | --- |")
+for views, geer in [(v, g) for v in ("fisheye", "pinhole") for g in ("geer", "geer-gsplat-units")]:
+    runs = [r for out in (views, f"{views}_density") for r in json.loads((work / out / "compare.json").read_text())["results"]]
     for key in ("psnr", "ssim", "central_psnr", "peripheral_psnr", "lpips"):
         by = {}
         for r in runs:
             if r.get(key) is not None:
                 by.setdefault(r["method"], []).append(r[key])
         splat = {m: v for m, v in by.items() if m.startswith("splatfacto")}
-        if "geer" not in by or not splat:
+        if geer not in by or not splat:
             continue
         sign = -1 if key == "lpips" else 1
         best = max(splat, key=lambda m: sign * sum(splat[m]) / len(splat[m]))
-        a, b = by["geer"], splat[best]
+        a, b = by[geer], splat[best]
         stats = [(sum(x) / len(x), math.sqrt(sum((v - sum(x) / len(x)) ** 2 for v in x) / max(len(x) - 1, 1)), len(x))
                  for x in (a, b)]
         (ma, sa, na), (mb, sb, nb) = stats
@@ -57,7 +71,7 @@ for views in ("fisheye", "pinhole"):
         half = float(t.ppf(0.975, dof)) * se if se > 0 else 0.0
         diff = sign * (ma - mb)
         reading = "geer ahead" if diff - half > 0 else "geer behind" if diff + half < 0 else "not distinguishable"
-        print(f"| {views} | {key} | {ma:.4g} | {mb:.4g} ({best}) | {ma - mb:+.4f} +- {half:.4f} | {reading} |")
+        print(f"| {views} | {key} | {geer}: {ma:.4g} | {best}: {mb:.4g} | {ma - mb:+.4f} +- {half:.4f} | {reading} |")
 print("\n## What BEAP resampling loses by itself (test images to BEAP and back, PSNR against the originals)\n")
 print("| views | valid pixels | BEAP cells | round trip PSNR | central |\n| --- | ---: | ---: | ---: | ---: |")
 for views in ("fisheye", "pinhole"):
@@ -76,14 +90,15 @@ PYEOF
   echo "# geer against splatfacto (geer-compare), dev room at 128^2"
   echo
   echo "- device: $("$PY" -c 'from benchmarks.common import device; print(device())')"
-  echo "- commit: $COMMIT"
+  echo "- commit: $(for out in fisheye pinhole fisheye_density pinhole_density; do echo "$(cat "$WORK/$out/commit" 2>/dev/null || echo '?') ($out)"; done | paste -sd, -)"
   echo "- command: \`STEPS=$STEPS SEEDS=\"$SEEDS\" ${EXTRA:+EXTRA=1 }bash benchmarks/vs_splatfacto.sh\`"
   echo "- every method: $STEPS steps of nerfstudio's trainer, the same schedule options (docs/compare.md), seeds $SEEDS"
   echo
   cat "$WORK/summary.md"
-  for views in fisheye pinhole; do
-    echo; echo "## $views views"; echo
-    sed -e '/^## geer-compare/d' "$WORK/$views/compare.md"
+  for out in fisheye pinhole fisheye_density pinhole_density; do
+    case $out in *_density) title="${out%_density} views, geer at splatfacto's density" ;; *) title="$out views" ;; esac
+    echo; echo "## $title"; echo
+    sed -e '/^## geer-compare/d' "$WORK/$out/compare.md"
   done
   echo; echo "![the first fisheye test view: ground truth, each method, its error](vs_splatfacto.png)"
 } > benchmarks/vs_splatfacto.md

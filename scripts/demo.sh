@@ -22,8 +22,8 @@ if [ "$("$PY" -c 'import torch; print(torch.cuda.is_available())')" = "True" ]; 
   SCHEDULE=()
 else
   # CPU: rendered by the kernels' code built for the CPU (backend auto; built once here, outside the
-  # training time, and loudly replaced by the PyTorch renderer if it cannot be built). BEAP supervision
-  # at half resolution (48 x 48 cells) for the first half, full resolution after; refinement every 50
+  # training time, and loudly replaced by the PyTorch renderer if it cannot be built). Supervision on
+  # the camera's own rays at half resolution (48 x 48) for the first half, full resolution after; refinement every 50
   # steps from step 100, splitting to the end: densification counts the views' pixels, so each refinement
   # adds fewer Gaussians as they reach what 96 x 96 views resolve (benchmarks/densification.md).
   echo "[demo] no GPU: CPU schedule (renderer: csrc/cpu_ops.cpp, built on first use)"

@@ -55,7 +55,7 @@ def test_geer_compare_runs_every_method(small_room, tmp_path, single_thread):
     from geer_ns.compare.cli import Compare
 
     cuda = torch.Tensor.cuda
-    methods = ("geer", "splatfacto", "splatfacto-pinhole", "splatfacto-fisheye")
+    methods = ("geer", "geer-gsplat-units", "splatfacto", "splatfacto-pinhole", "splatfacto-fisheye")
     text = Compare(data=small_room, steps=12, methods=methods, output_dir=tmp_path).main()
     table = json.loads((tmp_path / "compare.json").read_text())
     assert [r["method"] for r in table["results"]] == list(methods)

@@ -168,11 +168,13 @@ def test_the_screen_statistic_is_the_same_in_every_view(statistics):
     assert torch.allclose(found["BEAP 180"][1], found["fisheye 180"][1], rtol=1e-6)  # the same camera's pixels
 
 
-def test_at_the_reference_camera_the_statistics_are_gsplats(statistics):
+@pytest.mark.parametrize("size", [int(REFERENCE_WIDTH_PIXELS), 128])
+def test_at_the_reference_camera_the_statistics_are_gsplats(statistics, size):
     """For the reference camera, a 60-degree pinhole W_ref pixels across, at its centre the statistic is gsplat's
-    |dL/d(position)| in units of half the image. Checked on the Gaussian nearest the axis of a dedicated view."""
+    |dL/d(position)| in units of half the image; for a `size`-pixel one it is gsplat's x size / W_ref (geer
+    counts pixels of the reference camera, gsplat halves of this image: the conversion geer-compare's
+    geer-gsplat-units applies to the thresholds). Checked on the Gaussian nearest the axis of a dedicated view."""
     model = _model()
-    size = int(REFERENCE_WIDTH_PIXELS)
     f = (size / 2) / math.tan(math.radians(30))
     camera = Cameras(camera_to_worlds=torch.eye(4)[:3][None], fx=f, fy=f, cx=size / 2, cy=size / 2, width=size,
                      height=size, camera_type=CameraType.PERSPECTIVE)
@@ -191,4 +193,4 @@ def test_at_the_reference_camera_the_statistics_are_gsplats(statistics):
     gsplat = float(leaf.grad[k].norm()) / f * (size / 2)
     ours = float(model.step_statistics().grad[k])
     print(f"Gaussian {off_axis:.1f} deg off-axis: statistic {ours:.4g}, gsplat's {gsplat:.4g}")
-    assert ours == pytest.approx(gsplat, rel=0.05)  # cos^1.5 of a few degrees: the pixel's side there
+    assert ours == pytest.approx(gsplat * size / REFERENCE_WIDTH_PIXELS, rel=0.05)  # cos^1.5 of a few degrees

@@ -10,7 +10,8 @@ from typing import Dict, List, Optional, Tuple
 from geer_ns.compare.capture import Capture, write_resampled
 from geer_ns.compare.resample import equidistant_like, widest_pinhole
 
-METHODS = ("geer", "geer-native", "geer-beap", "geer-mcmc", "splatfacto", "splatfacto-pinhole", "splatfacto-fisheye")
+METHODS = ("geer", "geer-native", "geer-beap", "geer-gsplat-units", "geer-mcmc", "splatfacto", "splatfacto-pinhole",
+           "splatfacto-fisheye")
 DEFAULT_METHODS = ("geer", "splatfacto", "splatfacto-pinhole", "splatfacto-fisheye")
 
 
@@ -37,6 +38,23 @@ def schedule(steps: int, train_images: int) -> Dict[str, object]:
     warmup = max(3 * every, train_images + every)
     return {"num_downscales": 0, "refine_every": every, "warmup_length": warmup,
             "stop_split_at": max(steps // 2, warmup + 3 * every + 1), "reset_alpha_every": 30}
+
+
+def gsplat_units(model, camera):
+    """`model` (a GeerModelConfig) with its densification thresholds in gsplat's units for `camera`'s images.
+
+    gsplat scales a mean's pixel gradient by half the image's side (of a loss averaged over W x H pixels) and
+    divides screen radii by the larger side; geer counts both in pixels of a REFERENCE_WIDTH_PIXELS-wide camera
+    (geer_ns/densify/signal.py). Multiplying geer's thresholds by side / REFERENCE_WIDTH_PIXELS makes the same
+    Gaussians cross them; geer's two extra rules (min pixels, unseen prune) are turned off."""
+    from geer_ns.densify.signal import REFERENCE_WIDTH_PIXELS
+
+    side = max(camera.width, camera.height) / REFERENCE_WIDTH_PIXELS
+    model.densify_grad_thresh *= min(camera.width, camera.height) / REFERENCE_WIDTH_PIXELS
+    model.split_screen_size *= side
+    model.cull_screen_size *= side
+    model.densify_min_pixels, model.prune_unseen = 0.0, False
+    return model
 
 
 def train_images(capture: Capture) -> int:
@@ -71,6 +89,11 @@ def plan(capture: Capture, names: Tuple[str, ...], work: Path, pinhole_fov_deg: 
             what = "the capture's own pixel rays" if view == "native" else "BEAP images resampled from the capture"
             methods.append(Method(name, f"3DGEER supervised on {what} (--pipeline.datamanager.supervision {view})",
                                   capture.transforms, config, None))
+        elif name == "geer-gsplat-units":
+            methods.append(Method(name, "3DGEER densified by splatfacto's rules in gsplat's units at this image size "
+                                  "(geer's pixel thresholds x the image's side / 300, no min-pixels or unseen-prune "
+                                  "rule): splatfacto's density", capture.transforms,
+                                  geer_trainer_config(name, gsplat_units(GeerModelConfig(), capture.camera)), None))
         elif name == "geer-mcmc":
             methods.append(Method(name, "3DGEER with gsplat's MCMCStrategy", capture.transforms,
                                   geer_trainer_config("geer-mcmc", GeerModelConfig(strategy="mcmc")), None))
