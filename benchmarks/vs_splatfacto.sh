@@ -35,10 +35,10 @@ compare pinhole pinhole geer geer-beap splatfacto
 compare fisheye fisheye_density geer-gsplat-units
 compare pinhole pinhole_density geer-gsplat-units
 "$PY" - "$WORK" "$ROOM" > "$WORK/summary.md" <<'PYEOF'
-import json, math, sys
+import json, sys
 from pathlib import Path
 from PIL import Image
-from scipy.stats import t
+from scipy.stats import ttest_ind
 from geer_ns.compare.capture import load_capture
 from geer_ns.data.beap import beap_to_native
 from geer_ns.data.datamanager import to_beap
@@ -63,12 +63,9 @@ for views, geer in [(v, g) for v in ("fisheye", "pinhole") for g in ("geer", "ge
         sign = -1 if key == "lpips" else 1
         best = max(splat, key=lambda m: sign * sum(splat[m]) / len(splat[m]))
         a, b = by[geer], splat[best]
-        stats = [(sum(x) / len(x), math.sqrt(sum((v - sum(x) / len(x)) ** 2 for v in x) / max(len(x) - 1, 1)), len(x))
-                 for x in (a, b)]
-        (ma, sa, na), (mb, sb, nb) = stats
-        se = math.sqrt(sa ** 2 / na + sb ** 2 / nb)
-        dof = se ** 4 / max((sa ** 2 / na) ** 2 / max(na - 1, 1) + (sb ** 2 / nb) ** 2 / max(nb - 1, 1), 1e-300)
-        half = float(t.ppf(0.975, dof)) * se if se > 0 else 0.0
+        ma, mb = sum(a) / len(a), sum(b) / len(b)
+        low, high = ttest_ind(a, b, equal_var=False).confidence_interval(0.95)  # Welch's interval of a - b
+        half = (high - low) / 2
         diff = sign * (ma - mb)
         reading = "geer ahead" if diff - half > 0 else "geer behind" if diff + half < 0 else "not distinguishable"
         print(f"| {views} | {key} | {geer}: {ma:.4g} | {best}: {mb:.4g} | {ma - mb:+.4f} +- {half:.4f} | {reading} |")

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Dict, List, Sequence, Tuple
 
 import cv2
@@ -150,7 +150,10 @@ def _error_map(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor) -> np.
 def picture(capture: Capture, results: List[Result], path: Path, views: int = 3) -> Path:
     """Per test view: ground truth then each method's render (top), each method's error map (below); a method's
     first seed."""
-    results = [r for i, r in enumerate(results) if r.name not in {q.name for q in results[:i]}]
+    first: Dict[str, Result] = {}
+    for r in results:
+        first.setdefault(r.name, r)
+    results = list(first.values())
     blocks = []
     scale = max(1, 200 // capture.camera.height)
     for i, view in enumerate(capture.views[:views]):
