@@ -129,3 +129,19 @@ def test_native_and_beap_rows_over_two_seeds(small_room, tmp_path, single_thread
         assert summary["seeds"] == [1, 2] and summary["psnr"][0] == pytest.approx(sum(runs) / 2)
         assert summary["psnr"][1] == pytest.approx(12.706205 * abs(runs[0] - runs[1]) / 2)  # t(0.975, 1) sd/sqrt(2)
     assert "+-" in text and "supervision native" in text and "supervision beap" in text
+
+
+def test_a_bad_option_or_capture_ends_in_one_line(small_room, tmp_path):
+    import subprocess
+    import sys
+
+    meta = json.loads(small_room.read_text())
+    del meta["fl_x"]
+    broken = small_room.parent / "no_focal.json"
+    broken.write_text(json.dumps(meta))
+    for argv, message in ((["--data", str(small_room), "--seeds", "1", "1"], "--seeds 1 1: give one or more distinct"),
+                          (["--data", str(broken)], f"{broken}: top-level field 'fl_x' is missing")):
+        done = subprocess.run([sys.executable, "-m", "geer_ns.compare", *argv, "--output-dir", str(tmp_path)],
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+        assert message in done.stderr.strip().splitlines()[-1], done.stderr

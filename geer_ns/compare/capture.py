@@ -17,6 +17,7 @@ from torch import Tensor
 
 from geer_ns.cameras import CameraModel, OpenCVFisheyeCamera, PinholeCamera
 from geer_ns.compare.resample import landing, resample, to_uint8
+from geer_ns.errors import DatasetError
 from geer_ns.metrics.regions import central_region
 
 _SPLITS = ("train_filenames", "val_filenames", "test_filenames")
@@ -62,20 +63,20 @@ def camera_of(meta: dict, path: Path) -> CameraModel:
     """The one camera of a transforms file (top-level fields): OPENCV or OPENCV_FISHEYE."""
     for frame in meta.get("frames", []):
         if any(k in frame for k in _CAMERA_KEYS if k not in ("fisheye_crop_radius",)):
-            raise ValueError(f"{path}: frame {frame.get('file_path')} has its own camera fields; geer-compare "
+            raise DatasetError(f"{path}: frame {frame.get('file_path')} has its own camera fields; geer-compare "
                              "needs one camera for the whole capture (top-level fields)")
     model = meta.get("camera_model", "OPENCV")
     try:
         w, h, fx, fy, cx, cy = (meta[k] for k in ("w", "h", "fl_x", "fl_y", "cx", "cy"))
     except KeyError as missing:
-        raise ValueError(f"{path}: top-level field {missing} is missing") from None
+        raise DatasetError(f"{path}: top-level field {missing} is missing") from None
     get = lambda k: float(meta.get(k, 0.0))  # noqa: E731
     if model == "OPENCV_FISHEYE":
         return OpenCVFisheyeCamera(w, h, fx, fy, cx, cy, k1=get("k1"), k2=get("k2"), k3=get("k3"), k4=get("k4"))
     if model == "OPENCV":
         return PinholeCamera(w, h, fx, fy, cx, cy, k1=get("k1"), k2=get("k2"), p1=get("p1"), p2=get("p2"),
                              k3=get("k3"))
-    raise ValueError(f"{path}: camera_model {model!r}: geer-compare handles OPENCV and OPENCV_FISHEYE captures")
+    raise DatasetError(f"{path}: camera_model {model!r}: geer-compare handles OPENCV and OPENCV_FISHEYE captures")
 
 
 def read_image(path: Path) -> Tensor:
@@ -118,7 +119,7 @@ def load_capture(data: Path, central_half_angle_deg: float) -> Capture:
     for image_path, mask_path in zip(outputs.image_filenames, masks):
         image = read_image(image_path)
         if image.shape[:2] != (camera.height, camera.width):
-            raise ValueError(f"{image_path}: {image.shape[1]}x{image.shape[0]} pixels, the camera in {path} says "
+            raise DatasetError(f"{image_path}: {image.shape[1]}x{image.shape[0]} pixels, the camera in {path} says "
                              f"{camera.width}x{camera.height}")
         valid = rays_valid & read_mask(mask_path, image.shape[:2])
         if crop is not None:
@@ -126,7 +127,7 @@ def load_capture(data: Path, central_half_angle_deg: float) -> Capture:
             valid &= (uv[..., 0] - camera.cx) ** 2 + (uv[..., 1] - camera.cy) ** 2 <= float(crop) ** 2
         views.append(TestView(Path(image_path).name, camera, image, valid, central))
     if not views:
-        raise ValueError(f"geer-compare: {path} has no test images")
+        raise DatasetError(f"geer-compare: {path} has no test images")
     poses = outputs.transform_poses_to_original_space(outputs.cameras.camera_to_worlds)
     return Capture(path, meta, camera, views, poses)
 

@@ -16,6 +16,7 @@ from typing import Tuple
 import tyro
 
 from geer_ns.compare.methods import DEFAULT_METHODS
+from geer_ns.errors import OptionError, report_input_errors_in_one_line
 
 
 @dataclass
@@ -49,9 +50,9 @@ class Compare:
         from geer_ns.metrics.perceptual import alexnet_weights_path
 
         if self.steps < 1:
-            raise ValueError(f"--steps {self.steps}: must be at least 1")
+            raise OptionError(f"--steps {self.steps}: must be at least 1")
         if not self.seeds or len(set(self.seeds)) != len(self.seeds):
-            raise ValueError(f"--seeds {' '.join(map(str, self.seeds))}: give one or more distinct seeds")
+            raise OptionError(f"--seeds {' '.join(map(str, self.seeds))}: give one or more distinct seeds")
         capture = load_capture(self.data, self.central_half_angle_deg)
         self.output_dir.mkdir(parents=True, exist_ok=True)
         methods, skipped = plan(capture, tuple(self.methods), self.output_dir, self.pinhole_fov_deg)
@@ -80,6 +81,7 @@ class Compare:
 
 
 def entrypoint() -> None:
+    report_input_errors_in_one_line()  # a bad option or capture ends the command in one line
     tyro.extras.set_accent_color("bright_yellow")
     tyro.cli(Compare).main()
 

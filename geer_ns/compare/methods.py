@@ -9,6 +9,7 @@ from typing import Dict, List, Optional, Tuple
 
 from geer_ns.compare.capture import Capture, write_resampled
 from geer_ns.compare.resample import equidistant_like, widest_pinhole
+from geer_ns.errors import OptionError
 
 METHODS = ("geer", "geer-native", "geer-beap", "geer-gsplat-units", "geer-mcmc", "splatfacto", "splatfacto-pinhole",
            "splatfacto-fisheye")
@@ -49,10 +50,10 @@ def gsplat_units(model, camera):
     Gaussians cross them; geer's two extra rules (min pixels, unseen prune) are turned off."""
     from geer_ns.densify.signal import REFERENCE_WIDTH_PIXELS
 
-    side = max(camera.width, camera.height) / REFERENCE_WIDTH_PIXELS
+    larger_side = max(camera.width, camera.height) / REFERENCE_WIDTH_PIXELS
     model.densify_grad_thresh *= min(camera.width, camera.height) / REFERENCE_WIDTH_PIXELS
-    model.split_screen_size *= side
-    model.cull_screen_size *= side
+    model.split_screen_size *= larger_side
+    model.cull_screen_size *= larger_side
     model.densify_min_pixels, model.prune_unseen = 0.0, False
     return model
 
@@ -73,7 +74,7 @@ def plan(capture: Capture, names: Tuple[str, ...], work: Path, pinhole_fov_deg: 
 
     unknown = [n for n in names if n not in METHODS]
     if unknown:
-        raise ValueError(f"geer-compare: unknown method(s) {unknown}; choose from {list(METHODS)}")
+        raise OptionError(f"geer-compare: unknown method(s) {unknown}; choose from {list(METHODS)}")
     gpu = torch.cuda.is_available()
     raster = "gsplat's CUDA kernels" if gpu else "gsplat's EWA rasterization on the CPU (geer_ns.compare.ewa_cpu)"
     distorted = any(float(capture.meta.get(k, 0.0)) != 0.0 for k in ("k1", "k2", "k3", "k4", "p1", "p2"))

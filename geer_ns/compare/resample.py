@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from geer_ns.cameras import CameraModel, EquidistantCamera, PinholeCamera
+from geer_ns.errors import OptionError
 
 
 def landing(src: CameraModel, dst: CameraModel) -> Tuple[Tensor, Tensor]:
@@ -41,7 +42,7 @@ def resample(image: Tensor, src: CameraModel, dst: CameraModel, fill: Tensor | f
 def widest_pinhole(native: CameraModel, fov_deg: float) -> PinholeCamera:
     """A pinhole of the native image's size and center with `fov_deg` across its width (square pixels)."""
     if not 0 < fov_deg < 180:
-        raise ValueError(f"--pinhole-fov-deg {fov_deg}: a pinhole's field of view is between 0 and 180 degrees")
+        raise OptionError(f"--pinhole-fov-deg {fov_deg}: a pinhole's field of view is between 0 and 180 degrees")
     f = 0.5 * native.width / math.tan(math.radians(fov_deg) / 2)
     return PinholeCamera(native.width, native.height, f, f, native.width / 2, native.height / 2)
 
