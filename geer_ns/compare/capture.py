@@ -55,7 +55,7 @@ def transforms_path(data: Path) -> Path:
     data = Path(data)
     path = data if data.suffix == ".json" else data / "transforms.json"
     if not path.is_file():
-        raise FileNotFoundError(f"geer-compare: --data {data}: no transforms file at {path}")
+        raise DatasetError(f"geer-compare: --data {data}: no transforms file at {path}")
     return path
 
 
@@ -82,7 +82,7 @@ def camera_of(meta: dict, path: Path) -> CameraModel:
 def read_image(path: Path) -> Tensor:
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:
-        raise FileNotFoundError(f"geer-compare: cannot read image {path}")
+        raise DatasetError(f"geer-compare: cannot read image {path}")
     return torch.from_numpy(cv2.cvtColor(image, cv2.COLOR_BGR2RGB)).float() / 255.0
 
 
@@ -91,7 +91,7 @@ def read_mask(path: Optional[Path], shape) -> Tensor:
         return torch.ones(shape, dtype=torch.bool)
     mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if mask is None:
-        raise FileNotFoundError(f"geer-compare: cannot read mask {path}")
+        raise DatasetError(f"geer-compare: cannot read mask {path}")
     return torch.from_numpy(mask >= 128)
 
 
