@@ -55,7 +55,7 @@ from geer_ns.distributed.engine import EngineState
 from geer_ns.metrics.regions import central_region, downscale_mask, masked_psnr, region_psnr
 from geer_ns.options import GeerOwnOptions, ignored_options_set, skipping_line
 from geer_ns.metrics.perceptual import build_lpips_if_cached
-from geer_ns.refinement.pose_solve import PoseSolver
+from geer_ns.refinement.registration import pose_callbacks
 from geer_ns.refinement.refined_frame import RefinedFrame, scene_pose
 from geer_ns.render import render
 from geer_ns.render.backend import announce_backend
@@ -496,11 +496,7 @@ class GeerModel(SplatfactoModel):
             callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], BandChoice(
                 training_callback_attributes.pipeline, training_callback_attributes.optimizers, self.sh_choice_step(),
                 self.config.sh_budget_db, say=CONSOLE.log)))
-        if self.config.pose_solve_every > 0:
-            solver = PoseSolver(training_callback_attributes.pipeline, training_callback_attributes.optimizers,
-                                self.config.pose_solve_every, self.config.pose_solve_iterations, say=CONSOLE.log)
-            callbacks.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], solver))
-        return callbacks
+        return callbacks + pose_callbacks(training_callback_attributes, say=CONSOLE.log)
 
     def sh_choice_step(self) -> Optional[int]:
         """The step each Gaussian's SH degree is chosen at (geer_ns/sh_degrees/choice.py), or None: not chosen

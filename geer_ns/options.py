@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import List, Literal, Optional, Tuple
 
 from geer_ns.refinement.lens import LensMode
+from geer_ns.refinement.registration import CameraRefinement
 from geer_ns.render.backend import Backend
 from geer_ns.render.pbf import LambdaMode
 from geer_ns.selftest.sentinel import DEFAULT_EVERY
@@ -82,6 +83,14 @@ class GeerOwnOptions:
     lens_refinement_aspect: bool = False
     """lens-refinement: refine the aspect ratio fy / fx too (off: fx and fy scale together). Cameras that stay
     upright cannot tell a wrong ratio from a vertical stretch of the scene (docs/refinement.md)."""
+    camera_refinement: CameraRefinement = "manual"
+    """"register": the registration recipe for rough cameras (geer_ns/refinement/registration.py): SO3xR3 pose
+    adjustments, the first 20 % of the run a low-capacity scene (the seed Gaussians held in place, SH degree 0, no
+    densification)
+    against which every training pose is solved twice, then the poses held while the scene forms, solved once
+    more against it and held to the end. Measured on the dev room it leaves the cameras bent by ~0.5 degree
+    against the truth and moves good poses as far: for rough cameras only (docs/refinement.md). "manual":
+    camera-optimizer.mode, pose-solve-every and pose-refinement-start as set."""
     pose_refinement_start: int = 0
     """With camera-optimizer.mode SO3xR3 or SE3: the step from which training renders use (and train) the pose
     adjustments (and pose-solve-every solves them). Poses refined while the scene forms wander, and the scene
@@ -121,9 +130,11 @@ OWN_OPTIONS_HELP = (
     "--pipeline.model.sh-budget-db, --pipeline.model.optimizer-rows {visible,all}, --pipeline.model.view-cull, "
     "--pipeline.model.max-pairs, --pipeline.model.kernel-check-every, "
     "--pipeline.model.central-half-angles-deg, --pipeline.model.lens-refinement {off,focal,focal+principal,full}, "
-    "--pipeline.model.pose-solve-every, --pipeline.model.pose-solve-iterations, --pipeline.model.refined-frame, "
+    "--pipeline.model.camera-refinement {manual,register}, --pipeline.model.pose-solve-every, "
+    "--pipeline.model.pose-solve-iterations, --pipeline.model.refined-frame, "
     "--pipeline.datamanager.supervision, "
-    "--pipeline.datamanager.mask-edge-fill, --pipeline.datamanager.images-per-step, --machine.timeout-s; resume "
+    "--pipeline.datamanager.mask-edge-fill, --pipeline.datamanager.images-per-step, --machine.timeout-s, "
+    "--schedules {follow-run,fixed} (splatfacto's schedules stretched to --max-num-iterations by default); resume "
     "with --load-dir <run>/nerfstudio_models. Splatfacto options "
     "marked IGNORED are accepted and not used."
 )

@@ -20,7 +20,9 @@ count stalls) and the first refinement indexes the stale optimizer state out of 
 
 from __future__ import annotations
 
+import os
 import random
+from pathlib import Path
 from typing import Any, Dict, Mapping, Optional
 
 import numpy as np
@@ -91,6 +93,33 @@ def checkpoint_images_per_step(checkpoint: Mapping[str, Any]) -> int:
     """The images per step a nerfstudio checkpoint's steps count (the model's extra state; 1 where absent)."""
     extra = checkpoint.get("pipeline", {}).get("_model._extra_state")
     return int(extra.get("images_per_step", 1)) if isinstance(extra, Mapping) else 1
+
+
+def checkpoint_path(config) -> Optional[Path]:
+    """The checkpoint a TrainerConfig resumes from (--load-dir with --load-step, else nerfstudio's rule: the latest
+    step-*.ckpt; or --load-checkpoint), None for a fresh run; a named checkpoint that does not exist is an error."""
+    if config.load_dir is not None:
+        step = config.load_step
+        if step is None:
+            step = sorted(int(x[x.find("-") + 1 : x.find(".")]) for x in os.listdir(config.load_dir))[-1]
+        path = Path(config.load_dir) / f"step-{step:09d}.ckpt"
+    elif config.load_checkpoint is not None:
+        path = Path(config.load_checkpoint)
+    else:
+        return None
+    if not path.exists():
+        raise FileNotFoundError(f"geer: checkpoint {path} does not exist")
+    return path
+
+
+def images_seen(config) -> int:
+    """How many one-image steps the checkpoint `config` resumes from had completed (0 for a fresh run): where a
+    resumed run's schedules start (training/horizon.py)."""
+    path = checkpoint_path(config)
+    if path is None:
+        return 0
+    state = torch.load(path, map_location="cpu", mmap=True)
+    return convert_step(int(state["step"]), checkpoint_images_per_step(state), 1) + 1
 
 
 def trainer_state(trainer, step: int) -> Dict[str, Any]:

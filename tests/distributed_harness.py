@@ -30,6 +30,9 @@ def scenario_config(data: Path, out: Path, name: str, *, strategy: str = "defaul
     config.steps_per_save = 1_000_000  # the final checkpoint only
     config.machine.device_type = "cpu"
     config.machine.timeout_s = 60.0
+    # The scenarios compare runs of different lengths and resumes with fresh runs step for step: the schedules as
+    # written (a run's follow-run schedules depend on its length: training/horizon.py, test_schedule_horizon.py).
+    config.schedules = "fixed"
     model = config.pipeline.model
     model.strategy = strategy
     model.warmup_length, model.refine_every, model.reset_alpha_every, model.stop_split_at = 4, 4, 5, 1000

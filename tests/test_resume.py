@@ -28,6 +28,10 @@ def _config(data: Path, out: Path, name: str, steps: int, load_dir=None):
     config = tiny_trainer_config(data, out, name, steps)
     config.steps_per_save = 1_000_000
     config.load_dir = load_dir
+    # An N-step run is a whole run whose schedules follow its N steps (training/horizon.py), not the first part of
+    # an N + M run: the resume itself is compared with the schedules as written (test_schedule_horizon.py
+    # checks that a resumed run's schedules follow its checkpoint's step + M).
+    config.schedules = "fixed"
     model = config.pipeline.model
     model.warmup_length, model.refine_every, model.stop_split_at = 4, 2, 1000
     model.densify_grad_thresh = 1e-7  # every seen Gaussian grows: refinements visibly change the count

@@ -23,22 +23,6 @@ class Method:
     data: Path  # the transforms.json it trains on
     config: object  # nerfstudio TrainerConfig
     render_camera: Optional[str]  # None: its test renders are the capture's own pixels; "pinhole" / "equidistant"
-    train_images: int = 1  # for the schedule: DefaultStrategy pauses refinement for one pass after a reset
-
-
-def schedule(steps: int, train_images: int) -> Dict[str, object]:
-    """The model options every method gets (splatfacto's names; geer's config has the same ones).
-
-    From 30000 steps on: splatfacto's own schedule. Shorter runs: full resolution from the start, refinement
-    every steps/30 (10 to 100) steps, from three refinements in but not before the strategies' pause after the
-    start (one pass over the training images and one refinement interval: splatfacto's and geer's
-    `pause_refine_after_reset`), splitting until half way or three refinements after the first."""
-    if steps >= 30000:
-        return {}
-    every = max(10, min(100, steps // 30))
-    warmup = max(3 * every, train_images + every)
-    return {"num_downscales": 0, "refine_every": every, "warmup_length": warmup,
-            "stop_split_at": max(steps // 2, warmup + 3 * every + 1), "reset_alpha_every": 30}
 
 
 def gsplat_units(model, camera):
@@ -56,12 +40,6 @@ def gsplat_units(model, camera):
     model.cull_screen_size *= larger_side
     model.densify_min_pixels, model.prune_unseen = 0.0, False
     return model
-
-
-def train_images(capture: Capture) -> int:
-    """The capture's training images: its train_filenames, else nerfstudio's default 90% of the frames."""
-    listed = capture.meta.get("train_filenames")
-    return len(listed) if listed else max(1, round(0.9 * len(capture.meta.get("frames", []))))
 
 
 def plan(capture: Capture, names: Tuple[str, ...], work: Path, pinhole_fov_deg: float) -> Tuple[List[Method], Dict[str, str]]:
@@ -121,6 +99,4 @@ def plan(capture: Capture, names: Tuple[str, ...], work: Path, pinhole_fov_deg: 
             methods.append(Method(name, "splatfacto with gsplat's fisheye EWA projection (camera_model=\"fisheye\", "
                                   f"equidistant; FisheyeGS-like); {raster}", data,
                                   splatfacto_trainer_config("fisheye"), render))
-    for method in methods:
-        method.train_images = train_images(capture)
     return methods, skipped

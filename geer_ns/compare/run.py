@@ -16,8 +16,9 @@ from torch import Tensor
 from geer_ns.metrics.regions import masked_psnr as psnr_where
 from geer_ns.cameras import CameraModel, EquidistantCamera, PinholeCamera
 from geer_ns.compare.capture import Capture
-from geer_ns.compare.methods import Method, schedule
+from geer_ns.compare.methods import Method
 from geer_ns.compare.resample import resample
+from geer_ns.training.horizon import stretch_schedules
 
 
 @dataclass
@@ -48,12 +49,9 @@ def train(method: Method, steps: int, out_dir: Path, seed: int):
     config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = 0
     config.steps_per_save = 10**9
     config.viewer.quit_on_train_completion = True
-    for key, value in schedule(steps, method.train_images).items():
-        setattr(config.pipeline.model, key, value)
-    for optimizer in config.optimizers.values():  # the schedulers' horizon is the run's
-        scheduler = optimizer.get("scheduler")
-        if scheduler is not None and hasattr(scheduler, "max_steps"):
-            scheduler.max_steps = steps
+    stretch_schedules(config, steps)  # every method: splatfacto's 30000-step shape stretched to the run (horizon.py)
+    if hasattr(config, "schedules_written_for"):  # geer's trainer: already following the run
+        config.schedules_written_for = steps
     trainer, seconds = train_timed(config)
     return trainer.pipeline, seconds
 

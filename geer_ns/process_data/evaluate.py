@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Dict, Sequence, Tuple
 
 import numpy as np
+import torch
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray) -> Tuple[float, np.ndarray, np.ndarray]:
@@ -38,17 +39,11 @@ def align_poses(estimated: Sequence[np.ndarray], truth: Sequence[np.ndarray]) ->
     the tilt of that plane poorly, so center noise of a few millimeters tilts the whole alignment by tenths
     of a degree and shows up as rotation error of every camera (measured: 0.43 vs 0.17 deg on the dev room).
     """
-    m = sum(t[:3, :3] @ e[:3, :3].T for e, t in zip(estimated, truth))
-    u, _, vt = np.linalg.svd(m)
-    d = np.eye(3)
-    d[2, 2] = np.sign(np.linalg.det(u @ vt))
-    r = u @ d @ vt
-    c_est = np.array([e[:3, 3] for e in estimated])
-    c_ref = np.array([t[:3, 3] for t in truth])
-    a = (c_est - c_est.mean(0)) @ r.T
-    b = c_ref - c_ref.mean(0)
-    s = float((a * b).sum() / (a * a).sum())
-    return s, r, c_ref.mean(0) - s * r @ c_est.mean(0)
+    from geer_ns.refinement.refined_frame import fit_similarity
+
+    fit = fit_similarity(torch.from_numpy(np.stack([e[:3, :4] for e in estimated]).astype(np.float64)),
+                         torch.from_numpy(np.stack([t[:3, :4] for t in truth]).astype(np.float64)), guard_scale=False)
+    return fit.scale, fit.rotation.numpy(), fit.translation.numpy()
 
 
 def pose_errors(estimated: Dict[str, np.ndarray], truth: Dict[str, np.ndarray],

@@ -236,15 +236,23 @@ class PoseSolver:
         model = self.pipeline.model
         if step == 0 or step % self.every or step < model.config.pose_refinement_start:
             return
-        start = time.perf_counter()
         count = len(model.camera_optimizer.pose_adjustment)
         self.say(f"geer: pose solve at step {step}: {count} training cameras, {self.iterations} "
                  "Levenberg-Marquardt iterations each")
-        summary = solve_poses(model, self.pipeline.datamanager, range(count), self.iterations)
-        optimizer = self.optimizers.optimizers.get("camera_opt")
-        for state in ([] if optimizer is None else optimizer.state.values()):
-            if "exp_avg" in state:  # stale momentum would carry the cameras on along their old steps
-                state["exp_avg"].zero_()
-        self.say(f"geer: pose solve at step {step}: cameras moved {summary['rotation_deg']:.3f} deg and "
-                 f"{summary['translation']:.2e} scene units on average, residuals "
-                 f"{100 * summary['residual_change']:+.1f} %, {time.perf_counter() - start:.0f} s")
+        solve_every_camera(self.pipeline, self.optimizers, self.iterations, f"pose solve at step {step}", self.say)
+
+
+def solve_every_camera(pipeline, optimizers, iterations: int, label: str, say: Callable[[str], None]) -> None:
+    """solve_poses for every training camera of `pipeline`, then Adam's momentum of the poses restarted (optimizers:
+    nerfstudio's Optimizers); says what moved, after `label`."""
+    start = time.perf_counter()
+    model = pipeline.model
+    count = len(model.camera_optimizer.pose_adjustment)
+    summary = solve_poses(model, pipeline.datamanager, range(count), iterations)
+    optimizer = optimizers.optimizers.get("camera_opt")
+    for state in ([] if optimizer is None else optimizer.state.values()):
+        if "exp_avg" in state:  # stale momentum would carry the cameras on along their old steps
+            state["exp_avg"].zero_()
+    say(f"geer: {label}: {count} cameras moved {summary['rotation_deg']:.3f} deg and {summary['translation']:.2e} "
+        f"scene units on average, residuals {100 * summary['residual_change']:+.1f} %, "
+        f"{time.perf_counter() - start:.0f} s")

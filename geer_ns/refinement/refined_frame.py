@@ -60,12 +60,12 @@ def adjusted_poses(camera_optimizer, c2w: Tensor) -> Tensor:
     return torch.cat([adj[:, :3, :3] @ c2w[:, :3, :3], c2w[:, :3, 3:] + adj[:, :3, 3:]], dim=-1)
 
 
-def fit_similarity(given: Tensor, refined: Tensor) -> Similarity:
+def fit_similarity(given: Tensor, refined: Tensor, guard_scale: bool = True) -> Similarity:
     """The similarity S with refined_i ~ S(given_i) for camera-to-worlds [N, 3, 4], least squares: its rotation
     the chordal mean of the cameras' own turns R'_i R_i^T (their orientations pin it far better than the centres
     of a capture a few camera-lengths across), then the scale and translation that best map the centres given
-    that rotation. The scale is 1 where the centres do not spread well beyond their moves (one camera, a
-    rotation-only capture, a small rig)."""
+    that rotation. With guard_scale, the scale is 1 where the centres do not spread well beyond their moves (one
+    camera, a rotation-only capture, a small rig)."""
     given, refined = given.to(torch.float64), refined.to(torch.float64)
     turns = (refined[:, :3, :3] @ given[:, :3, :3].transpose(-1, -2)).sum(0)
     u, _, vt = torch.linalg.svd(turns)
@@ -76,7 +76,8 @@ def fit_similarity(given: Tensor, refined: Tensor) -> Similarity:
     b = moved - moved.mean(0)
     spread = float(a.square().sum(-1).mean())
     moves = float((b - a).square().sum(-1).mean())
-    scale = float((a * b).sum(-1).mean()) / spread if spread > _SCALE_SPREAD ** 2 * moves and spread > 0 else 1.0
+    carries_scale = spread > 0 and (not guard_scale or spread > _SCALE_SPREAD ** 2 * moves)
+    scale = float((a * b).sum(-1).mean()) / spread if carries_scale else 1.0
     translation = moved.mean(0) - scale * (rotation @ centres.mean(0))
     return Similarity(rotation, translation, scale)
 

@@ -45,7 +45,9 @@ from geer_ns.distributed.gaussian_parallel import GaussianParallel, shard_checkp
 from geer_ns.distributed.world import current_world
 from geer_ns.errors import report_input_errors_in_one_line
 from geer_ns.optim.selective_adam import offer_rows
+from geer_ns.refinement import registration
 from geer_ns.refinement.refined_cameras import write_refined_cameras
+from geer_ns.training.horizon import REFERENCE_STEPS, Schedules, follow_run
 from geer_ns.sh_degrees.packing import unpacked_checkpoint
 
 
@@ -71,11 +73,23 @@ def install_run_fixes() -> None:
 @dataclass
 class GeerTrainerConfig(TrainerConfig):
     _target: Type = field(default_factory=lambda: GeerTrainer)
+    schedules: Schedules = "follow-run"
+    """follow-run: every step-valued schedule (learning rates, densification, opacity reset, SH degree,
+    resolution, lens and pose refinement) is stretched from the run length it is written for
+    (--schedules-written-for) to --max-num-iterations, splatfacto's shape at any length
+    (geer_ns/training/horizon.py); fixed: the step counts as written."""
+    schedules_written_for: int = REFERENCE_STEPS
+    """The run length the step-valued options are written for (splatfacto's: 30000 steps). A run's saved config
+    holds its stretched schedules and its own length here."""
 
     def set_timestamp(self) -> None:
-        """nerfstudio's `ns-train` main calls this first, before it launches the run's processes: the one point
-        where a method's own code runs ahead of the launch, so geer's run fixes are installed here."""
+        """nerfstudio's `ns-train` main calls this first, before it saves the config and launches the run's
+        processes: the one point where a method's own code runs ahead of the launch, so geer's run fixes are
+        installed here, and the schedules stretched to the run (so that config.yml, which ns-eval and the viewer
+        read, holds the schedules the run used)."""
         install_run_fixes()
+        follow_run(self, resume.images_seen(self))
+        registration.apply(self)
         super().set_timestamp()
 
 
@@ -90,6 +104,9 @@ class GeerTrainer(Trainer):
         if images < 1:
             raise ValueError(f"geer: --pipeline.datamanager.images-per-step must be >= 1, got {images}")
         self.batch = EffectiveBatch(self.world.size, images)
+        # a no-op where ns-train's set_timestamp stretched them already
+        self.schedule_said = follow_run(config, resume.images_seen(config))
+        self.registration_said = registration.apply(config)
         self.user_config = config
         config = scaled_config(config, self.batch)
         if not self.world.is_main:  # rank 0 alone speaks, and serves the viewer (the writers are rank 0's already)
@@ -131,8 +148,9 @@ class GeerTrainer(Trainer):
     def _say_start(self) -> None:
         if not self.world.is_main:
             return
-        for line in self.engine.describe():
-            CONSOLE.log(f"geer: {line}")
+        for line in (self.schedule_said, self.registration_said, *self.engine.describe()):
+            if line:
+                CONSOLE.log(f"geer: {line}")
         if self.batch.images == 1:
             return
         how = f"{self.world.size} process(es) ({self.world.backend}"
@@ -175,18 +193,7 @@ class GeerTrainer(Trainer):
         self._convert_steps(fresh, schedulers, resume.checkpoint_images_per_step(state))
 
     def _checkpoint_path(self):
-        if self.config.load_dir is not None:
-            step = self.config.load_step
-            if step is None:  # nerfstudio's rule: the latest step-*.ckpt
-                step = sorted(int(x[x.find("-") + 1 : x.find(".")]) for x in os.listdir(self.config.load_dir))[-1]
-            path = self.config.load_dir / f"step-{step:09d}.ckpt"
-        elif self.config.load_checkpoint is not None:
-            path = self.config.load_checkpoint
-        else:
-            return None
-        if not path.exists():
-            raise FileNotFoundError(f"geer: checkpoint {path} does not exist")
-        return path
+        return resume.checkpoint_path(self.config)
 
     def _convert_steps(self, fresh, schedulers: bool, saved: int) -> None:
         """The loaded state in this run's effective batch: the step, Adam's step counts and the schedulers'
