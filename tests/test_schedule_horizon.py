@@ -84,6 +84,10 @@ def test_splatfacto_configs_follow_the_same_rule_and_bad_lengths_are_named():
     assert config.optimizers["means"]["scheduler"].max_steps == 1500
     with pytest.raises(ValueError, match="run lengths must be positive"):
         stretch_schedules(_splatfacto(), 0)
+    from geer_ns.errors import OptionError
+
+    with pytest.raises(OptionError, match="--max-num-iterations 0: a run whose schedules follow it"):
+        follow_run(_geer(0))  # ns-train reports it in one line (errors.py), not as a stack trace
 
 
 def test_a_run_ends_its_learning_rate_schedule_at_its_last_step_and_a_resumed_run_follows_its_total(tmp_path):

@@ -23,6 +23,8 @@ from __future__ import annotations
 
 from typing import Literal
 
+from geer_ns.errors import OptionError
+
 REFERENCE_STEPS = 30000
 MIN_REFINE_EVERY = 10
 # Refinements between opacity resets, at least: the strategies pause refinement for one pass over the images
@@ -95,6 +97,9 @@ def follow_run(config, resumed_at: int = 0) -> str:
     if config.schedules == "fixed":
         return schedule_line(config, "as written: --schedules fixed")
     length = resumed_at + config.max_num_iterations
+    if length <= 0:
+        raise OptionError(f"geer: --max-num-iterations {config.max_num_iterations}: a run whose schedules follow it "
+                          "needs at least one step (pass a positive count, or --schedules fixed)")
     if config.schedules_written_for == length:
         return schedule_line(config, "following the run", length)
     said = stretch_schedules(config, length, config.schedules_written_for)
