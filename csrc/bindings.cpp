@@ -188,7 +188,7 @@ geer::RenderArgs<T> render_args(const at::Tensor& whiten, const at::Tensor& o_u,
                                 const at::Tensor& opacities, const at::Tensor& pbf_pieces, const at::Tensor& dirs,
                                 const at::Tensor& ray_bounds, const at::Tensor& warp_bounds, const at::Tensor& valid,
                                 const at::Tensor& ids, const at::Tensor& ranges, int64_t height, int64_t width,
-                                int64_t tile_size) {
+                                int64_t tile_size, const at::Tensor& origins) {
     check_float(whiten, whiten, "whiten");
     check_float(o_u, whiten, "o_u");
     check_float(rgb, whiten, "rgb");
@@ -208,8 +208,14 @@ geer::RenderArgs<T> render_args(const at::Tensor& whiten, const at::Tensor& o_u,
     TORCH_CHECK(ranges.size(0) == n_tiles, "geer: ranges must hold one row per tile");
     TORCH_CHECK(warp_bounds.numel() == 4 * n_tiles * geer::warps_per_tile(int(tile_size)),
                 "geer: warp_bounds must be [tiles * warps per tile, 4]");
+    const bool with_origins = origins.numel() > 0;  // empty: every ray from the camera centre
+    if (with_origins) {
+        check_float(origins, whiten, "origins");
+        TORCH_CHECK(origins.numel() == 3 * dirs.size(0), "geer: origins must be [R,3] or empty");
+    }
     geer::RenderArgs<T> a{};
     a.n = int(whiten.size(0));
+    a.origins = with_origins ? cptr<T>(origins) : nullptr;
     a.whiten = cptr<T>(whiten);
     a.o_u = cptr<T>(o_u);
     a.rgb = cptr<T>(rgb);
@@ -231,7 +237,8 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
                                        at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
                                        at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids,
                                        at::Tensor ranges, int64_t height, int64_t width, int64_t tile_size,
-                                       bool /* record: the CPU build's blended_lanes, see below */) {
+                                       bool /* record: the CPU build's blended_lanes, see below */,
+                                       at::Tensor origins) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(whiten));
     const int64_t r = height * width;
     auto opts = whiten.options();
@@ -242,7 +249,7 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     dispatch(whiten, [&](auto tag) {
         using T = decltype(tag);
         auto a = render_args<T>(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
-                                ranges, height, width, tile_size);
+                                ranges, height, width, tile_size, origins);
         geer::RenderOutputs<T> out{mptr<T>(out_rgb), mptr<T>(depth), mptr<T>(acc), mptr<T>(t_final),
                                    mptr<int32_t>(n_contrib), mptr<T>(max_weight), mptr<T>(median)};
         geer::launch_render_forward<T>(a, out, stream());
@@ -253,7 +260,7 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
 }
 
 // -> ([N,16] gradient rows (geer_launchers.h RenderGradArgs::grads), absgrad [N,2], empty when absgrad_rows is,
-// dL/d(ray directions) [R,3], empty unless dir_grad).
+// dL/d(ray directions) [R,3], empty unless dir_grad, dL/d(ray origins) [R,3], empty unless dir_grad and origins).
 std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
                                         at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
                                         at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids, at::Tensor ranges,
@@ -261,7 +268,7 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
                                         at::Tensor n_contrib,
                                         at::Tensor /* blended_lanes: empty, see render_forward */, at::Tensor g_rgb,
                                         at::Tensor g_depth, at::Tensor g_acc, at::Tensor absgrad_rows,
-                                        bool dir_grad) {
+                                        bool dir_grad, at::Tensor origins) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(whiten));
     const int64_t n = whiten.size(0);
     auto opts = whiten.options();
@@ -269,10 +276,12 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
     const bool with_absgrad = absgrad_rows.numel() > 0;
     auto absgrad = with_absgrad ? at::zeros({n, geer::kAbsgradValues}, opts) : at::empty({0}, opts);
     auto g_dirs = dir_grad ? at::zeros({height * width, 3}, opts) : at::empty({0}, opts);
+    const bool origin_grad = dir_grad && origins.numel() > 0;
+    auto g_origins = origin_grad ? at::zeros({height * width, 3}, opts) : at::empty({0}, opts);
     dispatch(whiten, [&](auto tag) {
         using T = decltype(tag);
         auto a = render_args<T>(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
-                                ranges, height, width, tile_size);
+                                ranges, height, width, tile_size, origins);
         check_float(t_final, whiten, "t_final");
         check_kind(n_contrib, at::kInt, "n_contrib");
         check_float(g_rgb, whiten, "g_rgb");
@@ -285,10 +294,10 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
         geer::RenderGradArgs<T> g{cptr<T>(t_final), cptr<int32_t>(n_contrib), cptr<T>(g_rgb), cptr<T>(g_depth),
                                   cptr<T>(g_acc), mptr<T>(grads),
                                   with_absgrad ? cptr<T>(absgrad_rows) : nullptr, mptr<T>(absgrad),
-                                  dir_grad ? mptr<T>(g_dirs) : nullptr};
+                                  dir_grad ? mptr<T>(g_dirs) : nullptr, origin_grad ? mptr<T>(g_origins) : nullptr};
         geer::launch_render_backward<T>(a, g, stream());
     });
-    return {grads, absgrad, g_dirs};
+    return {grads, absgrad, g_dirs, g_origins};
 }
 
 // ------------------------------------------------------------------------------------ stage 4

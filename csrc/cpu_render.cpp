@@ -14,12 +14,13 @@ namespace {
 
 using namespace geer_cpu;
 
-template <typename T, bool kPacks>
+// kOrigin: every ray from its own origin (origins [R,3]: rolling shutter), else from the camera centre.
+template <typename T, bool kPacks, bool kOrigin>
 std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb,
                                        at::Tensor opacities, at::Tensor pbf_pieces, at::Tensor dirs,
                                        at::Tensor ray_bounds, at::Tensor warp_bounds, at::Tensor valid,
                                        at::Tensor ids, at::Tensor ranges, int64_t height, int64_t width,
-                                       int64_t tile_size, bool record) {
+                                       int64_t tile_size, bool record, at::Tensor origins) {
     using L = LaneOf<T, kPacks>;
     constexpr int kWidth = geer::Lane<L>::width;
     constexpr int kBatch = geer::Batch<T>::value;
@@ -40,7 +41,7 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
     std::vector<T> entry_weight(size_t(m), T(0));  // per list entry: its rays' largest blend weight
     parallel_dynamic(geer::tile_count(int(height), int(width), int(tile_size)), [&](int64_t tile) {
         const Block<T, L> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs), ptr<T>(ray_bounds),
-                              ptr<T>(warp_bounds));
+                              ptr<T>(warp_bounds), kOrigin ? ptr<T>(origins) : nullptr);
         std::vector<geer::RayForward<L>> st(blk.packs);
         for (int pk = 0; pk < blk.packs; ++pk) geer::ray_forward_init(st[pk], blk.valid_lanes(pk));
         const int start = rg[2 * tile], end = rg[2 * tile + 1];
@@ -59,8 +60,9 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
                     uint32_t lanes = 0;
                     for (int pk = w0 / kWidth; pk < (w0 + geer::kWarp) / kWidth; ++pk) {
                         const auto before = st[pk].n_contrib;
-                        const L w = geer::ray_forward_step(st[pk], frame, blk.dir[pk], blk.bounds[pk].data(),
-                                                           j - start);
+                        const L w = geer::ray_forward_step<T, L, kOrigin>(st[pk], frame, blk.dir[pk],
+                                                                          blk.bounds[pk].data(), j - start,
+                                                                          blk.origin_of(pk));
                         // blended: n_contrib moved to j
                         lanes |= geer::lane_bits(st[pk].n_contrib != before) << (pk * kWidth - w0);
                         for (int i = 0; i < kWidth; ++i) top = geer::g_max(top, geer::lane_get(w, i));
@@ -92,15 +94,18 @@ template <bool kPacks>
 std::vector<at::Tensor> render_forward_op(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
                                           at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
                                           at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids, at::Tensor ranges,
-                                          int64_t height, int64_t width, int64_t tile_size, bool record) {
+                                          int64_t height, int64_t width, int64_t tile_size, bool record,
+                                          at::Tensor origins) {
     whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities); pbf_pieces = cpu(pbf_pieces);
     dirs = cpu(dirs); ray_bounds = cpu(ray_bounds); warp_bounds = cpu(warp_bounds);
-    valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges);
+    valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges); origins = cpu(origins);
     check_cull_bounds(ray_bounds, warp_bounds, height, width, tile_size);
+    const bool with_origins = check_origins(origins, whiten, height * width);
     return dispatch<int>(whiten, [&](auto tag) {
-        return render_forward<decltype(tag), kPacks>(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds,
-                                                     warp_bounds, valid, ids, ranges, height, width, tile_size,
-                                                     record);
+        using T = decltype(tag);
+        const auto run = with_origins ? &render_forward<T, kPacks, true> : &render_forward<T, kPacks, false>;
+        return run(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height,
+                   width, tile_size, record, origins);
     });
 }
 

@@ -41,7 +41,8 @@ constexpr bool kCpuPacks = false;
 #endif
 
 // One tile's block as render.cu launches it: its threads' ray slots and validity, and per pack of
-// Lane<L>::width consecutive threads (a warp holds whole packs) their rays' directions and cull bounds.
+// Lane<L>::width consecutive threads (a warp holds whole packs) their rays' directions, origins (rolling shutter;
+// empty when every ray starts at the camera centre) and cull bounds.
 template <typename T, typename L> struct Block {
     static constexpr int kWidth = geer::Lane<L>::width;
     static_assert(geer::kWarp % kWidth == 0, "a warp holds whole packs");
@@ -49,13 +50,15 @@ template <typename T, typename L> struct Block {
     std::vector<geer::RaySlot> slot;
     std::vector<uint8_t> valid;
     std::vector<Vec3<L>> dir;
+    std::vector<Vec3<L>> origin;           // empty without per-ray origins
     std::vector<std::array<L, 4>> bounds;  // theta lo, hi, phi lo, hi (RayGrid.ray_cull_bounds)
     const T* warp_bounds;                  // the block's first warp's; then one row of 4 per warp
 
     Block(int tile, int64_t height, int64_t width, int64_t ts, const uint8_t* ray_valid, const T* dirs,
-          const T* ray_bounds, const T* all_warp_bounds)
+          const T* ray_bounds, const T* all_warp_bounds, const T* origins = nullptr)
         : threads(geer::threads_per_tile(int(ts))), packs(threads / kWidth), slot(threads), valid(threads),
-          dir(packs), bounds(packs), warp_bounds(geer::warp_bounds_of(all_warp_bounds, int(ts), tile, 0)) {
+          dir(packs), origin(origins ? packs : 0), bounds(packs),
+          warp_bounds(geer::warp_bounds_of(all_warp_bounds, int(ts), tile, 0)) {
         for (int tid = 0; tid < threads; ++tid) {
             slot[tid] = geer::ray_slot(int(height), int(width), int(ts), tile, tid);
             valid[tid] = slot[tid].in_image && ray_valid[slot[tid].ray] != 0;
@@ -66,6 +69,11 @@ template <typename T, typename L> struct Block {
             geer::lane_set(dir[pk].y, i, d.y);
             geer::lane_set(dir[pk].z, i, d.z);
             for (int c = 0; c < 4; ++c) geer::lane_set(bounds[pk][c], i, rb[c]);
+            if (!origins) continue;
+            const Vec3<T> o = valid[tid] ? geer::load3(origins + 3 * slot[tid].ray) : Vec3<T>{T(0), T(0), T(0)};
+            geer::lane_set(origin[pk].x, i, o.x);
+            geer::lane_set(origin[pk].y, i, o.y);
+            geer::lane_set(origin[pk].z, i, o.z);
         }
     }
     typename geer::Lane<L>::Mask valid_lanes(int pk) const {
@@ -74,7 +82,16 @@ template <typename T, typename L> struct Block {
         return geer::lanes_of_bits<L>(bits);
     }
     const T* warp_bounds_of(int tid) const { return warp_bounds + 4 * (tid / geer::kWarp); }
+    const Vec3<L>* origin_of(int pk) const { return origin.empty() ? nullptr : &origin[pk]; }
 };
+
+// Per-ray origins [R,3] of the Gaussians' dtype, or empty (every ray from the camera centre).
+inline bool check_origins(const at::Tensor& origins, const at::Tensor& like, int64_t rays) {
+    if (origins.numel() == 0) return false;
+    TORCH_CHECK(origins.scalar_type() == like.scalar_type() && origins.numel() == 3 * rays,
+                "geer: origins must be [R,3] of the Gaussians' dtype, or empty");
+    return true;
+}
 
 // The render stage's per-ray and per-warp cull bounds fit the grid (both passes).
 inline void check_cull_bounds(const at::Tensor& ray_bounds, const at::Tensor& warp_bounds, int64_t height,

@@ -95,18 +95,21 @@ template <typename T, typename L> void pair_grad_lane(const geer::PairGrad<L>& p
 // gives the same bits. absgrad_rows [N,6] (empty: off): also each pair's absgrad values (geer_blocks.h
 // lane_absgrad_values), summed as the gradients are.
 // kDirGrad: also each ray's dL/d(direction) [R,3] (geer_ray.h ray_backward_step), the third output.
-template <bool kPacks, bool kRecorded, bool kDirGrad>
+// kOrigin: every ray from its own origin (origins [R,3], rolling shutter); with kDirGrad also each ray's
+// dL/d(origin) [R,3], the fourth output.
+template <bool kPacks, bool kRecorded, bool kDirGrad, bool kOrigin>
 std::vector<at::Tensor> render_backward_impl(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
                                              at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
                                              at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids,
                                              at::Tensor ranges, int64_t height, int64_t width, int64_t tile_size,
                                              at::Tensor t_final, at::Tensor n_contrib, at::Tensor blended_lanes,
                                              at::Tensor g_rgb, at::Tensor g_depth, at::Tensor g_acc,
-                                             at::Tensor absgrad_rows) {
+                                             at::Tensor absgrad_rows, at::Tensor origins) {
     whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities); pbf_pieces = cpu(pbf_pieces);
     dirs = cpu(dirs); ray_bounds = cpu(ray_bounds); warp_bounds = cpu(warp_bounds);
     valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges);
     t_final = cpu(t_final); blended_lanes = cpu(blended_lanes); absgrad_rows = cpu(absgrad_rows);
+    origins = cpu(origins);
     check_cull_bounds(ray_bounds, warp_bounds, height, width, tile_size);
     const int warps = geer::warps_per_tile(int(tile_size));
     TORCH_CHECK(!kRecorded || (blended_lanes.scalar_type() == at::kInt && blended_lanes.numel() == ids.numel() * warps),
@@ -121,6 +124,7 @@ std::vector<at::Tensor> render_backward_impl(at::Tensor whiten, at::Tensor o_u, 
     auto grads = at::zeros({n, kGradValues}, opts);
     auto absgrad = with_absgrad ? at::zeros({n, kAbsgradValues}, opts) : at::empty({0}, opts);
     auto g_dirs = kDirGrad ? at::zeros({height * width, 3}, opts) : at::empty({0}, opts);
+    auto g_origins = kDirGrad && kOrigin ? at::zeros({height * width, 3}, opts) : at::empty({0}, opts);
     dispatch<int>(whiten, [&](auto tag) {
         using T = decltype(tag);
         using L = LaneOf<T, kPacks>;
@@ -136,7 +140,7 @@ std::vector<at::Tensor> render_backward_impl(at::Tensor whiten, at::Tensor o_u, 
         std::vector<T> pair_absgrad(with_absgrad ? size_t(m) * kAbsgradValues : 0, T(0));
         parallel_dynamic(geer::tile_count(int(height), int(width), int(tile_size)), [&](int64_t tile) {
             const Block<T, L> blk(int(tile), height, width, tile_size, bptr(valid), ptr<T>(dirs), ptr<T>(ray_bounds),
-                                  ptr<T>(warp_bounds));
+                                  ptr<T>(warp_bounds), kOrigin ? ptr<T>(origins) : nullptr);
             std::vector<geer::RayBackward<L>> st(blk.packs);
             std::vector<typename geer::Lane<L>::Int> my_n(blk.packs);
             int block_n = 0;
@@ -153,7 +157,8 @@ std::vector<at::Tensor> render_backward_impl(at::Tensor whiten, at::Tensor o_u, 
                 geer::lane_set(s.g_depth, i, ok ? ptr<T>(g_depth)[ray] : T(0));
                 geer::lane_set(s.g_acc, i, ok ? ptr<T>(g_acc)[ray] : T(0));
                 if (kDirGrad)
-                    for (L* c : {&s.g_dir.x, &s.g_dir.y, &s.g_dir.z}) geer::lane_set(*c, i, T(0));
+                    for (L* c : {&s.g_dir.x, &s.g_dir.y, &s.g_dir.z, &s.g_origin.x, &s.g_origin.y, &s.g_origin.z})
+                        geer::lane_set(*c, i, T(0));
             }
             const int start = rg[2 * tile];
             geer::PairGrad<T> p[kWarp];
@@ -179,8 +184,8 @@ std::vector<at::Tensor> render_backward_impl(at::Tensor whiten, at::Tensor o_u, 
                             if (!mine) continue;
                             const auto active =
                                 geer::lanes_of_bits<L>(mine) & (geer::Lane<L>::splat_int(pos) < my_n[pk]);
-                            const uint32_t done = geer::lane_bits(geer::ray_backward_step<T, L, kDirGrad>(
-                                st[pk], frame, blk.dir[pk], active, pg));
+                            const uint32_t done = geer::lane_bits(geer::ray_backward_step<T, L, kDirGrad, kOrigin>(
+                                st[pk], frame, blk.dir[pk], active, pg, blk.origin_of(pk)));
                             contrib |= done << first;
                             for (uint32_t d = done; d; d &= d - 1) {
                                 const int i = __builtin_ctz(d);
@@ -201,11 +206,14 @@ std::vector<at::Tensor> render_backward_impl(at::Tensor whiten, at::Tensor o_u, 
             if (!kDirGrad) return;
             for (int tid = 0; tid < blk.threads; ++tid) {
                 if (!blk.valid[tid]) continue;
-                const geer::Vec3<L>& gd = st[tid / kWidth].g_dir;
-                T* out = mptr<T>(g_dirs) + 3 * blk.slot[tid].ray;
-                out[0] = geer::lane_get(gd.x, tid % kWidth);
-                out[1] = geer::lane_get(gd.y, tid % kWidth);
-                out[2] = geer::lane_get(gd.z, tid % kWidth);
+                const geer::RayBackward<L>& sr = st[tid / kWidth];
+                for (auto [g, out] : {std::pair{&sr.g_dir, &g_dirs}, std::pair{&sr.g_origin, &g_origins}}) {
+                    if (out == &g_origins && !kOrigin) continue;
+                    T* row = mptr<T>(*out) + 3 * blk.slot[tid].ray;
+                    row[0] = geer::lane_get(g->x, tid % kWidth);
+                    row[1] = geer::lane_get(g->y, tid % kWidth);
+                    row[2] = geer::lane_get(g->z, tid % kWidth);
+                }
             }
         });
         const auto plus = [](T a, T b) { return a + b; };
@@ -214,21 +222,26 @@ std::vector<at::Tensor> render_backward_impl(at::Tensor whiten, at::Tensor o_u, 
         if (rows) fold_entries(entries, kAbsgradValues, pair_absgrad.data(), mptr<T>(absgrad), plus);
         return 0;
     });
-    return {grads, absgrad, g_dirs};
+    return {grads, absgrad, g_dirs, g_origins};
 }
 
-// -> (gradient rows, absgrad or empty, dL/d(ray directions) [R,3] where dir_grad, else empty).
+// -> (gradient rows, absgrad or empty, dL/d(ray directions) [R,3] where dir_grad, else empty, dL/d(ray origins)
+// [R,3] where dir_grad and origins are given, else empty).
 template <bool kPacks, bool kRecorded>
 std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
                                         at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
                                         at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids, at::Tensor ranges,
                                         int64_t height, int64_t width, int64_t tile_size, at::Tensor t_final,
                                         at::Tensor n_contrib, at::Tensor blended_lanes, at::Tensor g_rgb,
-                                        at::Tensor g_depth, at::Tensor g_acc, at::Tensor absgrad_rows, bool dir_grad) {
-    const auto run = dir_grad ? &render_backward_impl<kPacks, kRecorded, true>
-                              : &render_backward_impl<kPacks, kRecorded, false>;
+                                        at::Tensor g_depth, at::Tensor g_acc, at::Tensor absgrad_rows, bool dir_grad,
+                                        at::Tensor origins) {
+    const bool with_origins = check_origins(origins, whiten, height * width);
+    const auto run = dir_grad ? (with_origins ? &render_backward_impl<kPacks, kRecorded, true, true>
+                                              : &render_backward_impl<kPacks, kRecorded, true, false>)
+                              : (with_origins ? &render_backward_impl<kPacks, kRecorded, false, true>
+                                              : &render_backward_impl<kPacks, kRecorded, false, false>);
     return run(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height,
-               width, tile_size, t_final, n_contrib, blended_lanes, g_rgb, g_depth, g_acc, absgrad_rows);
+               width, tile_size, t_final, n_contrib, blended_lanes, g_rgb, g_depth, g_acc, absgrad_rows, origins);
 }
 
 // A test op's warp: values [32, width] (a row per lane), contrib [32] bools -> the contributing lanes' bits.

@@ -105,6 +105,7 @@ template <typename T> struct RenderArgs {
     const T* opacities;      // [N]
     const T* pbf_pieces;     // [N,8] PBF pieces, mirror domain (cuda_backend.pbf_cull_pieces)
     const T* dirs;           // [R,3] unit ray directions (camera frame)
+    const T* origins;        // [R,3] each ray's origin (camera frame; rolling shutter), null: the camera centre
     const T* ray_bounds;     // [R,4] each ray's cull bounds, mirror domain (RayGrid.ray_cull_bounds)
     const T* warp_bounds;    // [T * warps per tile, 4] each warp's (RayGrid.warp_cull_bounds)
     const uint8_t* valid;    // [R]
@@ -139,6 +140,8 @@ template <typename T> struct RenderGradArgs {
     T* absgrad;                 // [N,2]
     // dL/d(ray direction) [R,3] of every valid ray (null when off: the kernel built without it runs), written
     T* g_dirs;
+    // dL/d(ray origin) [R,3] (null unless g_dirs and a.origins), written
+    T* g_origins;
 };
 template <typename T>
 void launch_render_backward(const RenderArgs<T>& a, const RenderGradArgs<T>& g, cudaStream_t stream);

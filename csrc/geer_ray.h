@@ -82,17 +82,35 @@ template <typename L> struct PairEval {
     L gauss;       // exp(-q / 2)        (0 where not kept)
     L raw;         // sigma exp(-q / 2)  (0 where not kept)
     L alpha;       // min(0.99, raw)     (0 where not kept)
+    Vec3<L> o_u;   // the ray's origin in the canonical frame (set by eval_pair<kOrigin> only; else g.o)
 };
 
 // transmittance.canonical_ray_response + half_line_sq + pair_alpha for one (ray, Gaussian) pair: the
 // half-line rule, the peak response on the ray as travelled (t >= 0), sigma exp(-q(max(t*, 0)) / 2).
 // The forward and the backward kernel both decide `front` and `keep` here, on values computed with
 // x_* arithmetic (never contracted into FMAs), so the two decisions are the same bits.
-template <typename T, typename L> GEER_HD PairEval<L> eval_pair(const GaussFrame<T>& g, const Vec3<L>& d) {
+// kOrigin: the ray starts at its own point `origin` of the camera frame (rolling shutter: the camera centre at
+// the ray's time), so its canonical origin is o_u + W origin and the moment, o_u . d_u and |o_u|^2 are the
+// pair's own (three more dot products and a cross product); otherwise every ray starts at the camera centre
+// and reads them from the frame.
+template <typename T, typename L, bool kOrigin = false>
+GEER_HD PairEval<L> eval_pair(const GaussFrame<T>& g, const Vec3<L>& d, const Vec3<L>* origin = nullptr) {
     PairEval<L> e;
     e.d_u = Vec3<L>{x_dot(splat3<L>(g.w), d), x_dot(splat3<L>(g.w + 3), d), x_dot(splat3<L>(g.w + 6), d)};
-    const Vec3<L> m{x_dot(splat3<L>(g.mom), d), x_dot(splat3<L>(g.mom + 3), d), x_dot(splat3<L>(g.mom + 6), d)};
-    const L a = x_dot(splat3<L>(g.along), d);
+    Vec3<L> m;
+    L a, o_sq;
+    if constexpr (kOrigin) {
+        const Vec3<L> wo{x_dot(splat3<L>(g.w), *origin), x_dot(splat3<L>(g.w + 3), *origin),
+                         x_dot(splat3<L>(g.w + 6), *origin)};
+        e.o_u = Vec3<L>{x_add(splat<L>(g.o[0]), wo.x), x_add(splat<L>(g.o[1]), wo.y), x_add(splat<L>(g.o[2]), wo.z)};
+        m = x_cross(e.o_u, e.d_u);
+        a = x_dot(e.o_u, e.d_u);
+        o_sq = x_dot(e.o_u, e.o_u);
+    } else {
+        m = Vec3<L>{x_dot(splat3<L>(g.mom), d), x_dot(splat3<L>(g.mom + 3), d), x_dot(splat3<L>(g.mom + 6), d)};
+        a = x_dot(splat3<L>(g.along), d);
+        o_sq = splat<L>(g.o_sq);
+    }
     const L nsq = x_dot(e.d_u, e.d_u);
     const L tiny = splat<L>(Limits<T>::tiny());
     e.clamped = nsq <= tiny;
@@ -101,7 +119,7 @@ template <typename T, typename L> GEER_HD PairEval<L> eval_pair(const GaussFrame
     e.dist_sq = x_dot(e.m_hat, e.m_hat);
     e.t_star = x_mul(x_mul(-a, e.inv_norm), e.inv_norm);
     e.front = e.t_star > splat<L>(T(0));
-    e.q = lane_select(e.front, e.dist_sq, splat<L>(g.o_sq));
+    e.q = lane_select(e.front, e.dist_sq, o_sq);
     e.keep = e.q <= splat<L>(g.q_max);
     e.gauss = exp_where(e.keep, T(-0.5) * e.q);
     e.raw = g.opacity * e.gauss;
@@ -132,14 +150,15 @@ template <typename L> GEER_HD void ray_forward_init(RayForward<L>& s, typename L
 
 // Blend the Gaussian at list position `pos` (composite.composite: stop before T < T_MIN). Returns each lane's
 // blend weight T_before alpha, 0 where the lane does not blend the Gaussian (RenderOutput.max_weight).
-template <typename T, typename L>
+// kOrigin, origin: the ray's own origin (eval_pair).
+template <typename T, typename L, bool kOrigin = false>
 GEER_HD L ray_forward_step(RayForward<L>& s, const GaussFrame<T>& g, const Vec3<L>& d, const L* ray_bounds,
-                           int pos) {
+                           int pos, const Vec3<L>* origin = nullptr) {
     using Mask = typename Lane<L>::Mask;
     const L zero = splat<L>(T(0));
     const Mask open = lane_not(s.done) & ray_meets_pbf(g, ray_bounds);
     if (!lane_any(open)) return zero;
-    const PairEval<L> e = eval_pair(g, d);
+    const PairEval<L> e = eval_pair<T, L, kOrigin>(g, d, origin);
     const Mask kept = open & e.keep;
     if (!lane_any(kept)) return zero;
     const L t_after = s.trans * (splat<L>(T(1)) - e.alpha);
@@ -259,7 +278,8 @@ template <typename L> struct RayBackward {
     L g_rgb[3];   // dL/d(rgb sum), dL/d(depth sum), dL/d(accumulation) of this ray
     L g_depth;
     L g_acc;
-    Vec3<L> g_dir;  // dL/d(this ray's direction), summed over its blended pairs (ray_backward_step's kDirGrad)
+    Vec3<L> g_dir;     // dL/d(this ray's direction), summed over its blended pairs (ray_backward_step's kDirGrad)
+    Vec3<L> g_origin;  // dL/d(this ray's origin), the same (kDirGrad with kOrigin)
 };
 
 // Per-pair gradient contributions, to be summed into the Gaussian's buffers.
@@ -288,13 +308,17 @@ template <typename L> GEER_HD void pair_grad_zero(PairGrad<L>& p) {
 //                           derivative (also exactly on a threshold, where it is blended), others none;
 //   max(t*, 0)              half_line_backward.
 // kDirGrad: also add the pair's dL/d(ray direction) = W^T dL/dd_u to s.g_dir (lens refinement; a build of its
-// own, so that the default one keeps its registers).
-template <typename T, typename L, bool kDirGrad = false>
+// own, so that the default one keeps its registers). kOrigin: the ray starts at `origin` (eval_pair); the pair's
+// canonical origin o_u + W origin then takes o_u's place below (p.o is dL/d of it, which is dL/do_u, and the
+// canonical moment K is in its terms: o_u + W origin = W (origin - mean) scales with W as o_u does), and with
+// kDirGrad s.g_origin gets dL/d(origin) = W^T p.o.
+template <typename T, typename L, bool kDirGrad = false, bool kOrigin = false>
 GEER_HD typename Lane<L>::Mask ray_backward_step(RayBackward<L>& s, const GaussFrame<T>& g, const Vec3<L>& d,
-                                                 typename Lane<L>::Mask active, PairGrad<L>& p) {
+                                                 typename Lane<L>::Mask active, PairGrad<L>& p,
+                                                 const Vec3<L>* origin = nullptr) {
     using Mask = typename Lane<L>::Mask;
     if (!lane_any(active)) return active;
-    const PairEval<L> e = eval_pair(g, d);
+    const PairEval<L> e = eval_pair<T, L, kOrigin>(g, d, origin);
     const Mask live = active & e.keep;
     if (!lane_any(live)) return live;
     const L zero = splat<L>(T(0));
@@ -313,13 +337,20 @@ GEER_HD typename Lane<L>::Mask ray_backward_step(RayBackward<L>& s, const GaussF
     p.opacity = lane_select(unclamped, g_alpha * e.gauss, zero);
     const L g_q = lane_select(unclamped, T(-0.5) * g_alpha * e.raw, zero);
     Vec3<L> g_o;
+    Vec3<L> o_u;
+    if constexpr (kOrigin) o_u = e.o_u;
+    else o_u = splat3<L>(g.o);
     if constexpr (kDirGrad) {
         Vec3<L> g_du;
-        half_line_backward<T>(e, splat3<L>(g.o), g_q, lane_select(e.front, w * s.g_depth, zero), g_o, p.w, &g_du);
+        half_line_backward<T>(e, o_u, g_q, lane_select(e.front, w * s.g_depth, zero), g_o, p.w, &g_du);
         const Vec3<L> g_d = g_du.x * splat3<L>(g.w) + g_du.y * splat3<L>(g.w + 3) + g_du.z * splat3<L>(g.w + 6);
         s.g_dir = lane_select3<L>(live, s.g_dir + g_d, s.g_dir);
+        if constexpr (kOrigin) {
+            const Vec3<L> g_org = g_o.x * splat3<L>(g.w) + g_o.y * splat3<L>(g.w + 3) + g_o.z * splat3<L>(g.w + 6);
+            s.g_origin = lane_select3<L>(live, s.g_origin + g_org, s.g_origin);
+        }
     } else {
-        half_line_backward<T>(e, splat3<L>(g.o), g_q, lane_select(e.front, w * s.g_depth, zero), g_o, p.w);
+        half_line_backward<T>(e, o_u, g_q, lane_select(e.front, w * s.g_depth, zero), g_o, p.w);
     }
     p.o[0] = g_o.x; p.o[1] = g_o.y; p.o[2] = g_o.z;
     return live;

@@ -37,7 +37,8 @@ __device__ __forceinline__ void atomic_max_nonneg(double* a, double x) {
     atomicMax(reinterpret_cast<unsigned long long*>(a), static_cast<unsigned long long>(__double_as_longlong(x)));
 }
 
-template <typename T, int kMaxThreads>
+// kOrigin: every ray from its own origin (a.origins: rolling shutter), a build of its own (registers).
+template <typename T, int kMaxThreads, bool kOrigin>
 __global__ void __launch_bounds__(kMaxThreads) render_forward_kernel(const RenderArgs<T> a, const RenderOutputs<T> out) {
     constexpr int kBatch = Batch<T>::value;
     __shared__ GaussFrame<T> frames[kBatch];
@@ -47,6 +48,8 @@ __global__ void __launch_bounds__(kMaxThreads) render_forward_kernel(const Rende
     const RaySlot slot = ray_slot(a.height, a.width, a.tile_size, tile, tid);
     const bool valid = slot.in_image && a.valid[slot.ray] != 0;
     const Vec3<T> d = valid ? load3(a.dirs + 3 * slot.ray) : Vec3<T>{T(0), T(0), T(0)};
+    Vec3<T> o{T(0), T(0), T(0)};
+    if constexpr (kOrigin) o = valid ? load3(a.origins + 3 * slot.ray) : o;
     const T* rb = ray_bounds_of(a.ray_bounds, slot.ray);
     const int lane = tid % kWarp;
     if (lane < 4) warp_b[4 * (tid / kWarp) + lane] = warp_bounds_of(a.warp_bounds, a.tile_size, tile, tid)[lane];
@@ -66,7 +69,7 @@ __global__ void __launch_bounds__(kMaxThreads) render_forward_kernel(const Rende
         for (int k = 0; k < bt.size; ++k) {
             if (__all_sync(0xffffffffu, st.done)) break;
             if (!ray_meets_pbf(frames[k], wb)) continue;  // the same for every lane of the warp
-            const T w = ray_forward_step(st, frames[k], d, rb, batch_entry(bt, k) - start);
+            const T w = ray_forward_step<T, T, kOrigin>(st, frames[k], d, rb, batch_entry(bt, k) - start, &o);
             if (!__any_sync(0xffffffffu, w > T(0))) continue;
             const T top = warp_max(w);
             // The id from global memory, by lane 0 only: a shared copy of the batch's ids costs registers.
@@ -101,9 +104,10 @@ template <int kCount, typename T> __device__ __forceinline__ void warp_tree_sum(
 }
 
 // kAbsgrad: also sum each pair's absgrad values (g.absgrad_rows, g.absgrad); kDirGrad: also each ray's
-// dL/d(direction) (g.g_dirs, one thread per ray: no atomics); builds of their own, so that the default one
+// dL/d(direction) (g.g_dirs, one thread per ray: no atomics); kOrigin: every ray from its own origin
+// (a.origins), with kDirGrad also its dL/d(origin) (g.g_origins); builds of their own, so that the default one
 // keeps its registers.
-template <typename T, int kMaxThreads, bool kAbsgrad, bool kDirGrad>
+template <typename T, int kMaxThreads, bool kAbsgrad, bool kDirGrad, bool kOrigin>
 __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const RenderArgs<T> a, const RenderGradArgs<T> g) {
     constexpr int kBatch = Batch<T>::value;
     __shared__ GaussFrame<T> frames[kBatch];
@@ -117,6 +121,8 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
     const bool valid = slot.in_image && a.valid[slot.ray] != 0;
     const int r = slot.ray;
     const Vec3<T> d = valid ? load3(a.dirs + 3 * r) : Vec3<T>{T(0), T(0), T(0)};
+    Vec3<T> o{T(0), T(0), T(0)};
+    if constexpr (kOrigin) o = valid ? load3(a.origins + 3 * r) : o;
     if (lane < 4) warp_b[4 * (tid / kWarp) + lane] = warp_bounds_of(a.warp_bounds, a.tile_size, tile, tid)[lane];
     const T* wb = warp_b + 4 * (tid / kWarp);  // read after the barriers below
     const int my_n = valid ? g.n_contrib[r] : 0;
@@ -126,7 +132,7 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
     for (int c = 0; c < 3; ++c) st.g_rgb[c] = valid ? g.g_rgb[3 * r + c] : T(0);
     st.g_depth = valid ? g.g_depth[r] : T(0);
     st.g_acc = valid ? g.g_acc[r] : T(0);
-    if constexpr (kDirGrad) st.g_dir = Vec3<T>{T(0), T(0), T(0)};
+    if constexpr (kDirGrad) st.g_dir = st.g_origin = Vec3<T>{T(0), T(0), T(0)};
 
     // Nothing after the block's last blended Gaussian needs a visit.
     if (tid == 0) block_n = 0;
@@ -149,7 +155,7 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
             if (!ray_meets_pbf(frames[k], wb)) continue;  // the same for every lane of the warp
             const int pos = batch_entry(bt, k) - start;  // list position within the tile
             PairGrad<T> p;
-            const bool contrib = ray_backward_step<T, T, kDirGrad>(st, frames[k], d, pos < my_n, p);
+            const bool contrib = ray_backward_step<T, T, kDirGrad, kOrigin>(st, frames[k], d, pos < my_n, p, &o);
             if (!__any_sync(0xffffffffu, contrib)) continue;
             if constexpr (kAbsgrad) {  // before the 16 values are reduced, while they are still p
                 T av[kAbsgradValues];
@@ -167,6 +173,9 @@ __global__ void __launch_bounds__(kMaxThreads) render_backward_kernel(const Rend
     }
     if constexpr (kDirGrad) {
         if (valid) store3(g.g_dirs + 3 * r, st.g_dir);
+        if constexpr (kOrigin) {
+            if (valid) store3(g.g_origins + 3 * r, st.g_origin);
+        }
     }
 }
 
@@ -175,28 +184,36 @@ void launch_render_forward(const RenderArgs<T>& a, const RenderOutputs<T>& out, 
     const int n_tiles = tile_count(a.height, a.width, a.tile_size);
     if (n_tiles <= 0) return;
     const int threads = threads_per_tile(a.tile_size);
-    const auto kernel = threads <= kSmallTileThreads ? render_forward_kernel<T, kSmallTileThreads>
-                                                     : render_forward_kernel<T, kLargeTileThreads>;
-    kernel<<<n_tiles, threads, 0, stream>>>(a, out);
+    using Kernel = void (*)(const RenderArgs<T>, const RenderOutputs<T>);
+    const Kernel builds[2][2] = {  // [small tile][per-ray origins]
+        {render_forward_kernel<T, kLargeTileThreads, false>, render_forward_kernel<T, kLargeTileThreads, true>},
+        {render_forward_kernel<T, kSmallTileThreads, false>, render_forward_kernel<T, kSmallTileThreads, true>}};
+    builds[threads <= kSmallTileThreads][a.origins != nullptr]<<<n_tiles, threads, 0, stream>>>(a, out);
     GEER_KERNEL_LAUNCH_CHECK("render_forward_kernel");
 }
+
+// The backward's builds of one block size, indexed [absgrad][direction gradients][per-ray origins].
+template <typename T, int kMaxThreads> struct BackwardBuilds {
+    using Kernel = void (*)(const RenderArgs<T>, const RenderGradArgs<T>);
+    template <bool kAbsgrad, bool kDirGrad, bool kOrigin>
+    static constexpr Kernel k = render_backward_kernel<T, kMaxThreads, kAbsgrad, kDirGrad, kOrigin>;
+    static Kernel pick(bool absgrad, bool dir_grad, bool origin) {
+        const Kernel table[2][2][2] = {{{k<false, false, false>, k<false, false, true>},
+                                        {k<false, true, false>, k<false, true, true>}},
+                                       {{k<true, false, false>, k<true, false, true>},
+                                        {k<true, true, false>, k<true, true, true>}}};
+        return table[absgrad][dir_grad][origin];
+    }
+};
 
 template <typename T>
 void launch_render_backward(const RenderArgs<T>& a, const RenderGradArgs<T>& g, cudaStream_t stream) {
     const int n_tiles = tile_count(a.height, a.width, a.tile_size);
     if (n_tiles <= 0) return;
     const int threads = threads_per_tile(a.tile_size);
-    const bool small = threads <= kSmallTileThreads;
-    const bool ag = g.absgrad != nullptr, dg = g.g_dirs != nullptr;
-    const auto kernel =
-        small ? (ag ? (dg ? render_backward_kernel<T, kSmallTileThreads, true, true>
-                          : render_backward_kernel<T, kSmallTileThreads, true, false>)
-                    : (dg ? render_backward_kernel<T, kSmallTileThreads, false, true>
-                          : render_backward_kernel<T, kSmallTileThreads, false, false>))
-              : (ag ? (dg ? render_backward_kernel<T, kLargeTileThreads, true, true>
-                          : render_backward_kernel<T, kLargeTileThreads, true, false>)
-                    : (dg ? render_backward_kernel<T, kLargeTileThreads, false, true>
-                          : render_backward_kernel<T, kLargeTileThreads, false, false>));
+    const bool ag = g.absgrad != nullptr, dg = g.g_dirs != nullptr, og = a.origins != nullptr;
+    const auto kernel = threads <= kSmallTileThreads ? BackwardBuilds<T, kSmallTileThreads>::pick(ag, dg, og)
+                                                     : BackwardBuilds<T, kLargeTileThreads>::pick(ag, dg, og);
     kernel<<<n_tiles, threads, 0, stream>>>(a, g);
     GEER_KERNEL_LAUNCH_CHECK("render_backward_kernel");
 }

@@ -48,6 +48,7 @@ from geer_ns.metrics.color_corrected import color_corrected_metrics
 from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, host_camera_model, native_view
 from geer_ns.refinement.lens import LensRefinement
+from geer_ns.refinement.readout import ReadoutRefinement
 from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angular_signal
 from geer_ns.densify.strategy import GeerDefaultStrategy, build_strategy
 from geer_ns.errors import OptionError
@@ -67,6 +68,7 @@ from geer_ns.render_guard import RenderGuard, camera_problem, in_viewer_thread, 
 from geer_ns.selftest.sentinel import KernelSentinel, ViewInputs
 from geer_ns.sh_degrees import packing as sh_packing
 from geer_ns.sh_degrees.choice import BandChoice, choice_step
+from geer_ns.shutter_views import shutter_view
 
 View = Union[BeapView, NativeView]
 
@@ -166,6 +168,7 @@ class GeerModel(SplatfactoModel):
         if changed:
             CONSOLE.print(f"[yellow]geer: ignoring splatfacto option(s) {', '.join(changed)} (not used by the 3DGEER renderer)")
         self.lens: Optional[LensRefinement] = None  # set with the training cameras (lens_refinement.attach)
+        self.readout = ReadoutRefinement(self.num_train_data) if self.config.readout_refinement else None
         self.refined_frame: Optional[RefinedFrame] = None  # set with the training cameras (the pipeline)
         self.strategy, self.strategy_state = build_strategy(self.config, self.num_train_data, self.images_per_step)
         self.views: List[ViewRecord] = []  # this step's rendered training views, for the densification statistics
@@ -300,8 +303,9 @@ class GeerModel(SplatfactoModel):
         if params is None:
             return self.get_empty_outputs(width, height, self.background_color)
         background = self.render_background().to(params["means"])
-        viewmat = self.viewmat(self.render_pose(camera), params["means"].device)
-        rows = self.view_rows(params, viewmat, view.rays)
+        viewmat, motion = shutter_view(camera, self.render_pose(camera), view.rays, params["means"].device,
+                                       self.readout if self.training else None)
+        rows = self.view_rows(params, viewmat, view.rays) if motion is None else None
         if rows is not None:  # the rows the view can see: the same render, for their work only
             params = {name: p[rows] for name, p in params.items()}
         means = params["means"]
@@ -316,13 +320,13 @@ class GeerModel(SplatfactoModel):
         grid = view.rays.to(means.device)
         out = render(
             means, params["quats"], scales, opacities, colors, viewmat, grid, sh_degree=sh_degree,
-            background=background, **options,
+            background=background, motion=motion, **options,
             **({} if probe is None or probe.absgrad is None else {"absgrad": (probe.signal.lateral, probe.absgrad)}),
         )
         if probe is not None:  # a disagreement makes the sentinel's backend "torch" for every later render
             self.sentinel.check(self.step, options["backend"], ViewInputs(
                 means, params["quats"], scales, opacities, colors, viewmat, grid, sh_degree, background,
-                self.config.lambda_mode))
+                self.config.lambda_mode, motion))
             self.views.append(probe.record(out.visible.detach(), out.max_weight))
         normals = None
         if not self.training:  # forward only: no loss reads normals
@@ -559,6 +563,8 @@ class GeerModel(SplatfactoModel):
             groups["appearance"] = list(self.appearance.parameters())
         if self.lens is not None:
             groups["lens_opt"] = [self.lens.deltas]
+        if self.readout is not None:
+            groups["readout_opt"] = [self.readout.adjustments]
         return groups
 
     def _scale_regularization(self) -> Tensor:

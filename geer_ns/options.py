@@ -83,6 +83,10 @@ class GeerOwnOptions:
     lens_refinement_aspect: bool = False
     """lens-refinement: refine the aspect ratio fy / fx too (off: fx and fy scale together). Cameras that stay
     upright cannot tell a wrong ratio from a vertical stretch of the scene (docs/refinement.md)."""
+    readout_refinement: bool = False
+    """Rolling-shutter images (docs/rolling_shutter.md): also refine each training image's camera motion during its
+    readout (a rotation and a move of the end pose relative to the start; optimizer readout_opt), through every
+    ray's origin and direction. The start pose is refined by camera-optimizer.mode as for any image."""
     camera_refinement: CameraRefinement = "manual"
     """"register": the registration recipe for rough cameras (geer_ns/refinement/registration.py): SO3xR3 pose
     adjustments, the first 20 % of the run a low-capacity scene (the seed Gaussians held in place, SH degree 0, no

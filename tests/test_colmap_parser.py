@@ -593,3 +593,41 @@ def test_geer_datamanager_caches_beap_views_of_colmap_cameras(tmp_path):
         grid = beap_view(camera_model(cameras[i : i + 1], 0)).grid
         assert view["image"].shape == (grid.height, grid.width, 3)
         assert 0.3 < float(view["mask"].float().mean()) <= 1.0
+
+
+def test_rolling_shutter_readouts_from_neighbouring_poses(tmp_path):
+    """--pipeline.datamanager.dataparser.rolling-shutter: a camera turning and moving at constant rates between
+    COLMAP poses (taken as mid-readout) gets each image's start pose and motion exactly; wrong options are errors."""
+    from scipy.spatial.transform import Rotation
+
+    from geer_ns.data.rolling_shutter import MOTION_KEY, READOUT_KEY, end_pose
+
+    fps, readout_time, omega, velocity = 30.0, 0.02, np.array([0.3, -0.9, 1.4]), np.array([0.4, 0.1, -0.3])
+    names = [f"frame_{k:05d}.png" for k in range(5)]
+    rec = build_recon(cameras=CAMERAS[:1], images=[(n, 1) for n in names])
+    r0 = _rotation(np.random.default_rng(3))
+    for k, image in enumerate(sorted(rec.images.values(), key=lambda im: im.name)):
+        t = k / fps
+        c2w_rot = r0 @ Rotation.from_rotvec(omega * t).as_matrix()  # OpenCV camera axes, world from camera
+        centre = np.array([0.2, -0.5, 1.0]) + velocity * t
+        rec.images[image.image_id].frame.rig_from_world = pycolmap.Rigid3d(
+            np.hstack([c2w_rot.T, (-c2w_rot.T @ centre)[:, None]]))
+    root = write_dataset(tmp_path, rec)
+    still = load(root, orientation_method="none", center_method="none", auto_scale_poses=False)
+    out = load(root, orientation_method="none", center_method="none", auto_scale_poses=False,
+               rolling_shutter="top-to-bottom", readout_time=readout_time, frame_rate=fps)
+    assert (out.cameras.metadata[READOUT_KEY] == 0).all()
+    flip = torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64)
+    for i in range(5):
+        mid = still.cameras.camera_to_worlds[i].double()
+        start = out.cameras.camera_to_worlds[i].double()
+        end = end_pose(start, out.cameras.metadata[MOTION_KEY][i])
+        for pose, dt in ((start, -readout_time / 2), (end, readout_time / 2)):
+            turn = (mid[:, :3] * flip).T @ (pose[:, :3] * flip)  # in the camera's (OpenCV) axes
+            assert np.allclose(Rotation.from_matrix(turn.numpy()).as_rotvec(), omega * dt, atol=2e-6)
+            assert torch.allclose(pose[:, 3], mid[:, 3] + still.dataparser_transform[:3, :3].double()
+                                  @ torch.tensor(velocity * dt), atol=2e-6)
+    with pytest.raises(DatasetError, match="needs --pipeline.datamanager.dataparser.readout-time"):
+        load(root, rolling_shutter="top-to-bottom", frame_rate=fps)
+    with pytest.raises(DatasetError, match="must be shorter than a frame interval"):
+        load(root, rolling_shutter="top-to-bottom", readout_time=0.05, frame_rate=fps)

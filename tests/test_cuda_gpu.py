@@ -211,3 +211,31 @@ def test_failed_launch_raises_at_its_own_call(cuda_ops):
     torch.cuda.synchronize()
     assert int(cuda_ops.launch_probe(like, 33)) == 33
 
+
+
+@pytest.mark.parametrize("tile_size", [16, 32])
+def test_rolling_shutter_matches_the_cpu_build(cuda_ops, tile_size):
+    """Per-ray origins (rolling shutter, render.cu kOrigin): images and the Gaussians', origins' and directions'
+    gradients of the kernels against the CPU build, float64, both block builds."""
+    from geer_ns.cameras.shutter import rolling_rays
+    from geer_ns.render import MovingRays
+    from geer_ns.render.extensions import load_cpu_ops
+
+    grid_cpu = RayGrid.beap(48, 40, math.radians(80), math.radians(70), tile_size=tile_size)
+    times = torch.linspace(0, 1, grid_cpu.height, dtype=F64).repeat_interleave(grid_cpu.width)
+    start, end = torch.eye(4, dtype=F64), torch.eye(4, dtype=F64)
+    end[:3, :3] = torch.linalg.matrix_exp(torch.tensor([[0, -0.08, 0.05], [0.08, 0, -0.02], [-0.05, 0.02, 0]], dtype=F64))
+    end[:3, 3] = torch.tensor([0.15, -0.05, 0.1], dtype=F64)
+    viewmat, origins, dirs, offset = rolling_rays(grid_cpu.dirs.double(), times, start, end)
+    scene = random_scene(150, 9, spread=0.6)
+    results = []
+    for device, ops in (("cpu", load_cpu_ops()), (DEV, cuda_ops)):
+        leaves = [t.to(device, F64).requires_grad_(True) for t in scene]
+        org, dr = origins.to(device).requires_grad_(True), dirs.to(device).requires_grad_(True)
+        out = cuda_backend.render_cuda(*leaves, viewmat.to(device), grid_cpu.to(device), ops=ops,
+                                       motion=MovingRays(org, dr, offset))
+        weights = torch.rand(out.rgb.shape, generator=torch.Generator().manual_seed(2), dtype=F64).to(device)
+        (out.rgb * weights).sum().backward()
+        results.append([out.rgb.detach().cpu()] + [t.grad.cpu() for t in leaves + [org, dr]])
+    for name, a, b in zip(("rgb", "means", "quats", "scales", "opacities", "colors", "origins", "dirs"), *results):
+        assert _rel(b, a) <= 1e-9, f"{name}: {_rel(b, a):.3e}"

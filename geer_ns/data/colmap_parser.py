@@ -82,6 +82,7 @@ from geer_ns.data.colmap_cameras import (  # re-exported: this module is where u
 from geer_ns.data.colmap_files import model_file as _model_file
 # Looked up here at call time (tests patch colmap_parser._read_reconstruction).
 from geer_ns.data.colmap_files import read_reconstruction as _read_reconstruction
+from geer_ns.data.rolling_shutter import sfm_readouts
 from geer_ns.data.dataset_checks import DatasetError, check_image_file
 from geer_ns.data.frustum_seed import frustum_points, seed_count
 
@@ -140,6 +141,14 @@ class GeerColmapDataParserConfig(DataParserConfig):
     """Seed points from points3D (metadata points3D_xyz / points3D_rgb)."""
     check_image_sizes: bool = True
     """Check every image (and mask) file's size against its COLMAP camera (reads only the file headers)."""
+    rolling_shutter: Literal["global", "top-to-bottom", "bottom-to-top", "left-to-right", "right-to-left"] = "global"
+    """The sensor's readout (docs/rolling_shutter.md): with a rolling shutter, each image's COLMAP pose is taken as
+    its mid-readout pose and its motion during the readout is estimated from its neighbours (capture order:
+    frame_XXXXX indices, else file names)."""
+    readout_time: Optional[float] = None
+    """Rolling shutter: seconds from the first row (column) read to the last."""
+    frame_rate: Optional[float] = None
+    """Rolling shutter: frames per second of the capture."""
     crop_radius: Optional[float] = None
     """Fisheye image-circle radius in pixels (of the full-resolution images), centered on each camera's
     principal point: pixels outside are not supervised. For fisheye captures without masks."""
@@ -315,6 +324,12 @@ class GeerColmapDataParser(DataParser):
         for i, c in enumerate(ns):
             dist[i, : len(c.distortion)] = torch.tensor(c.distortion, dtype=torch.float32)
         c2w, transform, scale = self._poses(images)
+        readouts = sfm_readouts(cfg.rolling_shutter, cfg.readout_time, cfg.frame_rate, names, c2w,
+                                "--pipeline.datamanager.dataparser.")
+        if readouts is not None:  # the model's poses are the images' mid-readout ones; cameras hold the starts
+            c2w = readouts[0]
+            CONSOLE.log(f"geer: {model_dir}: rolling shutter ({cfg.rolling_shutter}, {cfg.readout_time} s): each "
+                        "image's motion during its readout estimated from its neighbours' poses")
         cams = Cameras(
             camera_to_worlds=c2w.float(),
             fx=torch.tensor([[c.fx] for c in ns], dtype=torch.float32),
@@ -358,6 +373,7 @@ class GeerColmapDataParser(DataParser):
             NS_TYPE_KEY: cams.camera_type.clone(),
             DISTORTED_KEY: distorted,
             NS_INTRINSICS_KEY: torch.stack([getattr(cams, k)[:, 0].double() for k in ("fx", "fy", "cx", "cy")], -1),
+            **({} if readouts is None else readouts[1]),
         }
 
         self._parsed = _Parsed(key, model_dir, recon, names, cams, specs, c2w, transform, scale, image_files,

@@ -45,6 +45,7 @@ from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from geer_ns.data.dataset_checks import DatasetError, check_transforms_json
+from geer_ns.data.rolling_shutter import READOUT_KEY, readout_metadata
 
 __all__ = ["CAMERA_MODELS", "CAMERA_MODEL_KEY", "CROP_RADIUS_KEY", "GeerNerfstudio", "GeerNerfstudioDataParserConfig",
            "geer_nerfstudio_dataparser", "map_to_run_frame"]
@@ -156,6 +157,17 @@ class GeerNerfstudio(Nerfstudio):
         path = self.transforms_path()
         frames = self._frames_of(outputs.image_filenames, meta, path)
         outputs.cameras = self._per_frame_cameras(outputs.cameras, meta, frames, path)
+        # nerfstudio scales the positions by dataparser_scale without the file's applied_scale
+        moved = float(outputs.dataparser_scale) / float(meta.get("applied_scale", 1.0))
+        readouts = readout_metadata(meta, frames, path, moved)
+        if readouts is not None:
+            if self.config.dataparser_transforms is not None:
+                raise DatasetError(f"geer: {path}: rolling-shutter frames cannot be mapped into another run's frame "
+                                   "(dataparser_transforms) yet; score them in their own run")
+            outputs.cameras.metadata = {**(outputs.cameras.metadata or {}), **readouts}
+            rolling = int((readouts[READOUT_KEY] >= 0).sum())
+            CONSOLE.log(f"geer: {path}: {rolling} of {len(frames)} frames have a rolling shutter: each of their rays "
+                        "is rendered at its own readout time (the viewer and exports show the static scene)")
         if self.config.dataparser_transforms is not None:
             map_to_run_frame(outputs, self.config.dataparser_transforms, meta, path)
         return outputs

@@ -18,7 +18,7 @@ import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from geer_ns.process_data import camera as camera_setup
-from geer_ns.process_data import export, frames, sfm
+from geer_ns.process_data import export, frames, readout, sfm
 from geer_ns.process_data.frames import ProcessDataError
 from geer_ns.process_data.output import OutputRun
 
@@ -75,6 +75,14 @@ class ProcessDataConfig:
     skip_bad_images: bool = False
     """Go on without input images that cannot be used (not decodable, cut short, another size than their
     camera's) and list them at the end; without it they stop the run before anything is written."""
+    rolling_shutter: Literal["global", "top-to-bottom", "bottom-to-top", "left-to-right", "right-to-left"] = "global"
+    """The sensor's readout: global, or the direction a rolling shutter reads it (each frame's motion during the
+    readout is estimated from its neighbours' poses: docs/rolling_shutter.md)."""
+    readout_time: Optional[float] = None
+    """Rolling shutter: seconds from the first row (column) read to the last."""
+    frame_rate: Optional[float] = None
+    """Rolling shutter with a folder of images: frames per second of the capture (images in file-name order); a
+    video's own frame rate is read from the file."""
     overwrite: bool = False
     """Replace an existing dataset in output_dir (kept aside until the run has succeeded)."""
     verbose: bool = False
@@ -92,6 +100,7 @@ def run(cfg: ProcessDataConfig) -> Dict[str, object]:
     if not video and not cfg.data.is_dir():
         raise ProcessDataError(f"--data {cfg.data}: neither a folder of images nor a video "
                                f"({', '.join(sorted(frames.VIDEO_SUFFIXES))})")
+    readout.check_options(cfg.rolling_shutter, cfg.readout_time, cfg.frame_rate, video)
     t0 = time.perf_counter()
     checked = None if video else _checked_images(cfg)
     try:
@@ -227,6 +236,11 @@ def _run_stages(cfg: ProcessDataConfig, checked: Optional[frames.CheckedImages],
             if im.name in group.image_names:
                 masks[int(im.camera_id)] = setup.mask_file
     export.write_transforms(cfg.output_dir, recon, masks)
+    if cfg.rolling_shutter != "global":
+        fps = cfg.frame_rate or readout.video_fps(cfg.data)
+        count = readout.add_readout(cfg.output_dir / "transforms.json", cfg.rolling_shutter, cfg.readout_time, fps)
+        CONSOLE.print(f"Rolling shutter ({cfg.rolling_shutter}, {cfg.readout_time} s): the readout of {count} frames "
+                      "estimated from their neighbours' poses")
     CONSOLE.print(f"[bold green]Dataset written to {cfg.output_dir}[/]: ns-train geer --data {cfg.output_dir}")
     return report
 

@@ -3,6 +3,7 @@
 from .associate import TileLists, associate
 from .backend import resolve_backend
 from .composite import composite
+from .moving import MovingRays
 from .pbf import PBF, compute_pbf, mirror_tangent, pbf_lambda_sq
 from .outputs import RenderOutput
 from .rasterize import preprocess, render, render_batch, render_brute_force
@@ -12,6 +13,7 @@ from .transforms import quat_to_rotmat, to_view_space, whitening
 from .transmittance import canonical_ray_response, half_line_sq, pair_alpha
 
 __all__ = [
+    "MovingRays",
     "PBF",
     "RayGrid",
     "RenderOutput",

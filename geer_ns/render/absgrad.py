@@ -48,7 +48,8 @@ def offset_rows(lateral: Tensor, whiten: Tensor) -> Tensor:
 
 def pair_o_u_grad(g_q: Tensor, g_depth: Tensor, o_u: Tensor, whiten: Tensor, dirs: Tensor, depth: Tensor) -> Tensor:
     """Per-pair dL/do_u [..., P, K, 3] from dL/dq and dL/d(depth) [..., P, K] of the half-line rule
-    (transmittance.half_line_sq; o_u [..., K, 3], whiten [..., K, 3, 3], dirs [..., P, 3], depth its output).
+    (transmittance.half_line_sq; o_u [..., K, 3] or each pair's [..., P, K, 3] (rays with their own origins),
+    whiten [..., K, 3, 3], dirs [..., P, 3], depth its output).
 
     Where t* > 0 (depth > 0): q = D^2 = |m_hat|^2, m_hat = o_u x d_hat, d_hat = d_u / |d_u| (|d_u|^2 floored at
     tiny as in canonical_ray_response), so dq/do_u = 2 d_hat x m_hat, and depth = t* = -(o_u . d_u) / |d_u|^2
@@ -59,10 +60,11 @@ def pair_o_u_grad(g_q: Tensor, g_depth: Tensor, o_u: Tensor, whiten: Tensor, dir
     d_u = torch.einsum("...kij,...pj->...pki", whiten, dirs)
     inv_norm = torch.rsqrt(floor_at((d_u * d_u).sum(-1, keepdim=True), torch.finfo(d_u.dtype).tiny))
     d_hat = d_u * inv_norm
-    m_hat = torch.linalg.cross(o_u[..., None, :, :].expand_as(d_u), d_u) * inv_norm
+    o_pair = o_u if o_u.dim() == d_u.dim() else o_u[..., None, :, :].expand_as(d_u)
+    m_hat = torch.linalg.cross(o_pair, d_u) * inv_norm
     front = (depth > 0)[..., None]
     g_front = (2.0 * g_q[..., None]) * torch.linalg.cross(d_hat, m_hat) - (g_depth[..., None] * inv_norm) * d_hat
-    return torch.where(front, g_front, (2.0 * g_q[..., None]) * o_u[..., None, :, :])
+    return torch.where(front, g_front, (2.0 * g_q[..., None]) * o_pair)
 
 
 def pair_absgrad(rows: Tensor, g_o: Tensor, blended: Tensor) -> Tensor:

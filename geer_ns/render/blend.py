@@ -30,7 +30,7 @@ from torch import Tensor
 
 from .absgrad import pair_absgrad, pair_o_u_grad
 from .composite import composite, median_crossing
-from .transmittance import canonical_ray_response, half_line_sq, pair_alpha
+from .transmittance import canonical_ray_response, half_line_sq, moving_ray_response, pair_alpha
 
 
 def _plan(counts: Tensor, rays_per_group: int, max_pairs: int) -> list[tuple[Tensor, list[tuple[int, int]]]]:
@@ -51,13 +51,18 @@ def _plan(counts: Tensor, rays_per_group: int, max_pairs: int) -> list[tuple[Ten
     return plan
 
 
-def _blend_piece(o_u, whiten, opacities, colors, dirs, r_ok, g_ok, t_start, median=False):
+def _blend_piece(o_u, whiten, opacities, colors, dirs, r_ok, g_ok, t_start, median=False, origins=None):
     """One piece: o_u [G,K,3], whiten [G,K,3,3], opacities [G,K], colors [G,K,3] of the listed Gaussians,
-    dirs [G,P,3]; r_ok [G,P] / g_ok [G,K] mask padding and invalid rays. Returns (rgb, depth sum, accumulation,
-    t_end) per ray and the pairs' q, depth and blend weight [G,P,K]; with `median`, the per-ray depth where the
-    piece takes the transmittance below 0.5 (composite.median_crossing) after them."""
-    dist_sq, t_star = canonical_ray_response(o_u, whiten, dirs)
-    q, depth, _ = half_line_sq(dist_sq, t_star, o_u)
+    dirs [G,P,3] (origins [G,P,3]: the rays' own origins, None: the camera centre); r_ok [G,P] / g_ok [G,K] mask
+    padding and invalid rays. Returns (rgb, depth sum, accumulation, t_end) per ray and the pairs' q, depth and
+    blend weight [G,P,K]; with `median`, the per-ray depth where the piece takes the transmittance below 0.5
+    (composite.median_crossing) after them."""
+    if origins is None:
+        dist_sq, t_star = canonical_ray_response(o_u, whiten, dirs)
+        o_sq = None
+    else:
+        dist_sq, t_star, o_sq = moving_ray_response(o_u, whiten, dirs, origins)
+    q, depth, _ = half_line_sq(dist_sq, t_star, o_u, o_sq)
     alpha = pair_alpha(q, opacities[:, None, :], r_ok[:, :, None] & g_ok[:, None, :])
     *sums, weights = composite(alpha, colors, depth, t_start)
     if median:
@@ -68,11 +73,11 @@ def _blend_piece(o_u, whiten, opacities, colors, dirs, r_ok, g_ok, t_start, medi
 class _BlendLists(torch.autograd.Function):
     """(o_u, W, opacity, color per Gaussian) -> (rgb [R,3], depth sum [R], accumulation [R]) per ray,
     max_weight [N] and the median distance [R] (neither with a gradient); with absgrad's (rows, sink), the
-    sink's gradient is the absgrad sums."""
+    sink's gradient is the absgrad sums; origins [R,3] (or None): the rays' own origins."""
 
     @staticmethod
     def forward(ctx, o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs, rows,
-                sink):
+                sink, origins=None):
         n_rays, p = dirs.shape[0], ray_index.shape[1]
         out = (o_u.new_zeros(n_rays, 3), o_u.new_zeros(n_rays), o_u.new_zeros(n_rays))
         max_weight = o_u.new_zeros(o_u.shape[0])
@@ -83,6 +88,7 @@ class _BlendLists(torch.autograd.Function):
             r_idx = ray_index[sel]
             r_ok = (r_idx >= 0) & ray_valid[r_idx.clamp_min(0)]
             d = dirs[r_idx.clamp_min(0)]
+            org = None if origins is None else origins[r_idx.clamp_min(0)]
             t = o_u.new_ones(r_idx.shape)
             sums = [0.0, 0.0, 0.0, 0.0]
             for k0, k1 in pieces:
@@ -90,7 +96,7 @@ class _BlendLists(torch.autograd.Function):
                 g_idx = lists[sel, k0:k1]
                 g, listed = g_idx.clamp_min(0), g_idx >= 0
                 (*piece, t), _, _, weights, crossed = _blend_piece(o_u[g], whiten[g], opacities[g], colors[g], d,
-                                                                   r_ok, listed, t, median=True)
+                                                                   r_ok, listed, t, median=True, origins=org)
                 sums = [s + x for s, x in zip(sums, (*piece, crossed))]
                 max_weight.scatter_reduce_(0, g[listed], weights.amax(dim=-2)[listed], reduce="amax")
             keep = r_idx >= 0
@@ -98,7 +104,7 @@ class _BlendLists(torch.autograd.Function):
                 o[r_idx[keep]] = s[keep]
         t_starts = torch.cat([s.reshape(-1) for s in starts]) if starts else o_u.new_zeros(0)
         ctx.save_for_backward(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, t_starts,
-                              rows)
+                              rows, origins)
         ctx.max_pairs = max_pairs
         ctx.mark_non_differentiable(max_weight, median)
         return (*out, max_weight, median)
@@ -106,11 +112,14 @@ class _BlendLists(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_rgb, g_depth, g_acc, _g_max_weight, _g_median):
-        o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, t_starts, rows = ctx.saved_tensors
+        (o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, t_starts, rows,
+         origins) = ctx.saved_tensors
         params = (o_u, whiten, opacities, colors)
         grads = [x.new_zeros(x.shape) for x in params]  # contiguous, whatever the inputs' strides
         with_dirs = ctx.needs_input_grad[4]
         g_dirs = dirs.new_zeros(dirs.shape) if with_dirs else None
+        with_origins = origins is not None and ctx.needs_input_grad[12]
+        g_origins = origins.new_zeros(origins.shape) if with_origins else None
         with_absgrad = rows is not None and ctx.needs_input_grad[11]
         absgrad = o_u.new_zeros(o_u.shape[0], 2) if with_absgrad else None
         offset = 0
@@ -119,6 +128,7 @@ class _BlendLists(torch.autograd.Function):
             keep = r_idx >= 0
             r_ok = keep & ray_valid[r_idx.clamp_min(0)]
             d = dirs[r_idx.clamp_min(0)]
+            org = None if origins is None else origins[r_idx.clamp_min(0)]
             m = keep.to(o_u.dtype)
             g_out = (g_rgb[r_idx.clamp_min(0)] * m[..., None], g_depth[r_idx.clamp_min(0)] * m,
                      g_acc[r_idx.clamp_min(0)] * m)
@@ -135,10 +145,17 @@ class _BlendLists(torch.autograd.Function):
                     leaves = [x[g].detach().requires_grad_(True) for x in params]
                     t0 = t0.detach().requires_grad_(True)
                     d_leaf = d.detach().requires_grad_(with_dirs)
-                    (*outs, t_end), q, depth, weights = _blend_piece(*leaves, d_leaf, r_ok, g_idx >= 0, t0)
+                    o_leaf = None if org is None else org.detach().requires_grad_(with_origins)
+                    (*outs, t_end), q, depth, weights = _blend_piece(*leaves, d_leaf, r_ok, g_idx >= 0, t0,
+                                                                     origins=o_leaf)
                     loss = sum((go * o).sum() for go, o in zip(g_out, outs)) + (g_t * t_end).sum()
-                    wanted = leaves + [t0] + ([q, depth] if with_absgrad else []) + ([d_leaf] if with_dirs else [])
+                    wanted = leaves + [t0] + ([q, depth] if with_absgrad else []) + ([d_leaf] if with_dirs else []) \
+                        + ([o_leaf] if with_origins else [])
                     piece_grads = torch.autograd.grad(loss, wanted, allow_unused=True)
+                if with_origins:
+                    if piece_grads[-1] is not None:
+                        g_origins.index_add_(0, r_idx[keep], piece_grads[-1][keep])
+                    piece_grads = piece_grads[:-1]
                 if with_dirs and piece_grads[-1] is not None:
                     g_dirs.index_add_(0, r_idx[keep], piece_grads[-1][keep])
                 g_ok = (g_idx >= 0).reshape(-1)
@@ -148,13 +165,17 @@ class _BlendLists(torch.autograd.Function):
                         acc.view(acc.shape[0], -1).index_add_(0, g.reshape(-1)[g_ok], flat)
                 g_t = piece_grads[4] if piece_grads[4] is not None else torch.zeros_like(g_t)
                 if with_absgrad:
-                    g_o = pair_o_u_grad(*piece_grads[5:7], leaves[0].detach(), leaves[1].detach(), d, depth.detach())
+                    o_pair = leaves[0].detach()
+                    if org is not None:  # each pair's own canonical origin o_u + W origin
+                        o_pair = o_pair[..., None, :, :] + torch.einsum("gkij,gpj->gpki", leaves[1].detach(), org)
+                    g_o = pair_o_u_grad(*piece_grads[5:7], o_pair, leaves[1].detach(), d, depth.detach())
                     over_rays = pair_absgrad(rows[g], g_o, weights.detach() > 0).sum(-3)  # [G, K, 2]
                     absgrad.index_add_(0, g.reshape(-1)[g_ok], over_rays.reshape(-1, 2)[g_ok])
-        return (*grads, g_dirs, None, None, None, None, None, None, absgrad)
+        return (*grads, g_dirs, None, None, None, None, None, None, absgrad, g_origins)
 
 
-def blend_lists(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs, absgrad=None):
+def blend_lists(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs, absgrad=None,
+                origins=None):
     """Blend each group of rays ray_index [G, P] (-1 padded) against its Gaussian list lists [G, K] (-1
     padded, counts [G] entries), at most max_pairs pairs at a time (see the module's memory model).
 
@@ -162,8 +183,9 @@ def blend_lists(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, list
     inactive tiles) 0, max_weight [N], each Gaussian's largest blend weight (0: never blended; no gradient), and
     the median distance [R], where the transmittance crosses 0.5 (0: it never does; no gradient).
     Differentiable w.r.t. o_u, whiten, opacities, colors and dirs [R, 3]; absgrad: (offset rows [N, 2, 3], sink [N, 2])
-    (absgrad.py), whose sink gets the absgrad sums as its gradient.
+    (absgrad.py), whose sink gets the absgrad sums as its gradient; origins [R, 3] (None: every ray from the camera
+    centre): each ray's own origin in the camera frame (rolling shutter), differentiable too.
     """
     rows, sink = absgrad if absgrad is not None else (None, None)
     return _BlendLists.apply(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs,
-                             rows, sink)
+                             rows, sink, origins)

@@ -17,6 +17,7 @@ from torch import Tensor
 from .absgrad import offset_rows
 from .associate import pbf_cull_pieces
 from .cones import gaussian_cone_form, tile_cones
+from .moving import MovingRays, motion_scales
 from .extensions import (  # noqa: F401 - the loaders, re-exported where callers have always found them
     _errors,
     _modules,
@@ -60,23 +61,26 @@ class _Rasterize(torch.autograd.Function):
     """Per tile / ray: (W, o_u, color, opacity) -> (rgb sum, depth sum, accumulation) per ray, max_weight [N]
     and the median distance [R] (neither with a gradient); with absgrad's offset rows [N,6] and sink [N,2], the
     sink's gradient is the absgrad sums. The ray directions get their gradient when they require one (lens
-    refinement; the cull has none)."""
+    refinement; the cull has none); origins [R,3] (or None): each ray's own origin (rolling shutter), with its
+    gradient when it or the directions require one."""
 
     @staticmethod
     def forward(ctx, whiten, o_u, rgb, opacities, pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height,
-                width, tile_size, ops, absgrad_rows, sink):
+                width, tile_size, ops, absgrad_rows, sink, origins=None):
         # pieces [N,8] (associate.pbf_cull_pieces), ray_bounds [R,4] and warp_bounds (RayGrid.ray/warp_cull_bounds):
         # the cull.
         geometry = (pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges)
         # blended_lanes: the CPU build's record of the lanes that blended each list entry, which its backward
         # visits; made only when a backward will run (empty from the kernels, whose backward re-derives them).
-        record = any(ctx.needs_input_grad[:4]) or ctx.needs_input_grad[5] or ctx.needs_input_grad[16]
+        ctx.ray_grad = ctx.needs_input_grad[5] or (origins is not None and ctx.needs_input_grad[17])
+        record = any(ctx.needs_input_grad[:4]) or ctx.ray_grad or ctx.needs_input_grad[16]
+        origins = whiten.new_zeros(0) if origins is None else origins.contiguous()
         out_rgb, depth, acc, t_final, n_contrib, blended_lanes, max_weight, median = ops.render_forward(
-            whiten, o_u, rgb, opacities, *geometry, height, width, tile_size, record
+            whiten, o_u, rgb, opacities, *geometry, height, width, tile_size, record, origins
         )
         # Off, the backward gets an empty tensor for the rows (csrc: the build without absgrad runs).
         rows = absgrad_rows if absgrad_rows is not None and ctx.needs_input_grad[16] else whiten.new_zeros(0)
-        ctx.save_for_backward(whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib, blended_lanes, rows)
+        ctx.save_for_backward(whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib, blended_lanes, rows, origins)
         ctx.layout = (height, width, tile_size)
         ctx.ops = ops
         ctx.mark_non_differentiable(max_weight, median)
@@ -85,10 +89,11 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_rgb, g_depth, g_acc, _g_max_weight, _g_median):
-        *saved, rows = ctx.saved_tensors
-        dir_grad = ctx.needs_input_grad[5]
-        *grads, absgrad, g_dirs = render_grads(ctx.ops, saved, ctx.layout, g_rgb, g_depth, g_acc, rows, dir_grad)
-        return tuple(grads) + (None, g_dirs) + (None,) * 10 + (absgrad,)
+        *saved, rows, origins = ctx.saved_tensors
+        origins = origins if origins.numel() else None
+        *grads, absgrad, g_dirs, g_origins = render_grads(ctx.ops, saved, ctx.layout, g_rgb, g_depth, g_acc, rows,
+                                                          ctx.ray_grad, origins)
+        return tuple(grads) + (None, g_dirs) + (None,) * 10 + (absgrad, g_origins)[:len(ctx.needs_input_grad) - 16]
 
 
 # ----------------------------------------------------------------------------------------- helpers
@@ -148,6 +153,7 @@ def render_cuda(
     lambda_mode: LambdaMode = "opacity",
     ops: ModuleType | None = None,
     absgrad: tuple[Tensor, Tensor] | None = None,
+    motion: MovingRays | None = None,
 ):
     """rasterize.render on the kernels (inputs already validated by render). `ops` defaults to the torch
     operators (ops.KERNELS: the kernels for CUDA tensors, the CPU build for CPU ones); an extension module
@@ -179,19 +185,32 @@ def render_cuda(
         opacities.detach().contiguous(), rot_c.contiguous(), degree, lambda_mode == "paper", ops, own_degrees,
     )
     rgb = colors.contiguous() if degree < 0 else rgb_sh
+    lam2 = pbf_lambda_sq(opacities.detach(), lambda_mode)[0]
+    w_pbf, o_u_pbf = whiten, o_u
+    if motion is not None:  # the bounds of every pose's view of each Gaussian (moving.py)
+        with torch.no_grad():
+            scales_m = motion_scales(scales.detach(), lam2, motion.offset)
+            w_pbf, o_u_pbf, _, bounds, alive, inside = ops.preprocess_forward(
+                means_c.detach().contiguous(), quats.detach().contiguous(), scales_m.contiguous(),
+                opacities.detach().contiguous(), means.new_zeros(n, 0, 3), means.new_zeros(n, 3),
+                rot_c.detach().contiguous(), -1, lambda_mode == "paper", None)
 
     # Stage 2. Lists in the twin's front-to-back order (depth as the twin computes it).
-    cone = gaussian_cone_form(whiten, o_u, pbf_lambda_sq(opacities.detach(), lambda_mode)[0], inside)
-    ids, ranges, counts, _tests = associate_pairs(ops, bounds, alive, means_c.detach().norm(dim=-1), grid, cone)
+    cone = gaussian_cone_form(w_pbf, o_u_pbf, lam2, inside)
+    tiles = grid if motion is None else motion.tile_grid(grid).to(device)  # the tests take the rays' directions
+    ids, ranges, counts, _tests = associate_pairs(ops, bounds, alive, means_c.detach().norm(dim=-1), tiles, cone)
 
     # Stage 3. Per tile / ray. absgrad's offset rows per Gaussian here (absgrad.offset_rows, an [N] einsum), so
     # that the kernels only take dot products with them (no W x lateral product in their registers).
     rows, sink = (None, None) if absgrad is None else (offset_rows(absgrad[0], whiten).reshape(n, 6).contiguous(),
                                                         absgrad[1])
+    origins = None
+    if motion is not None:
+        dirs, origins = motion.dirs.to(dtype).contiguous(), motion.origins.to(dtype).contiguous()
     rgb_sum, depth_sum, acc, max_weight, median = _Rasterize.apply(
-        whiten, o_u, rgb, opacities.contiguous(), pbf_cull_pieces(bounds), dirs, grid.ray_cull_bounds(dtype),
-        grid.warp_cull_bounds(dtype), grid.valid.contiguous(), ids, ranges, grid.height, grid.width, grid.tile_size, ops,
-        rows, sink,
+        whiten, o_u, rgb, opacities.contiguous(), pbf_cull_pieces(bounds), dirs, tiles.ray_cull_bounds(dtype),
+        tiles.warp_cull_bounds(dtype), grid.valid.contiguous(), ids, ranges, grid.height, grid.width, grid.tile_size, ops,
+        rows, sink, origins,
     )
     out_rgb, out_depth, out_acc = images(grid.height, grid.width, rgb_sum, depth_sum, acc, background)
 

@@ -11,7 +11,8 @@ without a GPU, and a CPU tensor among its CUDA tensors raises), torch.compile an
     associate             per tile: ids sorted by (tile, depth), ranges, counts, tests; len(ids) depends on
                           the data (a fake run needs a ShapeEnv: torch.library.get_ctx().new_dynamic_size)
     render_forward        per ray: rgb, depth, acc, T_final, n_contrib, blended lanes (CPU build), max_weight
-    render_backward       per Gaussian gradient rows [N,16] (and absgrad [N,2])
+    render_backward       per Gaussian gradient rows [N,16] (and absgrad [N,2], per-ray direction and origin
+                          gradients)
     preprocess_backward   to means_c, quats, scales, SH, SH directions
 
 `KERNELS` holds them under the extension's names, for the autograd wrappers of cuda_backend.py (which
@@ -152,21 +153,23 @@ def _(bounds, alive, order, node_bounds, node_active, tiles_x, tiles_y, gauss_co
 @torch.library.custom_op("geer::render_forward", mutates_args=())
 def render_forward(whiten: Tensor, o_u: Tensor, rgb: Tensor, opacities: Tensor, pbf_pieces: Tensor, dirs: Tensor,
                    ray_bounds: Tensor, warp_bounds: Tensor, valid: Tensor, ids: Tensor, ranges: Tensor, height: int,
-                   width: int, tile_size: int, record: bool) -> T8:
+                   width: int, tile_size: int, record: bool, origins: Optional[Tensor] = None) -> T8:
     """Per ray -> (rgb [R,3], depth [R], acc [R], T_final [R], n_contrib [R] int32, blended lanes int32 (the CPU
     build's record for its backward, when `record`; empty from the kernels), max_weight [N], median distance [R]).
-    Pass record=True when a backward will run."""
+    Pass record=True when a backward will run. origins [R,3]: each ray's own origin in the camera frame (rolling
+    shutter; None: every ray from the camera centre)."""
     _one_device("render_forward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
-                ranges)
+                ranges, *_given(origins))
     return tuple(_build(whiten).render_forward(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds,
-                                               warp_bounds, valid, ids, ranges, height, width, tile_size, record))
+                                               warp_bounds, valid, ids, ranges, height, width, tile_size, record,
+                                               _or_empty(origins, whiten)))
 
 
 @render_forward.register_fake
 def _(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height, width,
-      tile_size, record):
+      tile_size, record, origins=None):
     _one_device("render_forward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
-                ranges)
+                ranges, *_given(origins))
     r, new = height * width, whiten.new_empty
     on_cpu = whiten.device.type == "cpu" and record
     lanes = new(ids.shape[0], warp_bounds.shape[0] // ranges.shape[0], dtype=torch.int32) if on_cpu else \
@@ -178,56 +181,62 @@ def _(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, va
 def render_backward(whiten: Tensor, o_u: Tensor, rgb: Tensor, opacities: Tensor, pbf_pieces: Tensor, dirs: Tensor,
                     ray_bounds: Tensor, warp_bounds: Tensor, valid: Tensor, ids: Tensor, ranges: Tensor, height: int,
                     width: int, tile_size: int, t_final: Tensor, n_contrib: Tensor, blended_lanes: Tensor,
-                    g_rgb: Tensor, g_depth: Tensor, g_acc: Tensor, absgrad_rows: Tensor, dir_grad: bool) -> T3:
+                    g_rgb: Tensor, g_depth: Tensor, g_acc: Tensor, absgrad_rows: Tensor, dir_grad: bool,
+                    origins: Optional[Tensor] = None) -> T4:
     """-> (gradient rows [N,16]: the canonical moment K = dL/dW W^T row-major (what the preprocess backward takes in
     W's slot), o_u, color, opacity; absgrad [N,2], empty when absgrad_rows is; dL/d(ray directions) [R,3] when
-    `dir_grad`, else empty)."""
+    `dir_grad`, else empty; dL/d(ray origins) [R,3] when `dir_grad` and `origins` (render_forward's), else empty)."""
     _one_device("render_backward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
-                ranges, t_final, n_contrib, g_rgb, g_depth, g_acc, absgrad_rows)
+                ranges, t_final, n_contrib, g_rgb, g_depth, g_acc, absgrad_rows, *_given(origins))
     return tuple(_build(whiten).render_backward(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds,
                                                 warp_bounds, valid, ids, ranges, height, width, tile_size, t_final,
                                                 n_contrib, blended_lanes, g_rgb, g_depth, g_acc, absgrad_rows,
-                                                dir_grad))
+                                                dir_grad, _or_empty(origins, whiten)))
 
 
 @render_backward.register_fake
 def _(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height, width,
-      tile_size, t_final, n_contrib, blended_lanes, g_rgb, g_depth, g_acc, absgrad_rows, dir_grad):
+      tile_size, t_final, n_contrib, blended_lanes, g_rgb, g_depth, g_acc, absgrad_rows, dir_grad, origins=None):
     _one_device("render_backward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
-                ranges, t_final, n_contrib, g_rgb, g_depth, g_acc, absgrad_rows)
+                ranges, t_final, n_contrib, g_rgb, g_depth, g_acc, absgrad_rows, *_given(origins))
     n = whiten.shape[0]
     # absgrad on: rows [N, 6] (N may be a symbolic count); off: an empty 1-D tensor
     absgrad = whiten.new_empty(n, ABSGRAD_VALUES) if absgrad_rows.dim() == 2 else whiten.new_empty(0)
     g_dirs = whiten.new_empty(dirs.shape[0], 3) if dir_grad else whiten.new_empty(0)
-    return whiten.new_empty(n, GRAD_VALUES), absgrad, g_dirs
+    g_origins = whiten.new_empty(dirs.shape[0], 3) if dir_grad and origins is not None else whiten.new_empty(0)
+    return whiten.new_empty(n, GRAD_VALUES), absgrad, g_dirs, g_origins
 
 
-def render_grads(kernels, saved, layout, g_rgb, g_depth, g_acc, rows: Tensor,
-                 dir_grad: bool = False) -> Tuple[Tensor, ...]:
+def render_grads(kernels, saved, layout, g_rgb, g_depth, g_acc, rows: Tensor, dir_grad: bool = False,
+                 origins: Optional[Tensor] = None) -> Tuple[Tensor, ...]:
     """The render stage's backward (missing gradients are zeros): (W's slot (K), o_u, color, opacity, absgrad or
-    None, ray directions or None). saved: the forward's 11 inputs from whiten to ranges, then T_final, n_contrib,
-    blended lanes."""
+    None, ray directions or None, ray origins or None (without `origins` or `dir_grad`)). saved: the forward's 11
+    inputs from whiten to ranges, then T_final, n_contrib, blended lanes; origins: the forward's, if it had them."""
     whiten, dirs = saved[0], saved[5]
     r = dirs.shape[0]
     g_rgb, g_depth, g_acc = (_zeros_if_none(g, shape, whiten) for g, shape in
                              ((g_rgb, (r, 3)), (g_depth, (r,)), (g_acc, (r,))))
-    grads, absgrad, g_dirs = kernels.render_backward(*saved[:11], *layout, *saved[11:], g_rgb, g_depth, g_acc, rows,
-                                                     dir_grad)
+    grads, absgrad, g_dirs, g_origins = kernels.render_backward(*saved[:11], *layout, *saved[11:], g_rgb, g_depth,
+                                                                g_acc, rows, dir_grad, _or_empty(origins, whiten))
     gw, go, gc, gs = grads.split([9, 3, 3, 1], dim=1)
     return (gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1), (absgrad if rows.dim() == 2 else None),
-            (g_dirs if dir_grad else None))
+            (g_dirs if dir_grad else None), (g_origins if dir_grad and origins is not None else None))
 
 
 def _render_setup(ctx, inputs, output) -> None:
-    ctx.save_for_backward(*inputs[:11], *output[3:6])
+    origins = inputs[15] if len(inputs) > 15 else None
+    ctx.with_origins = origins is not None
+    ctx.save_for_backward(*inputs[:11], *output[3:6], *_given(origins))
     ctx.layout = tuple(inputs[11:14])
 
 
 def _render_backward(ctx, g_rgb, g_depth, g_acc, *_):
     saved = ctx.saved_tensors
-    grads = render_grads(KERNELS, saved, ctx.layout, g_rgb, g_depth, g_acc, saved[0].new_zeros(0),
-                         ctx.needs_input_grad[5])
-    return grads[:4] + (None, grads[5]) + (None,) * 9
+    origins = saved[14] if ctx.with_origins else None
+    ray_grad = ctx.needs_input_grad[5] or (ctx.with_origins and ctx.needs_input_grad[15])
+    grads = render_grads(KERNELS, saved[:14], ctx.layout, g_rgb, g_depth, g_acc, saved[0].new_zeros(0), ray_grad,
+                         origins)
+    return grads[:4] + (None, grads[5]) + (None,) * 9 + (grads[6],)
 
 
 torch.library.register_autograd("geer::render_forward", _render_backward, setup_context=_render_setup)
@@ -236,6 +245,11 @@ torch.library.register_autograd("geer::render_forward", _render_backward, setup_
 def _given(t: Optional[Tensor]) -> Tuple[Tensor, ...]:
     """An optional tensor argument, for _one_device: itself, or nothing."""
     return () if t is None else (t,)
+
+
+def _or_empty(t: Optional[Tensor], like: Tensor) -> Tensor:
+    """An optional tensor argument for the builds: itself (contiguous), or an empty one of like's dtype."""
+    return like.new_zeros(0) if t is None else t.contiguous()
 
 
 def _zeros_if_none(g, shape, like: Tensor) -> Tensor:

@@ -24,6 +24,7 @@ from .backend import Backend, resolve_backend
 from .blend import blend_lists
 from .cuda_backend import render_cuda
 from .extensions import load_cpu_ops
+from .moving import MovingRays, motion_pbf
 from .outputs import RenderOutput, images
 from .pbf import PBF, LambdaMode, compute_pbf, pbf_lambda_sq
 from .raygrid import RayGrid
@@ -93,6 +94,7 @@ def render(
     backend: Backend = "auto",
     max_pairs: int = 1 << 20,
     absgrad: tuple[Tensor, Tensor] | None = None,
+    motion: MovingRays | None = None,
 ) -> RenderOutput:
     """Render one view with 3DGEER.
 
@@ -106,23 +108,32 @@ def render(
     `absgrad` = (lateral [N,3,2], sink [N,2] requiring grad): after backward, sink.grad holds AbsGS's per-pixel
     absolute sums of the gradient w.r.t. lateral offsets of the view-space means (absgrad.py); outputs and
     every other gradient are unchanged by it.
+    `motion` (moving.MovingRays): each ray's own origin and direction in this view's camera frame (a rolling-shutter
+    view: every ray at its own time); the grid still gives the rays' pixels, tiles and validity. SH colours are
+    evaluated from the view's camera centre.
     """
     _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background, sh_degree)
     if absgrad is not None:
         check_absgrad(absgrad, means)
+    if motion is not None:
+        motion.check(grid.num_rays, means)
     chosen = resolve_backend(backend, means.device)
     if chosen != "torch":  # the kernels (CUDA), or their math compiled for the CPU
         return render_cuda(means, quats, scales, opacities, colors, viewmat, grid, sh_degree=sh_degree,
                            background=background, lambda_mode=lambda_mode,
-                           ops=load_cpu_ops() if chosen == "cpu" else None, absgrad=absgrad)
-    dirs = grid.dirs.to(means.dtype)
+                           ops=load_cpu_ops() if chosen == "cpu" else None, absgrad=absgrad, motion=motion)
+    dirs = grid.dirs.to(means.dtype) if motion is None else motion.dirs.to(means.dtype)
+    origins = None if motion is None else motion.origins.to(means.dtype)
     # viewmat keeps its dtype: the view transform runs in float64 (transforms.view_transform)
     pre = preprocess(means, quats, scales, opacities, colors, viewmat, sh_degree, lambda_mode)
-    tiles = associate(pre.pbf, grid, pre.depth)
+    if motion is not None:
+        pre.pbf = motion_pbf(pre.means_c, to_view_space(means.detach(), quats.detach(), viewmat)[1], scales,
+                             opacities, lambda_mode, motion)
+    tiles = associate(pre.pbf, grid if motion is None else motion.tile_grid(grid), pre.depth)
     rows = (offset_rows(absgrad[0], pre.whiten), absgrad[1]) if absgrad is not None else None
     rgb, depth, acc, max_weight, median = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs,
                                                       grid.valid, grid.tile_rays, tiles.gaussians, tiles.counts,
-                                                      max_pairs, rows)
+                                                      max_pairs, rows, origins)
     out_rgb, out_depth, out_acc = images(grid.height, grid.width, rgb, depth, acc, background)
     visible = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
     listed = tiles.gaussians[grid.tile_active]

@@ -63,15 +63,29 @@ def canonical_ray_response(o_u: Tensor, w: Tensor, dirs: Tensor) -> tuple[Tensor
     return dist_sq, t_star
 
 
-def half_line_sq(dist_sq: Tensor, t_star: Tensor, o_u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """(q, depth, front) of the half-line rule, from canonical_ray_response's [..., P, K] and o_u [..., K, 3].
+def moving_ray_response(o_u: Tensor, w: Tensor, dirs: Tensor, origins: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """canonical_ray_response for rays with their own origins (rolling shutter): origins [..., P, 3] in the camera
+    frame, so each pair's canonical origin is o_u + W origin = W (origin - mean). Returns D^2, t* and that
+    origin's |.|^2 (half_line_sq's `o_sq`), each [..., P, K]. The same cross-product form, per pair."""
+    d_u = torch.einsum("...kij,...pj->...pki", w, dirs)
+    o_pair = o_u[..., None, :, :] + torch.einsum("...kij,...pj->...pki", w, origins)
+    inv_norm = torch.rsqrt(floor_at((d_u * d_u).sum(-1), torch.finfo(d_u.dtype).tiny))
+    m_hat = torch.linalg.cross(o_pair, d_u) * inv_norm[..., None]
+    t_star = -(o_pair * d_u).sum(-1) * inv_norm * inv_norm
+    return (m_hat * m_hat).sum(-1), t_star, (o_pair * o_pair).sum(-1)
+
+
+def half_line_sq(dist_sq: Tensor, t_star: Tensor, o_u: Tensor,
+                 o_sq: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """(q, depth, front) of the half-line rule, from canonical_ray_response's [..., P, K] and o_u [..., K, 3]
+    (or each pair's |o_u|^2 `o_sq` [..., P, K]: moving_ray_response).
 
     q = q(max(t*, 0)): D^2 where t* > 0 (`front`), |o_u|^2 (the camera center's own q) otherwise; depth =
     max(t*, 0). Where t* <= 0 neither depends on the ray: no gradient to W, and depth's derivative is 0
     (also at t* = 0 exactly, the kink of max).
     """
     front = t_star > 0
-    o_sq = (o_u * o_u).sum(-1)[..., None, :]
+    o_sq = (o_u * o_u).sum(-1)[..., None, :] if o_sq is None else o_sq
     q = torch.where(front, dist_sq, o_sq)
     depth = torch.where(front, t_star, torch.zeros_like(t_star))
     return q, depth, front

@@ -17,6 +17,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from geer_ns.render.moving import MovingRays
 from geer_ns.render import RayGrid, render, resolve_backend
 from geer_ns.render.verdict import verdict_dir
 
@@ -39,15 +40,20 @@ class ViewInputs:
     sh_degree: int | None
     background: Tensor
     lambda_mode: str
+    motion: MovingRays | None = None  # a rolling-shutter view's rays
 
 
 def _render(inputs: ViewInputs, backend: str) -> tuple[Tensor, list[Tensor]]:
     """(rgb, [dL/dmeans, dL/dopacities]) of a fixed random loss on the image."""
     means = inputs.means.detach().clone().requires_grad_(True)
     opacities = inputs.opacities.detach().clone().requires_grad_(True)
+    motion = inputs.motion
+    if motion is not None:
+        motion = MovingRays(motion.origins.detach(), motion.dirs.detach(), motion.offset)
     out = render(means, inputs.quats.detach(), inputs.scales.detach(), opacities, inputs.colors.detach(),
                  inputs.viewmat.detach(), inputs.grid, sh_degree=inputs.sh_degree,
-                 background=inputs.background.detach(), lambda_mode=inputs.lambda_mode, backend=backend)
+                 background=inputs.background.detach(), lambda_mode=inputs.lambda_mode, backend=backend,
+                 motion=motion)
     gen = torch.Generator().manual_seed(0)
     weights = torch.randn(out.rgb.shape, generator=gen, dtype=torch.float64).to(out.rgb)
     (weights * out.rgb).sum().backward()
@@ -110,5 +116,8 @@ class KernelSentinel:
                ("means", "quats", "scales", "opacities", "colors", "viewmat", "background")},
             "grid": {"dirs": grid.dirs.cpu(), "valid": grid.valid.cpu(), "height": grid.height, "width": grid.width,
                      "tile_size": grid.tile_size},
+            "motion": None if inputs.motion is None else {
+                "origins": inputs.motion.origins.detach().cpu(), "dirs": inputs.motion.dirs.detach().cpu(),
+                "offset": inputs.motion.offset},
         }, path)
         return path

@@ -24,7 +24,8 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from geer_ns.render import RayGrid, render
+from geer_ns.cameras.shutter import rolling_rays
+from geer_ns.render import MovingRays, RayGrid, render
 
 from .scenes import Scene, camera, gap_scene, random_gaussians, stress_scene
 
@@ -45,6 +46,7 @@ class Case:
     absgrad: bool = False
     degenerate: bool = False  # the float64 gradient tolerance of the stress scenes (1e-7)
     capacity: bool = False
+    rolling: bool = False  # every ray at its own pose (a rolling shutter: per-ray origins, moved directions)
 
 
 def _mixed(seed: int) -> Scene:
@@ -70,6 +72,8 @@ def suite(device_type: str) -> list[Case]:
             Case(f"stress-panorama-{tag}", _mixed_0, "panorama", s, dtype, degenerate=True),
             Case(f"random-beap-{tag}", _front, "beap", 2 * s if big else s, dtype, absgrad=True),
             Case(f"gap-beap1px-{tag}", _gap_0, "beap1", s // 2, dtype, absgrad=True, degenerate=True),
+            Case(f"rolling-fisheye200-{tag}", _mixed_0, "fisheye200", s, dtype, absgrad=True, degenerate=True,
+                 rolling=True),
         ]
     if big:
         cases.append(Case("capacity-1M-1920x1080-f32", capacity_scene, "pinhole1080", 1920, F32, capacity=True))
@@ -118,7 +122,10 @@ def render_case(case: Case, backend: str, device: torch.device, dtype, perturb: 
     if case.absgrad:
         lateral = torch.randn(n, 3, 2, generator=torch.Generator().manual_seed(20), dtype=F64).to(device, dtype)
         absgrad = (lateral, torch.zeros(n, 2, dtype=dtype, device=device, requires_grad=True))
-    out = render(*leaves, torch.eye(4, dtype=dtype, device=device), grid, backend=backend,
+    viewmat, motion = torch.eye(4, dtype=dtype, device=device), None
+    if case.rolling:
+        viewmat, motion = _rolling(grid, dtype, device)
+    out = render(*leaves, viewmat, grid, backend=backend, motion=motion,
                  background=torch.tensor(BACKGROUND, dtype=dtype, device=device), absgrad=absgrad)
     rgb = out.rgb * (1.0 + perturb) if perturb else out.rgb
     gen = torch.Generator().manual_seed(1)
@@ -134,6 +141,17 @@ def render_case(case: Case, backend: str, device: torch.device, dtype, perturb: 
     if case.capacity and not window:
         images = [x[WINDOW] for x in images]
     return Rendered(images, out.max_weight.detach(), grads)
+
+
+def _rolling(grid: RayGrid, dtype, device) -> tuple[Tensor, MovingRays]:
+    """A fast readout over the grid's rows (6 degrees of turn, 0.2 units of travel), as rolling_rays gives it."""
+    times = torch.linspace(0.0, 1.0, grid.height, dtype=F64).repeat_interleave(grid.width)
+    end = torch.eye(4, dtype=F64)
+    end[:3, :3] = torch.linalg.matrix_exp(torch.tensor([[0, -0.08, 0.06], [0.08, 0, -0.03], [-0.06, 0.03, 0]],
+                                                       dtype=F64))
+    end[:3, 3] = torch.tensor([0.12, -0.1, 0.12], dtype=F64)
+    viewmat, origins, dirs, offset = rolling_rays(grid.dirs.cpu().double(), times, torch.eye(4, dtype=F64), end)
+    return viewmat.to(device, dtype), MovingRays(origins.to(device, dtype), dirs.to(device, dtype), offset)
 
 
 def _embed(x: Tensor, h: int, w: int) -> Tensor:

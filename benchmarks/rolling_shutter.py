@@ -1,0 +1,117 @@
+"""Rolling shutter: what modelling it costs a step, and what it buys on a fast-moving capture.
+
+    python -m benchmarks.rolling_shutter step [--gaussians N --size S --runs K]
+    python -m benchmarks.rolling_shutter train WORK_DIR [--steps N --size S --seed K]
+
+`step`: one process, the CPU build, the same Gaussians and pixel grid of a 180-degree fisheye: a render's forward +
+backward with one pose (global shutter) against every ray at its own pose (rolling shutter, the synthetic
+capture's motion: 8 degrees and 5 cm over the readout; the rays' origins and directions, their tile bounds
+and the widened association included), alternated, after a warm-up, median of K. `train`: the synthetic rolling-shutter room
+(geer_ns.data.synthetic_rolling) trained three ways with `ns-train geer` at the same steps and schedule, each
+scored by `ns-eval` on the same held-out global-shutter views (the static scene): the rolling-shutter frames with
+the shutter model, the same frames as global-shutter images, and the global-shutter frames of the same path.
+Both print a markdown table (benchmarks/rolling_shutter.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from benchmarks.common import header
+
+RUNS = {  # label -> transforms file of the capture
+    "rolling-shutter frames, shutter model": "transforms.json",
+    "rolling-shutter frames as global shutter": "transforms_as_global.json",
+    "global-shutter frames of the same path": "transforms_global.json",
+}
+
+
+def step_cost(gaussians: int, size: int, runs: int) -> list[str]:
+    from geer_ns.cameras import EquidistantCamera
+    from geer_ns.cameras.shutter import ray_times, rolling_rays
+    from geer_ns.data.synthetic_rolling import readout_poses
+    from geer_ns.render import RayGrid, render
+    from geer_ns.render.moving import MovingRays
+    import numpy as np
+
+    torch.manual_seed(0)
+    camera = EquidistantCamera(size, size, size / math.pi, size / math.pi, size / 2, size / 2)
+    dirs, valid = camera.pixel_rays(torch.float32)
+    grid = RayGrid.from_rays(dirs, valid, tile_size=16)
+    direction = torch.nn.functional.normalize(torch.randn(gaussians, 3), dim=-1)
+    means = direction * (1.0 + 3.0 * torch.rand(gaussians, 1))
+    quats = torch.nn.functional.normalize(torch.randn(gaussians, 4), dim=-1)
+    scales = 0.01 + 0.05 * torch.rand(gaussians, 3)
+    opacities = 0.1 + 0.8 * torch.rand(gaussians)
+    colors = torch.rand(gaussians, 16, 3) * 0.3
+    start, end = (torch.tensor(p) for p in readout_poses(np.eye(4), 8.0, 0.05, np.random.default_rng(0)))
+    times = ray_times(camera, grid.dirs.double(), "top-to-bottom")
+    params = [t.requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
+
+    def once(rolling: bool) -> float:
+        t0 = time.perf_counter()
+        viewmat, motion = torch.eye(4, dtype=torch.float64), None
+        if rolling:
+            viewmat, origins, rays, offset = rolling_rays(grid.dirs.double(), times, start, end)
+            motion = MovingRays(origins.float(), rays.float(), offset)
+        out = render(*params, viewmat, grid, backend="cpu", motion=motion)
+        out.rgb.sum().backward()
+        return time.perf_counter() - t0
+
+    for rolling in (False, True, False, True):  # warm-up: the build, the grid's caches
+        once(rolling)
+    times_s = {False: [], True: []}
+    for _ in range(runs):
+        for rolling in (False, True):
+            times_s[rolling].append(once(rolling))
+    glob, roll = (statistics.median(times_s[k]) for k in (False, True))
+    return ["| render | median of {} (s) |".format(runs), "| --- | --- |",
+            f"| global shutter | {glob:.4f} |", f"| rolling shutter | {roll:.4f} |",
+            f"| ratio | {roll / glob:.3f}x |"]
+
+
+def train(work: Path, steps: int, size: int, seed: int) -> list[str]:
+    from benchmarks.common import run_config, train_and_score
+    from geer_ns.data.synthetic_rolling import write_rolling_room
+
+    data = work / f"room_{size}_seed{seed}"
+    if not data.exists():
+        write_rolling_room(data, size=size, seed=seed)
+    rows = ["| training images | PSNR | SSIM | Gaussians | training (s) |", "| --- | --- | --- | --- | --- |"]
+    for label, file in RUNS.items():
+        record = work / f"{Path(file).stem}_{size}_{steps}_seed{seed}.json"
+        if not record.exists():  # one record per run, kept: a rerun reports without retraining
+            metrics, seconds, pipeline = train_and_score(run_config(data / file, work, record.stem, steps, seed=seed))
+            record.write_text(json.dumps({**metrics, "seconds": seconds, "gaussians": pipeline.model.num_points}))
+        r = json.loads(record.read_text())
+        rows.append(f"| {label} | {r['psnr']:.3f} | {r['ssim']:.4f} | {r['gaussians']:,} | {r['seconds']:.0f} |")
+    return rows
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="what", required=True)
+    s = sub.add_parser("step")
+    s.add_argument("--gaussians", type=int, default=50000)
+    s.add_argument("--size", type=int, default=128)
+    s.add_argument("--runs", type=int, default=9)
+    t = sub.add_parser("train")
+    t.add_argument("work", type=Path)
+    t.add_argument("--steps", type=int, default=1000)
+    t.add_argument("--size", type=int, default=96)
+    t.add_argument("--seed", type=int, default=0)
+    a = p.parse_args(argv)
+    rows = step_cost(a.gaussians, a.size, a.runs) if a.what == "step" else train(a.work, a.steps, a.size, a.seed)
+    print(header("Rolling shutter: " + ("a render's cost" if a.what == "step" else "training on a fast capture")))
+    print("\n".join(rows))
+
+
+if __name__ == "__main__":
+    main()
