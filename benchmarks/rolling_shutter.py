@@ -1,12 +1,15 @@
 """Rolling shutter: what modelling it costs a step, and what it buys on a fast-moving capture.
 
     python -m benchmarks.rolling_shutter step [--gaussians N --size S --runs K]
+    python -m benchmarks.rolling_shutter train-step WORK_DIR [--size S --steps N]
     python -m benchmarks.rolling_shutter train WORK_DIR [--steps N --size S --seed K]
 
 `step`: one process, the CPU build, the same Gaussians and pixel grid of a 180-degree fisheye: a render's forward +
 backward with one pose (global shutter) against every ray at its own pose (rolling shutter, the synthetic
 capture's motion: 8 degrees and 5 cm over the readout; the rays' origins and directions, their tile bounds
-and the widened association included), alternated, after a warm-up, median of K. `train`: the synthetic rolling-shutter room
+and the widened association included), alternated, after a warm-up, median of K. `train-step`: whole nerfstudio training steps of
+the synthetic capture below with the shutter model against the same frames as global shutter (the seed points'
+Gaussians in both), alternated in one process, median. `train`: the synthetic rolling-shutter room
 (geer_ns.data.synthetic_rolling) trained three ways with `ns-train geer` at the same steps and schedule, each
 scored by `ns-eval` on the same held-out global-shutter views (the static scene): the rolling-shutter frames with
 the shutter model, the same frames as global-shutter images, and the global-shutter frames of the same path.
@@ -95,6 +98,40 @@ def train(work: Path, steps: int, size: int, seed: int) -> list[str]:
     return rows
 
 
+def train_step(work: Path, size: int, steps: int) -> list[str]:
+    """nerfstudio training steps (GeerTrainer.train_iteration) on the rolling-shutter frames with the shutter model
+    against the same frames as global shutter: the same seed points and images, schedules as written (no
+    densification in the first 500 steps, so both keep the seed's Gaussians), alternated in one process."""
+    import geer_ns.config  # noqa: F401 - nerfstudio's configs before its writer (the host's import order)
+    from benchmarks.common import run_config
+    from geer_ns.data.synthetic_rolling import write_rolling_room
+    from nerfstudio.utils import writer
+
+    data = work / f"room_{size}_seed0"
+    if not data.exists():
+        write_rolling_room(data, size=size, seed=0)
+    trainers = {}
+    for label, file in list(RUNS.items())[:2]:
+        config = run_config(data / file, work, f"step_{Path(file).stem}", 10**6)
+        config.schedules = "fixed"
+        writer.EVENT_WRITERS.clear()
+        trainers[label] = config.setup(local_rank=0, world_size=1)
+        trainers[label].setup()
+    times = {label: [] for label in trainers}
+    for step in range(steps):
+        for label, trainer in trainers.items():
+            t0 = time.perf_counter()
+            trainer.train_iteration(step)
+            if step >= 5:  # warm-up: the build, the views' caches
+                times[label].append(time.perf_counter() - t0)
+    rows = [f"| training step ({size}², {steps - 5} steps after 5 of warm-up) | median (s) | Gaussians |",
+            "| --- | --- | --- |"]
+    for label, trainer in trainers.items():
+        rows.append(f"| {label} | {statistics.median(times[label]):.4f} | {trainer.pipeline.model.num_points:,} |")
+    ratio = statistics.median(times[list(RUNS)[0]]) / statistics.median(times[list(RUNS)[1]])
+    return rows + [f"| ratio | {ratio:.3f}x | |"]
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="what", required=True)
@@ -102,14 +139,23 @@ def main(argv: list[str] | None = None) -> None:
     s.add_argument("--gaussians", type=int, default=50000)
     s.add_argument("--size", type=int, default=128)
     s.add_argument("--runs", type=int, default=9)
+    ts = sub.add_parser("train-step")
+    ts.add_argument("work", type=Path)
+    ts.add_argument("--size", type=int, default=96)
+    ts.add_argument("--steps", type=int, default=45)
     t = sub.add_parser("train")
     t.add_argument("work", type=Path)
     t.add_argument("--steps", type=int, default=1000)
     t.add_argument("--size", type=int, default=96)
     t.add_argument("--seed", type=int, default=0)
     a = p.parse_args(argv)
-    rows = step_cost(a.gaussians, a.size, a.runs) if a.what == "step" else train(a.work, a.steps, a.size, a.seed)
-    print(header("Rolling shutter: " + ("a render's cost" if a.what == "step" else "training on a fast capture")))
+    if a.what == "step":
+        rows = step_cost(a.gaussians, a.size, a.runs)
+    elif a.what == "train-step":
+        rows = train_step(a.work, a.size, a.steps)
+    else:
+        rows = train(a.work, a.steps, a.size, a.seed)
+    print(header(f"Rolling shutter: {a.what}"))
     print("\n".join(rows))
 
 
