@@ -68,7 +68,7 @@ from geer_ns.render_guard import RenderGuard, camera_problem, in_viewer_thread, 
 from geer_ns.selftest.sentinel import KernelSentinel, ViewInputs
 from geer_ns.sh_degrees import packing as sh_packing
 from geer_ns.sh_degrees.choice import BandChoice, choice_step
-from geer_ns.shutter_views import shutter_view
+from geer_ns.shutter_views import model_view
 
 View = Union[BeapView, NativeView]
 
@@ -303,8 +303,7 @@ class GeerModel(SplatfactoModel):
         if params is None:
             return self.get_empty_outputs(width, height, self.background_color)
         background = self.render_background().to(params["means"])
-        viewmat, motion = shutter_view(camera, self.render_pose(camera), view.rays, params["means"].device,
-                                       self.readout if self.training else None)
+        viewmat, motion = model_view(self, camera, view.rays, params["means"].device)
         rows = self.view_rows(params, viewmat, view.rays) if motion is None else None
         if rows is not None:  # the rows the view can see: the same render, for their work only
             params = {name: p[rows] for name, p in params.items()}

@@ -238,3 +238,62 @@ def test_readout_refinement_gets_the_gradient_of_its_image(capture):
             minus = loss()
             refine.adjustments[2, k] = 0.0
             assert float((plus - minus) / (2 * eps)) == pytest.approx(float(grad[2, k]), rel=1e-4, abs=1e-6)
+
+
+def test_a_frame_rolling_shutter_inherits_the_top_level_readout_time(capture, tmp_path):
+    """A frame's own `rolling_shutter` object is merged over the top level's: velocities with a frame-level readout
+    read the file's readout_time."""
+    def velocities(meta):
+        meta["rolling_shutter"] = {"readout": "top-to-bottom", "readout_time": 0.03}
+        for frame in meta["frames"]:
+            if "rolling_shutter" not in frame:  # the held-out global-shutter frames
+                frame["rolling_shutter"] = {"readout": "global"}
+        f = _rolling_frames(meta)[0]
+        f.pop("transform_matrix_end")
+        f.update(angular_velocity=[0.0, 0.0, 1.0], linear_velocity=[0.0, 0.0, 0.0],
+                 rolling_shutter={"readout": "bottom-to-top"})
+
+    cams = _parse(_edited(capture, tmp_path, velocities)).cameras
+    readouts = cams.metadata[READOUT_KEY].reshape(-1).tolist()
+    assert sorted(set(readouts)) == [0, 1]  # the edited frame reads bottom to top, the others top to bottom
+    i = readouts.index(1)
+    turn = Rotation.from_matrix(cams.metadata[MOTION_KEY][i].reshape(3, 4)[:, :3].double().numpy()).as_rotvec()
+    assert np.allclose(turn, [0.0, 0.0, 0.03], atol=1e-7)
+
+
+def test_sfm_readouts_stay_within_each_camera_and_refuse_ties():
+    from geer_ns.data.rolling_shutter import sfm_readouts
+
+    fps, readout_time = 30.0, 0.01
+    names = ["left/frame_00001.png", "right/frame_00001.png", "left/frame_00002.png", "right/frame_00002.png"]
+    mids = torch.tensor(_trajectory(np.array([0.0, 0.0, 1.0, 1.0]) / fps, [0.0, 0.0, 0.6], [0.3, 0.0, 0.0]))[:, :3]
+    mids[1::2, :3, :3] = mids[1::2, :3, :3] @ torch.tensor(Rotation.from_euler("y", 90, degrees=True).as_matrix())
+    starts, meta = sfm_readouts("top-to-bottom", readout_time, fps, names, mids, "--x.", groups=[1, 2, 1, 2])
+    assert torch.isfinite(starts).all() and torch.isfinite(meta[MOTION_KEY]).all()
+    mount = Rotation.from_euler("y", 90, degrees=True).as_matrix()
+    for i in range(4):  # the rig turns at 0.6 rad/s about the left camera's z; the 90 degrees between them is no motion
+        turn = Rotation.from_matrix(meta[MOTION_KEY][i].reshape(3, 4)[:, :3].double().numpy()).as_rotvec()
+        axis = np.array([0.0, 0.0, 0.6]) if i % 2 == 0 else mount.T @ np.array([0.0, 0.0, 0.6])  # in its own axes
+        assert np.allclose(turn, axis * readout_time, atol=1e-6), (i, turn)
+    with pytest.raises(DatasetError, match="two at the same capture time"):
+        sfm_readouts("top-to-bottom", readout_time, fps, names, mids, "--x.")  # one camera: the times repeat
+
+
+def test_render_paths_without_per_ray_poses_refuse_rolling_shutter_images(capture):
+    from geer_ns.errors import OptionError
+    from geer_ns.shutter_views import refuse_rolling_shutter
+
+    cams = _parse(capture / "transforms.json").cameras
+    with pytest.raises(OptionError, match="--pipeline.model.distributed gaussians does not render rolling-shutter"):
+        refuse_rolling_shutter([cams[0:1]], "--pipeline.model.distributed gaussians")
+    refuse_rolling_shutter([_parse(capture / "transforms_global.json").cameras[0:1]], "anything")
+
+
+def test_an_offset_below_the_origins_is_refused():
+    from geer_ns.render import MovingRays
+
+    origins = torch.zeros(4, 3, dtype=torch.float64)
+    origins[2, 0] = 0.3
+    with pytest.raises(ValueError, match="motion.offset: 0.1 is below the farthest origin's distance 0.3"):
+        MovingRays(origins, torch.zeros(4, 3, dtype=torch.float64), 0.1).check(4, origins)
+    MovingRays(origins, torch.zeros(4, 3, dtype=torch.float64), 0.3).check(4, origins)

@@ -39,7 +39,11 @@ GLOBAL = -1
 
 
 def _spec(meta: dict, frame: dict) -> Optional[dict]:
-    return frame.get("rolling_shutter", meta.get("rolling_shutter"))
+    """The frame's rolling_shutter object: its own fields over the top level's (a readout_time given once)."""
+    top, own = meta.get("rolling_shutter"), frame.get("rolling_shutter")
+    if isinstance(top, dict) and isinstance(own, dict):
+        return {**top, **own}
+    return own if own is not None else top
 
 
 def _readout_of(meta: dict, frame: dict, where: str) -> int:
@@ -164,11 +168,30 @@ def readout_poses(c2w: np.ndarray, times: np.ndarray, readout_time: float) -> tu
     return start, end
 
 
+def sequences(names: List[str], groups: List[object], fps: float, where: str) -> List[tuple]:
+    """[(indices into names in capture order, their times)] per group (one camera of a rig each): capture times by
+    capture_times within the group, strictly increasing (else DatasetError naming `where`), 2 or more images."""
+    out = []
+    for group in sorted(set(groups), key=str):
+        members = [i for i, g in enumerate(groups) if g == group]
+        times_of = capture_times([names[i] for i in members], fps)
+        order = sorted(members, key=lambda i: times_of[names[i]])
+        times = np.array([times_of[names[i]] for i in order])
+        if len(order) < 2 or (np.diff(times) <= 0).any():
+            raise DatasetError(f"geer: {where}: the motion during a readout is estimated from neighbouring frames of "
+                               f"one camera; camera {group} has {len(order)} image(s) or two at the same capture time "
+                               "(frame_XXXXX indices, else file-name order)")
+        out.append((order, times))
+    return out
+
+
 def sfm_readouts(readout: str, readout_time: Optional[float], frame_rate: Optional[float], names: List[str],
-                 c2w: torch.Tensor, where: str) -> Optional[tuple]:
+                 c2w: torch.Tensor, where: str, groups: Optional[List[object]] = None) -> Optional[tuple]:
     """For a structure-from-motion model read with a rolling shutter (options readout, readout_time, frame_rate;
     `where` names them for errors): (start poses [N, 3, 4] float64, Cameras.metadata entries) of the images
-    `names` with their mid-readout poses c2w [N, 3, 4] (the parsed scene's frame); None for a global shutter."""
+    `names` with their mid-readout poses c2w [N, 3, 4] (the parsed scene's frame), each image's neighbours taken
+    within its group (`groups`: one value per image, e.g. its camera id; None: one camera); None for a global
+    shutter."""
     if readout == "global":
         return None
     if readout not in READOUTS:
@@ -177,19 +200,20 @@ def sfm_readouts(readout: str, readout_time: Optional[float], frame_rate: Option
     if readout_time is None or not readout_time > 0 or frame_rate is None or not frame_rate > 0:
         raise DatasetError(f"geer: {where}rolling-shutter {readout} needs {where}readout-time (seconds, > 0) and "
                            f"{where}frame-rate (frames per second, > 0), got {readout_time} and {frame_rate}")
-    if readout_time >= 1.0 / frame_rate or len(names) < 2:
+    if readout_time >= 1.0 / frame_rate:
         raise DatasetError(f"geer: {where}readout-time {readout_time} s must be shorter than a frame interval "
-                           f"({1.0 / frame_rate:.4f} s) and the model needs 2 or more images, has {len(names)}")
-    times_of = capture_times(names, frame_rate)
-    order = sorted(range(len(names)), key=lambda i: times_of[names[i]])
-    mids = np.tile(np.eye(4), (len(names), 1, 1))
-    mids[:, :3] = c2w.double().numpy()[order]
-    start, end = readout_poses(mids, np.array([times_of[names[i]] for i in order]), readout_time)
+                           f"({1.0 / frame_rate:.4f} s)")
     starts = torch.empty(len(names), 3, 4, dtype=torch.float64)
     motions = torch.empty(len(names), 12, dtype=torch.float64)
-    for j, i in enumerate(order):
-        s0, s1 = torch.from_numpy(start[j, :3]), torch.from_numpy(end[j, :3])
-        starts[i] = s0
-        motions[i] = torch.cat([s0[:, :3].T @ s1[:, :3], (s0[:, :3].T @ (s1[:, 3] - s0[:, 3]))[:, None]], 1).reshape(12)
+    for order, times in sequences(names, [0] * len(names) if groups is None else groups, frame_rate,
+                                  f"{where}rolling-shutter"):
+        mids = np.tile(np.eye(4), (len(order), 1, 1))
+        mids[:, :3] = c2w.double().numpy()[order]
+        start, end = readout_poses(mids, times, readout_time)
+        for j, i in enumerate(order):
+            s0, s1 = torch.from_numpy(start[j, :3]), torch.from_numpy(end[j, :3])
+            starts[i] = s0
+            motions[i] = torch.cat([s0[:, :3].T @ s1[:, :3], (s0[:, :3].T @ (s1[:, 3] - s0[:, 3]))[:, None]],
+                                   1).reshape(12)
     index = READOUTS.index(readout)
     return starts, {READOUT_KEY: torch.full((len(names), 1), index, dtype=torch.int64), MOTION_KEY: motions.float()}

@@ -19,6 +19,7 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocati
 from nerfstudio.utils.misc import step_check
 from torch import Tensor
 
+from geer_ns.shutter_views import refuse_rolling_shutter
 from geer_ns import resume
 from geer_ns.densify.signal import lateral_basis
 from geer_ns.densify.strategy import PER_GAUSSIAN_STATE, local_budget, strongest_first
@@ -214,6 +215,7 @@ def sharded_outputs(model, cameras, me: int) -> Dict[str, Tensor]:
     Everything per camera is over the rows of this shard it sees (found first): their parameters (one gather
     per parameter for all the cameras: its backward adds into one shard-sized gradient, camera by camera),
     the densification probe and record, the displacement. Memory per camera: O(what it sees)."""
+    refuse_rolling_shutter(cameras, "--pipeline.model.distributed gaussians")
     views = [model.view_for(camera) for camera in cameras]
     params = model.render_gaussians()
     means = params["means"]

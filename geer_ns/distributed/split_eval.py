@@ -19,6 +19,7 @@ import torch
 import torch.distributed as dist
 from torch import Tensor
 
+from geer_ns.shutter_views import refuse_rolling_shutter
 from geer_ns.distributed.sharded_render import PAYLOAD, visible_rows
 from geer_ns.distributed.world import World, backend_device, current_world, exchange_counts, on_backend_device
 from geer_ns.render import RayGrid, render
@@ -67,6 +68,7 @@ def split_outputs(model, camera) -> Optional[Dict[str, Tensor]]:
     """nerfstudio's evaluation outputs of `camera` (GeerModel.get_outputs in eval mode) rendered band by band
     over every process's shard (module docstring). A collective: every process calls it with the same camera
     (on its device); the outputs on rank 0, None elsewhere."""
+    refuse_rolling_shutter([camera], "split evaluation (--pipeline.model.distributed gaussians)")
     world = current_world()
     training = model.training
     model.eval()

@@ -15,7 +15,10 @@ from typing import Optional
 import numpy as np
 
 from geer_ns.cameras.shutter import READOUTS
-from geer_ns.data.rolling_shutter import capture_times, readout_poses
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from geer_ns.data.dataset_checks import DatasetError
+from geer_ns.data.rolling_shutter import readout_poses, sequences
 from geer_ns.process_data.frames import ProcessDataError
 
 
@@ -43,26 +46,28 @@ def video_fps(video: Path) -> float:
 
 
 def add_readout(transforms: Path, readout: str, readout_time: float, fps: float) -> int:
-    """Rewrite `transforms` (geer-process-data's) with every frame's readout; returns the frames changed."""
+    """Rewrite `transforms` (geer-process-data's) with every frame's readout; returns the frames changed. The
+    neighbours of a frame are taken among its own camera's (a rig: the images' sub-folder)."""
     meta = json.loads(transforms.read_text())
     frames = meta["frames"]
-    if len(frames) < 2:
-        raise ProcessDataError(f"--rolling-shutter: {len(frames)} registered frame(s); the motion during a readout "
-                               "is estimated from neighbouring frames, so at least 2 are needed")
-    times_of = capture_times([f["file_path"] for f in frames], fps)
-    order = sorted(range(len(frames)), key=lambda i: times_of[frames[i]["file_path"]])
-    times = np.array([times_of[frames[i]["file_path"]] for i in order])
-    gap = float(np.min(np.diff(times)))
-    if gap <= 0:
-        raise ProcessDataError(f"--rolling-shutter: two frames share a capture time in {transforms}")
     if readout_time >= 1.0 / fps:
         raise ProcessDataError(f"--readout-time {readout_time} s is not shorter than a frame interval "
                                f"({1.0 / fps:.4f} s at {fps:g} frames per second): a readout fits within its frame")
-    c2w = np.array([frames[i]["transform_matrix"] for i in order], dtype=np.float64)
-    start, end = readout_poses(c2w, times, readout_time)
-    for j, i in enumerate(order):
-        frames[i]["transform_matrix"] = start[j].tolist()
-        frames[i]["transform_matrix_end"] = end[j].tolist()
+    names = [f["file_path"] for f in frames]
+    try:
+        runs = sequences(names, [str(Path(n).parent) for n in names], fps, f"{transforms}")
+    except DatasetError as e:
+        raise ProcessDataError(f"--rolling-shutter: {e}") from None
+    for order, times in runs:
+        if len(times) > 1 and float(np.median(np.diff(times))) > 20 * readout_time:
+            CONSOLE.print(f"[yellow]--rolling-shutter: neighbouring frames are {float(np.median(np.diff(times))):.2f} "
+                          "s apart: the motion during a readout is their average motion (more frames: "
+                          "--num-frames-target)")
+        c2w = np.array([frames[i]["transform_matrix"] for i in order], dtype=np.float64)
+        start, end = readout_poses(c2w, times, readout_time)
+        for j, i in enumerate(order):
+            frames[i]["transform_matrix"] = start[j].tolist()
+            frames[i]["transform_matrix_end"] = end[j].tolist()
     meta["rolling_shutter"] = {"readout": readout, "readout_time": readout_time}
     transforms.write_text(json.dumps(meta, indent=2), encoding="utf8")
     return len(frames)

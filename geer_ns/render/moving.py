@@ -48,6 +48,9 @@ class MovingRays:
                 raise ValueError(f"motion.{name}: expected on {like.device}, got {t.device}")
         if not (float(self.offset) >= 0.0 and float(self.offset) < float("inf")):
             raise ValueError(f"motion.offset: expected a finite value >= 0, got {self.offset}")
+        farthest = float(self.origins.detach().norm(dim=-1).max()) if rays else 0.0
+        if farthest > float(self.offset) * (1.0 + 1e-6):  # the association's bound would not hold
+            raise ValueError(f"motion.offset: {self.offset} is below the farthest origin's distance {farthest}")
 
     def tile_grid(self, grid: RayGrid) -> RayGrid:
         """`grid`'s pixels, tiles and validity with these rays' directions: what the association and the per-ray
@@ -62,10 +65,10 @@ def motion_scales(scales: Tensor, lam2: Tensor, offset: float) -> Tensor:
     """[N,3] scales whose lambda-ellipsoid (lam2 [N], pbf.pbf_lambda_sq) contains each Gaussian's moved by up to
     `offset` (module docstring); scales [N,3]. No gradient: a bound for the association."""
     with torch.no_grad():
-        lam = lam2.clamp_min(0.0).sqrt()[:, None]
+        lam = lam2.clamp_min(1e-6).sqrt()[:, None]  # 1e-6: Gaussians below 1/255 (never alive) stay finite
         a = scales.clamp_min(MIN_SCALE) * lam
         grow = torch.sqrt(1.0 + offset / (a.amin(-1, keepdim=True) + offset).clamp_min(torch.finfo(a.dtype).tiny))
-        return (a + offset) * grow / lam.clamp_min(torch.finfo(a.dtype).tiny)
+        return (a + offset) * grow / lam
 
 
 def motion_pbf(means_c: Tensor, rot_v: Tensor, scales: Tensor, opacities: Tensor, lambda_mode: str,

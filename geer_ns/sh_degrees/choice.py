@@ -34,6 +34,7 @@ from geer_ns.render.cull import view_rows
 from geer_ns.render.sh import sh_band_colors
 from geer_ns.render.transforms import camera_offsets
 from geer_ns.sh_degrees.packing import DEGREES, kept
+from geer_ns.shutter_views import model_view
 
 LADDER = [0.5 * 2.0 ** (-j / 2) for j in range(21)]  # thresholds tau, colors in [0, 1]: 0.5 down to 5e-4
 
@@ -68,10 +69,11 @@ def _render_view(model, camera, colors_of: Callable[[Tensor, Tensor], Tensor]):
     view = model.view_for(camera)
     params = {name: p.detach() for name, p in model.render_gaussians().items()}
     means = params["means"]
-    viewmat = model.viewmat(model.render_pose(camera), means.device)
     grid = view.rays.to(means.device)
-    rows = view_rows(means, torch.exp(params["scales"].amax(-1)), torch.sigmoid(params["opacities"]).reshape(-1),
-                     viewmat, grid, model.config.lambda_mode)
+    viewmat, motion = model_view(model, camera, view.rays, means.device)  # a rolling shutter as captured
+    rows = torch.arange(len(means), device=means.device) if motion is not None else view_rows(
+        means, torch.exp(params["scales"].amax(-1)), torch.sigmoid(params["opacities"]).reshape(-1), viewmat, grid,
+        model.config.lambda_mode)
     part = {name: p[rows] for name, p in params.items()}
     scales, opacities = model.activated(part)
     coeffs, _ = model.colors(part)
@@ -80,7 +82,7 @@ def _render_view(model, camera, colors_of: Callable[[Tensor, Tensor], Tensor]):
     background = model.render_background().to(means)
     out = render(part["means"], part["quats"], scales, opacities, colors_of(rows, bands), viewmat, grid,
                  background=background, lambda_mode=model.config.lambda_mode, backend=model.config.renderer_backend,
-                 max_pairs=model.config.max_pairs)
+                 max_pairs=model.config.max_pairs, motion=motion)
     return out, view, background, rows, bands
 
 
