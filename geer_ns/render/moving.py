@@ -9,13 +9,14 @@ The bound. The tiles and the per-ray cull take the rays' own directions (`tile_g
 the moved directions' angular bounds), so the rotations cost nothing. The origins remain: the ray (o, d) meets a
 Gaussian G exactly when the ray d from the camera centre meets G - o, which lies in E (+) B(offset) (E: G's
 lambda-ellipsoid, semi-axes a_i = lambda s_i; offset: the largest |o|), and that lies in the ellipsoid with
-semi-axes c_i = (a_i + offset) sqrt(1 + offset / (a_min + offset)) (Cauchy-Schwarz per axis;
+semi-axes c_i^2 = (1 + 1/p) a_i^2 + (1 + p) offset^2 for any p > 0 (support functions and Young's inequality;
 docs/rolling_shutter.md). The association and the per-ray cull therefore run on Gaussians with scales
 c_i / lambda (same mean, rotation, opacity): complete, and exactly a global-shutter view's bounds when no ray moves.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -67,8 +68,11 @@ def motion_scales(scales: Tensor, lam2: Tensor, offset: float) -> Tensor:
     with torch.no_grad():
         lam = lam2.clamp_min(1e-6).sqrt()[:, None]  # 1e-6: Gaussians below 1/255 (never alive) stay finite
         a = scales.clamp_min(MIN_SCALE) * lam
-        grow = torch.sqrt(1.0 + offset / (a.amin(-1, keepdim=True) + offset).clamp_min(torch.finfo(a.dtype).tiny))
-        return (a + offset) * grow / lam
+        if offset <= 0.0:
+            return a / lam
+        # semi-axes^2 (1 + 1/p) a_i^2 + (1 + p) offset^2 for any p > 0; p = |a| / (sqrt(3) offset) minimises their sum
+        p = a.norm(dim=-1, keepdim=True) / (math.sqrt(3.0) * offset)
+        return torch.sqrt((1.0 + 1.0 / p) * a * a + (1.0 + p) * offset * offset) / lam
 
 
 def motion_pbf(means_c: Tensor, rot_v: Tensor, scales: Tensor, opacities: Tensor, lambda_mode: str,
