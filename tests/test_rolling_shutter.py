@@ -264,3 +264,54 @@ def test_bad_motion_is_a_clear_error():
     nan = MovingRays(torch.zeros(480, 3, dtype=torch.float64), grid.dirs, float("nan"))
     with pytest.raises(ValueError, match="motion.offset: expected a finite value"):
         render(means, quats, scales, opacities, colors, torch.eye(4, dtype=torch.float64), grid, motion=nan)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_rolling_shutter_one_ray_per_thread_path_gives_the_cpu_paths_bits(monkeypatch, dtype):
+    """The kernels' path (one ray per thread, warp cull, every lane of the blended prefix; render_*_gpu_path) and
+    the CPU's one-ray path give the packs path's bits with per-ray origins too: images and every gradient, the
+    rays' origins and directions included."""
+    from geer_ns.render.extensions import load_cpu_ops
+
+    ops = load_cpu_ops()
+    camera = _cameras((40, 40))["fisheye200"]
+    grid = _grid(camera)
+    c2w0, c2w1 = _poses()
+    times = _times(camera, grid)
+
+    def run():
+        scene = [t.to(dtype).requires_grad_(True) for t in _scene(seed=13, n=80)]
+        viewmat, origins, dirs, offset = rolling_rays(grid.dirs, times, c2w0, c2w1)
+        origins = origins.to(dtype).requires_grad_(True)
+        dirs = dirs.to(dtype).requires_grad_(True)
+        out = render(*scene, viewmat, grid.to("cpu"), backend="cpu", motion=MovingRays(origins, dirs, offset))
+        weights = torch.rand(out.rgb.shape, generator=torch.Generator().manual_seed(3), dtype=dtype)
+        ((out.rgb * weights).sum() + out.depth.sum()).backward()
+        return [out.rgb.detach(), out.depth.detach(), out.max_weight] + [t.grad for t in scene + [origins, dirs]]
+
+    packs = run()
+    monkeypatch.setattr(ops, "render_forward", ops.render_forward_gpu_path)
+    monkeypatch.setattr(ops, "render_backward", ops.render_backward_gpu_path)
+    gpu_path = run()
+    monkeypatch.setattr(ops, "render_backward", ops.render_backward_one_ray)
+    one_ray = run()
+    assert float(packs[-2].abs().max()) > 0 and float(packs[-1].abs().max()) > 0
+    for a, b, c in zip(packs, gpu_path, one_ray):
+        assert torch.equal(a, b) and torch.equal(a, c)
+
+
+def test_ray_times_come_from_the_sensor_for_any_grid():
+    """A ray's time is its sensor pixel's: native pixel rays read their own rows, and a BEAP cell's direction reads
+    the row it projects to."""
+    from geer_ns.data.views import beap_view
+
+    camera = _cameras((40, 40))["fisheye180"]
+    grid = _grid(camera)
+    pixels = camera.pixel_centers(torch.float64).reshape(-1, 2)
+    valid = grid.valid
+    native = ray_times(camera, grid.dirs, "top-to-bottom")
+    assert torch.allclose(native[valid], sensor_times(pixels, 40, 40, "top-to-bottom")[valid], atol=1e-9)
+    beap = beap_view(camera).rays
+    times = ray_times(camera, beap.dirs.double(), "left-to-right")
+    projected, ok = camera.project(beap.dirs.double())
+    assert torch.allclose(times[ok], ((projected[ok, 0] - 0.5) / 39).clamp(0, 1), atol=1e-9)
