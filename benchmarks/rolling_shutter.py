@@ -3,6 +3,7 @@
     python -m benchmarks.rolling_shutter step [--gaussians N --size S --runs K]
     python -m benchmarks.rolling_shutter train-step WORK_DIR [--size S --steps N]
     python -m benchmarks.rolling_shutter train WORK_DIR [--steps N --size S --seed K]
+    python -m benchmarks.rolling_shutter refine WORK_DIR [--steps N]
 
 `step`: one process, the CPU build, the same Gaussians and pixel grid of a 180-degree fisheye: a render's forward +
 backward with one pose (global shutter) against every ray at its own pose (rolling shutter, the synthetic
@@ -13,7 +14,8 @@ Gaussians in both), alternated in one process, median. `train`: the synthetic ro
 (geer_ns.data.synthetic_rolling) trained three ways with `ns-train geer` at the same steps and schedule, each
 scored by `ns-eval` on the same held-out global-shutter views (the static scene): the rolling-shutter frames with
 the shutter model, the same frames as global-shutter images, and the global-shutter frames of the same path.
-Both print a markdown table (benchmarks/rolling_shutter.md).
+`refine`: the same capture with every readout motion halved, trained with the shutter model without and with
+readout refinement. Each prints a markdown table (benchmarks/rolling_shutter.md).
 """
 
 from __future__ import annotations
@@ -132,6 +134,43 @@ def train_step(work: Path, size: int, steps: int) -> list[str]:
     return rows + [f"| ratio | {ratio:.3f}x | |"]
 
 
+def refine(work: Path, steps: int) -> list[str]:
+    """The capture (size 96, seed 0) with each frame's readout motion halved (the end pose at the start's half-way
+    point): the shutter model on the wrong motion, without and with --pipeline.model.readout-refinement."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from benchmarks.common import run_config, train_and_score
+    from geer_ns.data.synthetic_rolling import write_rolling_room
+
+    data = work / "room_96_seed0"
+    if not data.exists():
+        write_rolling_room(data, size=96, seed=0)
+    meta = json.loads((data / "transforms.json").read_text())
+    for frame in meta["frames"]:
+        if "transform_matrix_end" in frame:
+            a, b = np.array(frame["transform_matrix"]), np.array(frame["transform_matrix_end"])
+            half = b.copy()
+            half[:3, :3] = Slerp([0, 1], Rotation.from_matrix(np.stack([a[:3, :3], b[:3, :3]])))([0.5]).as_matrix()[0]
+            half[:3, 3] = 0.5 * (a[:3, 3] + b[:3, 3])
+            frame["transform_matrix_end"] = half.tolist()
+    (data / "transforms_half_motion.json").write_text(json.dumps(meta, indent=2))
+    rows = ["| readout motion | PSNR | SSIM | mean readout turn learnt (deg) |", "| --- | --- | --- | --- |"]
+    for name, options in (("half_motion", {}), ("half_motion_refined", {"readout_refinement": True})):
+        record = work / f"{name}.json"
+        if not record.exists():
+            metrics, seconds, pipeline = train_and_score(
+                run_config(data / "transforms_half_motion.json", work, name, steps, options, seed=0))
+            readout = pipeline.model.readout
+            turn = None if readout is None else float(readout.adjustments.detach()[:, :3].norm(dim=-1).mean())
+            record.write_text(json.dumps({**metrics, "seconds": seconds,
+                                          "mean_turn_deg": None if turn is None else math.degrees(turn)}))
+        r = json.loads(record.read_text())
+        turn = "-" if r.get("mean_turn_deg") is None else f"{r['mean_turn_deg']:.2f}"
+        rows.append(f"| halved{', refined' if 'refined' in name else ''} | {r['psnr']:.3f} | {r['ssim']:.4f} | {turn} |")
+    return rows
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="what", required=True)
@@ -143,6 +182,9 @@ def main(argv: list[str] | None = None) -> None:
     ts.add_argument("work", type=Path)
     ts.add_argument("--size", type=int, default=96)
     ts.add_argument("--steps", type=int, default=45)
+    rf = sub.add_parser("refine")
+    rf.add_argument("work", type=Path)
+    rf.add_argument("--steps", type=int, default=2000)
     t = sub.add_parser("train")
     t.add_argument("work", type=Path)
     t.add_argument("--steps", type=int, default=1000)
@@ -153,6 +195,8 @@ def main(argv: list[str] | None = None) -> None:
         rows = step_cost(a.gaussians, a.size, a.runs)
     elif a.what == "train-step":
         rows = train_step(a.work, a.size, a.steps)
+    elif a.what == "refine":
+        rows = refine(a.work, a.steps)
     else:
         rows = train(a.work, a.steps, a.size, a.seed)
     print(header(f"Rolling shutter: {a.what}"))

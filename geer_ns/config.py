@@ -49,7 +49,7 @@ def splatfacto_optimizers(max_steps: int = MAX_STEPS) -> dict:
         # geer's lens refinement (--pipeline.model.lens-refinement; docs/refinement.md): relative deltas
         "lens_opt": _adam(5e-4, ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=max_steps, **warm)),
         # geer's rolling-shutter motion refinement (--pipeline.model.readout-refinement; docs/rolling_shutter.md)
-        "readout_opt": _adam(1e-4, ExponentialDecaySchedulerConfig(lr_final=5e-7, max_steps=max_steps, **warm)),
+        "readout_opt": _adam(1e-3, ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=max_steps, **warm)),
     }
 
 
