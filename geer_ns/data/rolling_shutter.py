@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from geer_ns.cameras.shutter import READOUTS
+from geer_ns.cameras.shutter import READOUTS, so3_exp
 from geer_ns.data.dataset_checks import DatasetError
 
 _VELOCITY_KEYS = ("angular_velocity", "linear_velocity")
@@ -94,8 +94,7 @@ def _end_from_velocities(meta: dict, frame: dict, where: str) -> torch.Tensor:
                            f"got {duration!r}")
     start = _pose(frame, "transform_matrix", where)
     omega = _vector(frame, "angular_velocity", where) * float(duration)
-    turn = torch.linalg.matrix_exp(torch.tensor([[0.0, -omega[2], omega[1]], [omega[2], 0.0, -omega[0]],
-                                                 [-omega[1], omega[0], 0.0]], dtype=torch.float64))
+    turn = so3_exp(omega)
     centre = start[:, 3] + _vector(frame, "linear_velocity", where) * float(duration)
     return torch.cat([start[:, :3] @ turn, centre[:, None]], dim=1)
 
@@ -115,20 +114,25 @@ def readout_metadata(meta: dict, frames: List[dict], path: Path, translation_sca
                                "`rolling_shutter.readout`; add one (e.g. top-to-bottom) or remove the motion")
         if has_end and len(given) > 1:
             raise DatasetError(f"geer: {where}: give `transform_matrix_end` or the velocities, not both")
-        motion = torch.eye(3, 4, dtype=torch.float64)
+        motion = torch.eye(3, 4, dtype=torch.float64).reshape(12)
         if readout != GLOBAL:
             start = _pose(frame, "transform_matrix", where)
             end = (_pose(frame, "transform_matrix_end", where) if has_end
                    else _end_from_velocities(meta, frame, where))
-            r0, r1 = start[:, :3], end[:, :3]
-            motion[:, :3] = r0.T @ r1
-            motion[:, 3] = r0.T @ (end[:, 3] - start[:, 3]) * translation_scale
+            motion = motion_between(start, end, translation_scale)
         readouts.append(readout)
-        motions.append(motion.reshape(12))
+        motions.append(motion)
     if all(r == GLOBAL for r in readouts):
         return None
     return {READOUT_KEY: torch.tensor(readouts, dtype=torch.int64)[:, None],
             MOTION_KEY: torch.stack(motions).float()}
+
+
+def motion_between(start: torch.Tensor, end: torch.Tensor, translation_scale: float = 1.0) -> torch.Tensor:
+    """The motion [12] (R row-major, then t) from camera-to-world start to end [3, 4]: end = start @ [R | t], t
+    scaled by translation_scale; end_pose's inverse."""
+    r0 = start[:, :3]
+    return torch.cat([r0.T @ end[:, :3], (r0.T @ (end[:, 3:] - start[:, 3:])) * translation_scale], 1).reshape(12)
 
 
 def end_pose(start: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
@@ -211,9 +215,7 @@ def sfm_readouts(readout: str, readout_time: Optional[float], frame_rate: Option
         mids[:, :3] = c2w.double().numpy()[order]
         start, end = readout_poses(mids, times, readout_time)
         for j, i in enumerate(order):
-            s0, s1 = torch.from_numpy(start[j, :3]), torch.from_numpy(end[j, :3])
-            starts[i] = s0
-            motions[i] = torch.cat([s0[:, :3].T @ s1[:, :3], (s0[:, :3].T @ (s1[:, 3] - s0[:, 3]))[:, None]],
-                                   1).reshape(12)
+            starts[i] = torch.from_numpy(start[j, :3])
+            motions[i] = motion_between(starts[i], torch.from_numpy(end[j, :3]))
     index = READOUTS.index(readout)
     return starts, {READOUT_KEY: torch.full((len(names), 1), index, dtype=torch.int64), MOTION_KEY: motions.float()}
