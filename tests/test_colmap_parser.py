@@ -627,7 +627,7 @@ def test_rolling_shutter_readouts_from_neighbouring_poses(tmp_path):
             assert np.allclose(Rotation.from_matrix(turn.numpy()).as_rotvec(), omega * dt, atol=2e-6)
             assert torch.allclose(pose[:, 3], mid[:, 3] + still.dataparser_transform[:3, :3].double()
                                   @ torch.tensor(velocity * dt), atol=2e-6)
-    with pytest.raises(DatasetError, match="needs --pipeline.datamanager.dataparser.readout-time"):
+    with pytest.raises(DatasetError, match="needs geer-colmap --readout-time"):
         load(root, rolling_shutter="top-to-bottom", frame_rate=fps)
     with pytest.raises(DatasetError, match="must be shorter than a frame interval"):
         load(root, rolling_shutter="top-to-bottom", readout_time=0.05, frame_rate=fps)

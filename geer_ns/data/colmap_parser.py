@@ -325,7 +325,7 @@ class GeerColmapDataParser(DataParser):
             dist[i, : len(c.distortion)] = torch.tensor(c.distortion, dtype=torch.float32)
         c2w, transform, scale = self._poses(images)
         readouts = sfm_readouts(cfg.rolling_shutter, cfg.readout_time, cfg.frame_rate, names, c2w,
-                                "--pipeline.datamanager.dataparser.", [int(im.camera_id) for im in images])
+                                "geer-colmap --", [int(im.camera_id) for im in images])
         if readouts is not None:  # the model's poses are the images' mid-readout ones; cameras hold the starts
             c2w = readouts[0]
             CONSOLE.log(f"geer: {model_dir}: rolling shutter ({cfg.rolling_shutter}, {cfg.readout_time} s): each "
