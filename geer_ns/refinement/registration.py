@@ -36,7 +36,11 @@ class RegistrationPlan:
 
     register_until: int  # end of the registration stage: densification and SH bands start here
     solves: Tuple[int, ...]  # steps (before their iteration) at which every training pose is solved
-    hold_from: int  # from this step on, Adam does not move the poses
+
+    @property
+    def hold_from(self) -> int:
+        """From this step on Adam does not move the poses: the end of the registration stage."""
+        return self.register_until
 
     def describe(self) -> str:
         return (f"registration: steps 0-{self.register_until} with the seed Gaussians held in place, SH degree 0 and "
@@ -50,7 +54,7 @@ def plan(steps: int, stop_split_at: int) -> RegistrationPlan:
     until = max(1, round(REGISTER_FRACTION * steps))
     solves = tuple(max(1, round(until * (k + 1) / SOLVES)) for k in range(SOLVES))
     final = min(max(stop_split_at, until + 1), max(steps - 1, until + 1))
-    return RegistrationPlan(until, solves + (final,), until)
+    return RegistrationPlan(until, solves + (final,))
 
 
 def apply(config) -> str:
