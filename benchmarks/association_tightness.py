@@ -195,7 +195,7 @@ def geer_variant(ops, scene, viewmat, grid, cone: bool):
         rgb, *_ = ops.render_forward(w, o_u, colors.contiguous(), opac, pbf_cull_pieces(bounds), grid.dirs,
                                      grid.ray_cull_bounds(torch.float32), grid.warp_cull_bounds(torch.float32),
                                      grid.valid, ids, ranges, grid.height, grid.width, grid.tile_size, False,
-                                     w.new_zeros(0))
+                                     w.new_zeros(0), w.new_zeros(0), 0)
     return (ranges[:, 1] - ranges[:, 0]).long(), rgb, (time.perf_counter() - start, t_assoc), (w, o_u, ids, ranges)
 
 

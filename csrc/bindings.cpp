@@ -7,12 +7,14 @@
 #include <ATen/ATen.h>
 #include <torch/csrc/utils/pybind.h>
 
+#include <algorithm>
 #include <optional>
 #include <vector>
 
 #include "geer_associate.h"
 #include "geer_blocks.h"
 #include "geer_launchers.h"
+#include "geer_order.h"
 
 namespace {
 
@@ -233,12 +235,31 @@ geer::RenderArgs<T> render_args(const at::Tensor& whiten, const at::Tensor& o_u,
     return a;
 }
 
+// Each ray in its own order where order_lower [N] is given (geer_order.h): the entries' release bounds [M], made
+// on the device and set in a (kept alive by the returned tensor); empty for the per-view order. The kernels hold
+// kGpuWindow pending pairs a ray (window 0, the exact order, runs it too: exact while a ray holds at most that).
+template <typename T>
+at::Tensor order_bounds(geer::RenderArgs<T>& a, const at::Tensor& whiten, const at::Tensor& ids,
+                        const at::Tensor& order_lower, int64_t order_window) {
+    if (order_lower.numel() == 0) return at::empty({0}, whiten.options());
+    check_float(order_lower, whiten, "order_lower");
+    TORCH_CHECK(order_lower.numel() == whiten.size(0), "geer: order_lower must be [N]");
+    TORCH_CHECK(order_window == 0 || order_window == geer::kGpuWindow, "geer: the CUDA kernels hold ",
+                geer::kGpuWindow, " pending pairs a ray (order 'ray' or 'ray:", geer::kGpuWindow, "'), got a window of ",
+                order_window);
+    auto bounds = at::empty({std::max<int64_t>(ids.numel(), 1)}, whiten.options());  // non-empty: the mode
+    geer::launch_release_bounds<T>(a, cptr<T>(order_lower), mptr<T>(bounds), stream());
+    a.order_bounds = cptr<T>(bounds);
+    a.order_lower = cptr<T>(order_lower);
+    return bounds;
+}
+
 std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Tensor rgb, at::Tensor opacities,
                                        at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
                                        at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids,
                                        at::Tensor ranges, int64_t height, int64_t width, int64_t tile_size,
                                        bool /* record: the CPU build's blended_lanes, see below */,
-                                       at::Tensor origins) {
+                                       at::Tensor origins, at::Tensor order_lower, int64_t order_window) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(whiten));
     const int64_t r = height * width;
     auto opts = whiten.options();
@@ -252,7 +273,9 @@ std::vector<at::Tensor> render_forward(at::Tensor whiten, at::Tensor o_u, at::Te
                                 ranges, height, width, tile_size, origins);
         geer::RenderOutputs<T> out{mptr<T>(out_rgb), mptr<T>(depth), mptr<T>(acc), mptr<T>(t_final),
                                    mptr<int32_t>(n_contrib), mptr<T>(max_weight), mptr<T>(median)};
-        geer::launch_render_forward<T>(a, out, stream());
+        auto bounds = order_bounds<T>(a, whiten, ids, order_lower, order_window);
+        if (bounds.numel() > 0) geer::launch_render_forward_ordered<T>(a, out, stream());
+        else geer::launch_render_forward<T>(a, out, stream());
     });
     // The CPU build also records which lanes blended each entry for its backward; the kernels do not (a
     // 32-bit word per entry and warp), and their backward re-derives them: an empty record.
@@ -268,7 +291,8 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
                                         at::Tensor n_contrib,
                                         at::Tensor /* blended_lanes: empty, see render_forward */, at::Tensor g_rgb,
                                         at::Tensor g_depth, at::Tensor g_acc, at::Tensor absgrad_rows,
-                                        bool dir_grad, at::Tensor origins) {
+                                        bool dir_grad, at::Tensor origins, at::Tensor order_lower,
+                                        int64_t order_window, at::Tensor ray_totals) {
     const c10::cuda::OptionalCUDAGuard guard(device_of(whiten));
     const int64_t n = whiten.size(0);
     auto opts = whiten.options();
@@ -294,8 +318,17 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
         geer::RenderGradArgs<T> g{cptr<T>(t_final), cptr<int32_t>(n_contrib), cptr<T>(g_rgb), cptr<T>(g_depth),
                                   cptr<T>(g_acc), mptr<T>(grads),
                                   with_absgrad ? cptr<T>(absgrad_rows) : nullptr, mptr<T>(absgrad),
-                                  dir_grad ? mptr<T>(g_dirs) : nullptr, origin_grad ? mptr<T>(g_origins) : nullptr};
-        geer::launch_render_backward<T>(a, g, stream());
+                                  dir_grad ? mptr<T>(g_dirs) : nullptr, origin_grad ? mptr<T>(g_origins) : nullptr,
+                                  nullptr};
+        auto bounds = order_bounds<T>(a, whiten, ids, order_lower, order_window);
+        if (bounds.numel() > 0) {
+            check_float(ray_totals, whiten, "ray_totals");
+            TORCH_CHECK(ray_totals.numel() == height * width, "geer: ray_totals must be [R]");
+            g.ray_totals = cptr<T>(ray_totals);
+            geer::launch_render_backward_ordered<T>(a, g, stream());
+        } else {
+            geer::launch_render_backward<T>(a, g, stream());
+        }
     });
     return {grads, absgrad, g_dirs, g_origins};
 }

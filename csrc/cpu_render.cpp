@@ -95,12 +95,17 @@ std::vector<at::Tensor> render_forward_op(at::Tensor whiten, at::Tensor o_u, at:
                                           at::Tensor pbf_pieces, at::Tensor dirs, at::Tensor ray_bounds,
                                           at::Tensor warp_bounds, at::Tensor valid, at::Tensor ids, at::Tensor ranges,
                                           int64_t height, int64_t width, int64_t tile_size, bool record,
-                                          at::Tensor origins) {
+                                          at::Tensor origins, at::Tensor order_lower, int64_t order_window) {
     whiten = cpu(whiten); o_u = cpu(o_u); rgb = cpu(rgb); opacities = cpu(opacities); pbf_pieces = cpu(pbf_pieces);
     dirs = cpu(dirs); ray_bounds = cpu(ray_bounds); warp_bounds = cpu(warp_bounds);
     valid = cpu(valid); ids = cpu(ids); ranges = cpu(ranges); origins = cpu(origins);
     check_cull_bounds(ray_bounds, warp_bounds, height, width, tile_size);
     const bool with_origins = check_origins(origins, whiten, height * width);
+    if (order_lower.numel() > 0) {  // each ray's own order
+        const RenderInputs in{whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid,
+                              ids, ranges, height, width, tile_size, origins};
+        return render_forward_ordered_op(kPacks, in, record, cpu(order_lower), order_window);
+    }
     return dispatch<int>(whiten, [&](auto tag) {
         using T = decltype(tag);
         const auto run = with_origins ? &render_forward<T, kPacks, true> : &render_forward<T, kPacks, false>;

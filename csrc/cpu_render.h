@@ -85,6 +85,26 @@ template <typename T, typename L> struct Block {
     const Vec3<L>* origin_of(int pk) const { return origin.empty() ? nullptr : &origin[pk]; }
 };
 
+// The render stage's inputs (both passes), on the CPU and checked.
+struct RenderInputs {
+    at::Tensor whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges;
+    int64_t height, width, tile_size;
+    at::Tensor origins;  // [R,3] or empty
+};
+// The backward's per-ray inputs: the forward's record, dL/d(rgb, depth, acc sums), absgrad's rows (or empty),
+// and for the per-ray order each ray's total V = gC . rgb + gZ depth + gA acc (geer_order.h).
+struct RayGrads {
+    at::Tensor blended_lanes, g_rgb, g_depth, g_acc, absgrad_rows, ray_totals;
+};
+
+// Stage 3 in each ray's own order (cpu_render_order.cpp): packs, the CPU's path (else the kernels'); recorded, the
+// backward visits the forward's recorded lanes (else the kernels' path); lower [N] the Gaussians' key bounds,
+// window the pending pairs a ray holds (0: as many as it needs, the exact order).
+std::vector<at::Tensor> render_forward_ordered_op(bool packs, const RenderInputs& in, bool record,
+                                                  const at::Tensor& lower, int64_t window);
+std::vector<at::Tensor> render_backward_ordered_op(bool recorded, bool dir_grad, const RenderInputs& in,
+                                                   const RayGrads& g, const at::Tensor& lower, int64_t window);
+
 // Per-ray origins [R,3] of the Gaussians' dtype, or empty (every ray from the camera centre).
 inline bool check_origins(const at::Tensor& origins, const at::Tensor& like, int64_t rays) {
     if (origins.numel() == 0) return false;

@@ -234,8 +234,21 @@ std::vector<at::Tensor> render_backward(at::Tensor whiten, at::Tensor o_u, at::T
                                         int64_t height, int64_t width, int64_t tile_size, at::Tensor t_final,
                                         at::Tensor n_contrib, at::Tensor blended_lanes, at::Tensor g_rgb,
                                         at::Tensor g_depth, at::Tensor g_acc, at::Tensor absgrad_rows, bool dir_grad,
-                                        at::Tensor origins) {
+                                        at::Tensor origins, at::Tensor order_lower, int64_t order_window,
+                                        at::Tensor ray_totals) {
     const bool with_origins = check_origins(origins, whiten, height * width);
+    if (order_lower.numel() > 0) {  // each ray's own order
+        check_cull_bounds(ray_bounds, warp_bounds, height, width, tile_size);
+        TORCH_CHECK(blended_lanes.scalar_type() == at::kInt, "geer: blended_lanes must be render_forward's record");
+        TORCH_CHECK(absgrad_rows.numel() == 0 || (absgrad_rows.scalar_type() == whiten.scalar_type() &&
+                                                  absgrad_rows.numel() == geer::kAbsgradRow * whiten.size(0)),
+                    "geer: absgrad_rows must be [N,6] of the Gaussians' dtype");
+        const RenderInputs in{cpu(whiten), cpu(o_u), cpu(rgb), cpu(opacities), cpu(pbf_pieces), cpu(dirs),
+                              cpu(ray_bounds), cpu(warp_bounds), cpu(valid), cpu(ids), cpu(ranges), height, width,
+                              tile_size, cpu(origins)};
+        const RayGrads g{cpu(blended_lanes), cpu(g_rgb), cpu(g_depth), cpu(g_acc), cpu(absgrad_rows), cpu(ray_totals)};
+        return render_backward_ordered_op(kRecorded, dir_grad, in, g, cpu(order_lower), order_window);
+    }
     const auto run = dir_grad ? (with_origins ? &render_backward_impl<kPacks, kRecorded, true, true>
                                               : &render_backward_impl<kPacks, kRecorded, true, false>)
                               : (with_origins ? &render_backward_impl<kPacks, kRecorded, false, true>

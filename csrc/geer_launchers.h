@@ -112,6 +112,9 @@ template <typename T> struct RenderArgs {
     const int32_t* ids;      // [M] Gaussian ids sorted by (tile, rank)
     const int32_t* ranges;   // [T,2]
     int height, width, tile_size;
+    // [M] each list entry's release bound (geer_order.h; render_order.cu makes them), null: the per-view order
+    const T* order_bounds;
+    const T* order_lower;  // [N] each Gaussian's key bound (render/order.py key_lower_bounds), with order_bounds
 };
 template <typename T> struct RenderOutputs {
     T* rgb;           // [R,3] blended colour, no background
@@ -142,9 +145,19 @@ template <typename T> struct RenderGradArgs {
     T* g_dirs;
     // dL/d(ray origin) [R,3] (null unless g_dirs and a.origins), written
     T* g_origins;
+    // [R] each ray's gC . rgb + gZ depth + gA acc of the forward's sums (the per-ray order's backward only)
+    const T* ray_totals;
 };
 template <typename T>
 void launch_render_backward(const RenderArgs<T>& a, const RenderGradArgs<T>& g, cudaStream_t stream);
+
+// Each ray in its own order (render_order.cu): the entries' release bounds from the Gaussians' key bounds
+// lower [N] into bound [M] (then a.order_bounds), and the two passes.
+template <typename T> void launch_release_bounds(const RenderArgs<T>& a, const T* lower, T* bound, cudaStream_t stream);
+template <typename T>
+void launch_render_forward_ordered(const RenderArgs<T>& a, const RenderOutputs<T>& out, cudaStream_t stream);
+template <typename T>
+void launch_render_backward_ordered(const RenderArgs<T>& a, const RenderGradArgs<T>& g, cudaStream_t stream);
 
 // ------------------------------------------------------------------ stage 4: preprocess backward
 template <typename T> struct PreprocessGradArgs {

@@ -187,6 +187,11 @@ template <typename L> GEER_HD Vec3<L> splat3(const typename Lane<L>::Scalar* p) 
 }
 GEER_HD bool lane_any(bool m) { return m; }
 GEER_HD bool lane_not(bool m) { return !m; }
+// Lane i of a value or mask (a scalar is a one-lane pack).
+GEER_HD float lane_get(float v, int) { return v; }
+GEER_HD double lane_get(double v, int) { return v; }
+GEER_HD int lane_get(int v, int) { return v; }
+template <typename S> GEER_HD void lane_set(S& v, int, S x) { v = x; }
 template <typename V> GEER_HD V lane_select(bool m, V a, V b) { return m ? a : b; }
 // Scalar forms of the per-pair intrinsics with a lane mask: exp where kept, 0 elsewhere.
 GEER_HD float exp_where(bool keep, float x) { return keep ? g_exp_pair(x) : 0.0f; }

@@ -89,14 +89,10 @@ inline FloatPack exp_where(FloatPackMask keep, FloatPack x) { return pack_exp_wh
 inline DoublePack exp_where(DoublePackMask keep, DoublePack x) { return pack_exp_where(keep, x); }
 
 // ------------------------------------------------------------------ lane access (a scalar is a one-lane pack)
-inline float lane_get(float v, int) { return v; }
-inline double lane_get(double v, int) { return v; }
-inline int lane_get(int v, int) { return v; }
 inline float lane_get(const FloatPack& v, int i) { return v[i]; }
 inline double lane_get(const DoublePack& v, int i) { return v[i]; }
 inline int lane_get(const FloatPackMask& v, int i) { return int(v[i]); }
 inline int lane_get(const DoublePackMask& v, int i) { return int(v[i]); }
-template <typename S> inline void lane_set(S& v, int, S x) { v = x; }
 inline void lane_set(FloatPack& v, int i, float x) { v[i] = x; }
 inline void lane_set(DoublePack& v, int i, double x) { v[i] = x; }
 inline void lane_set(FloatPackMask& v, int i, int x) { v[i] = x; }

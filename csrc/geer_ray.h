@@ -128,6 +128,10 @@ GEER_HD PairEval<L> eval_pair(const GaussFrame<T>& g, const Vec3<L>& d, const Ve
 }
 
 // ================================================================================ forward: ray
+template <typename L> struct RayForward;
+template <typename T, typename L>
+GEER_HD L ray_blend(RayForward<L>& s, typename Lane<L>::Mask kept, L alpha, L t_hit, const T* rgb, int pos);
+
 template <typename L> struct RayForward {
     L rgb[3];
     L depth;      // sum of w_i max(t*_i, 0)
@@ -161,15 +165,23 @@ GEER_HD L ray_forward_step(RayForward<L>& s, const GaussFrame<T>& g, const Vec3<
     const PairEval<L> e = eval_pair<T, L, kOrigin>(g, d, origin);
     const Mask kept = open & e.keep;
     if (!lane_any(kept)) return zero;
-    const L t_after = s.trans * (splat<L>(T(1)) - e.alpha);
+    return ray_blend<T, L>(s, kept, e.alpha, lane_select(e.front, e.t_star, zero), g.rgb, pos);  // depth: clamped t
+}
+
+// Blend one Gaussian (colour rgb, alpha, at t_hit = max(t*, 0) on the ray, list position pos) into the lanes of
+// `kept` (composite.composite: stop before T < T_MIN). Returns each lane's blend weight T_before alpha, 0 where
+// the lane does not blend it. The blend of ray_forward_step (list order) and of blend_pending (geer_order.h).
+template <typename T, typename L>
+GEER_HD L ray_blend(RayForward<L>& s, typename Lane<L>::Mask kept, L alpha, L t_hit, const T* rgb, int pos) {
+    using Mask = typename Lane<L>::Mask;
+    const L zero = splat<L>(T(0));
+    const L t_after = s.trans * (splat<L>(T(1)) - alpha);
     const Mask stop = kept & (t_after < splat<L>(T(kTMin)));
     s.done = s.done | stop;
     const Mask blend = kept & lane_not(stop);
     if (!lane_any(blend)) return zero;
-    const L w = e.alpha * s.trans;
-    for (int c = 0; c < 3; ++c) s.rgb[c] = lane_select(blend, s.rgb[c] + w * g.rgb[c], s.rgb[c]);
-    // depth at the same clamped t as the response
-    const L t_hit = lane_select(e.front, e.t_star, zero);
+    const L w = alpha * s.trans;
+    for (int c = 0; c < 3; ++c) s.rgb[c] = lane_select(blend, s.rgb[c] + w * rgb[c], s.rgb[c]);
     s.depth = lane_select(blend, s.depth + w * t_hit, s.depth);
     s.acc = lane_select(blend, s.acc + w, s.acc);
     const L half = splat<L>(T(0.5));
@@ -297,6 +309,11 @@ template <typename L> GEER_HD void pair_grad_zero(PairGrad<L>& p) {
     p.opacity = zero;
 }
 
+template <typename T, typename L, bool kDirGrad, bool kOrigin>
+GEER_HD void pair_backward_from_alpha(const PairEval<L>& e, const GaussFrame<T>& g, L w, L g_alpha, const L* g_rgb,
+                                      L g_depth, typename Lane<L>::Mask live, PairGrad<L>& p, Vec3<L>& g_dir,
+                                      Vec3<L>& g_origin);
+
 // One Gaussian of the ray's blended prefix, back to front, for the lanes in `active`. Returns the lanes
 // that blended it (q <= q_max: what the forward blended too), whose p it sets; the state of the others is
 // untouched. No per-ray cull here: the GPU, whose 1024-thread float32 build has no registers to spare for
@@ -330,9 +347,22 @@ GEER_HD typename Lane<L>::Mask ray_backward_step(RayBackward<L>& s, const GaussF
     const L g_alpha = t_before * (v - s.rec);
     s.rec = lane_select(live, e.alpha * v + one_minus * s.rec, s.rec);
     s.trans = lane_select(live, t_before, s.trans);
+    pair_backward_from_alpha<T, L, kDirGrad, kOrigin>(e, g, w, g_alpha, s.g_rgb, s.g_depth, live, p, s.g_dir,
+                                                      s.g_origin);
+    return live;
+}
 
+// One blended pair's gradients from its blend weight w and dL/dalpha (the order's part, which ray_backward_step
+// and geer_order.h's backward_pending each take their own way): p for the Gaussian, and with kDirGrad the ray's
+// direction (and with kOrigin its origin) gradients added to g_dir (g_origin) in the lanes of `live`.
+template <typename T, typename L, bool kDirGrad, bool kOrigin>
+GEER_HD void pair_backward_from_alpha(const PairEval<L>& e, const GaussFrame<T>& g, L w, L g_alpha, const L* g_rgb,
+                                      L g_depth, typename Lane<L>::Mask live, PairGrad<L>& p, Vec3<L>& g_dir,
+                                      Vec3<L>& g_origin) {
+    using Mask = typename Lane<L>::Mask;
+    const L zero = splat<L>(T(0));
     pair_grad_zero(p);
-    for (int c = 0; c < 3; ++c) p.rgb[c] = w * s.g_rgb[c];
+    for (int c = 0; c < 3; ++c) p.rgb[c] = w * g_rgb[c];
     const Mask unclamped = e.raw < splat<L>(T(kAlphaMax));
     p.opacity = lane_select(unclamped, g_alpha * e.gauss, zero);
     const L g_q = lane_select(unclamped, T(-0.5) * g_alpha * e.raw, zero);
@@ -342,18 +372,17 @@ GEER_HD typename Lane<L>::Mask ray_backward_step(RayBackward<L>& s, const GaussF
     else o_u = splat3<L>(g.o);
     if constexpr (kDirGrad) {
         Vec3<L> g_du;
-        half_line_backward<T>(e, o_u, g_q, lane_select(e.front, w * s.g_depth, zero), g_o, p.w, &g_du);
+        half_line_backward<T>(e, o_u, g_q, lane_select(e.front, w * g_depth, zero), g_o, p.w, &g_du);
         const Vec3<L> g_d = g_du.x * splat3<L>(g.w) + g_du.y * splat3<L>(g.w + 3) + g_du.z * splat3<L>(g.w + 6);
-        s.g_dir = lane_select3<L>(live, s.g_dir + g_d, s.g_dir);
+        g_dir = lane_select3<L>(live, g_dir + g_d, g_dir);
         if constexpr (kOrigin) {
             const Vec3<L> g_org = g_o.x * splat3<L>(g.w) + g_o.y * splat3<L>(g.w + 3) + g_o.z * splat3<L>(g.w + 6);
-            s.g_origin = lane_select3<L>(live, s.g_origin + g_org, s.g_origin);
+            g_origin = lane_select3<L>(live, g_origin + g_org, g_origin);
         }
     } else {
-        half_line_backward<T>(e, o_u, g_q, lane_select(e.front, w * s.g_depth, zero), g_o, p.w);
+        half_line_backward<T>(e, o_u, g_q, lane_select(e.front, w * g_depth, zero), g_o, p.w);
     }
     p.o[0] = g_o.x; p.o[1] = g_o.y; p.o[2] = g_o.z;
-    return live;
 }
 
 }  // namespace geer

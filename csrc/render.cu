@@ -16,25 +16,15 @@
 #include "geer_launchers.h"
 #include "geer_math.h"
 #include "geer_ray.h"
+#include "geer_render_device.cuh"
 
 namespace geer {
-
-template <typename T> __device__ __forceinline__ void load_frame(const RenderArgs<T>& a, int g, GaussFrame<T>& f) {
-    make_frame(a.whiten + 9 * g, a.o_u + 3 * g, a.rgb + 3 * g, a.opacities[g], a.pbf_pieces + 8 * g, f);
-}
 
 // kMaxThreads: the largest block this build is launched with (kSmallTileThreads or kLargeTileThreads).
 // The warp's largest x (geer_blocks.h's tree; a max is exact, so any order gives its bits).
 template <typename T> __device__ __forceinline__ T warp_max(T x) {
     for_each_tree_mask([&](int mask) { x = g_max(x, __shfl_xor_sync(0xffffffffu, x, mask)); });
     return x;
-}
-// *a = max(*a, x) for x >= 0: non-negative floats order like their bits (NaN above every number).
-__device__ __forceinline__ void atomic_max_nonneg(float* a, float x) {
-    atomicMax(reinterpret_cast<unsigned int*>(a), __float_as_uint(x));
-}
-__device__ __forceinline__ void atomic_max_nonneg(double* a, double x) {
-    atomicMax(reinterpret_cast<unsigned long long*>(a), static_cast<unsigned long long>(__double_as_longlong(x)));
 }
 
 // kOrigin: every ray from its own origin (a.origins: rolling shutter), a build of its own (registers).
@@ -76,14 +66,7 @@ __global__ void __launch_bounds__(kMaxThreads) render_forward_kernel(const Rende
             if (lane == 0) atomic_max_nonneg(out.max_weight + a.ids[batch_entry(bt, k)], top);
         }
     }
-    if (!slot.in_image) return;
-    const int r = slot.ray;
-    for (int c = 0; c < 3; ++c) out.rgb[3 * r + c] = st.rgb[c];
-    out.depth[r] = st.depth;
-    out.acc[r] = st.acc;
-    out.t_final[r] = st.trans;
-    out.n_contrib[r] = st.n_contrib;
-    out.median[r] = st.median;
+    store_ray(out, slot, st);
 }
 
 // The warp's totals of the lanes' values (geer_blocks.h): lane ends with value scatter_value(lane)'s in v[0].

@@ -54,7 +54,7 @@ from geer_ns.densify.strategy import GeerDefaultStrategy, build_strategy
 from geer_ns.errors import OptionError
 from geer_ns.distributed.engine import EngineState
 from geer_ns.metrics.regions import central_region, downscale_mask, masked_psnr, region_psnr
-from geer_ns.options import GeerOwnOptions, ignored_options_set, skipping_line
+from geer_ns.options import GeerOwnOptions, check_composite_order, ignored_options_set, skipping_line
 from geer_ns.metrics.perceptual import build_lpips_if_cached
 from geer_ns.refinement.registration import pose_callbacks
 from geer_ns.refinement.refined_frame import RefinedFrame, scene_pose
@@ -151,6 +151,7 @@ class GeerModel(SplatfactoModel):
             raise OptionError("--pipeline.model.pose-refinement-start: a step >= 0, with "
                               "--pipeline.model.camera-optimizer.mode SO3xR3 or SE3 (got "
                               f"{self.config.pose_refinement_start}, mode {self.config.camera_optimizer.mode})")
+        check_composite_order(self.config)
         self.ssim = SSIM(data_range=1.0, size_average=True, channel=3)
         self._perceptual: Dict[str, object] = {}  # LPIPS, built on first use (not a submodule: no state)
         self.step = 0
@@ -284,9 +285,10 @@ class GeerModel(SplatfactoModel):
 
     def render_options(self) -> Dict[str, object]:
         """The renderer options every render of this model passes (its own, the sharded engines', the split
-        evaluation's): the backend the kernel sentinel leaves in use, the PBF lambda rule, the pair budget."""
+        evaluation's): the backend the kernel sentinel leaves in use, the PBF lambda rule, the pair budget, the
+        compositing order."""
         return dict(backend=self.sentinel.backend(self.config.renderer_backend), lambda_mode=self.config.lambda_mode,
-                    max_pairs=self.config.max_pairs)
+                    max_pairs=self.config.max_pairs, order=self.config.composite_order)
 
     @staticmethod
     def activated(params: Dict[str, Tensor]) -> Tuple[Tensor, Tensor]:
@@ -315,7 +317,7 @@ class GeerModel(SplatfactoModel):
             means = probe.displace(means, viewmat)
         colors, sh_degree = self.colors(params)
         options = self.render_options()
-        announce_backend(options["backend"], means.device, say=CONSOLE.log)
+        announce_backend(options["backend"], means.device, say=CONSOLE.log, order=options["order"])
         grid = view.rays.to(means.device)
         out = render(
             means, params["quats"], scales, opacities, colors, viewmat, grid, sh_degree=sh_degree,

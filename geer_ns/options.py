@@ -11,7 +11,9 @@ from typing import List, Literal, Optional, Tuple
 
 from geer_ns.refinement.lens import LensMode
 from geer_ns.refinement.registration import CameraRefinement
+from geer_ns.errors import OptionError
 from geer_ns.render.backend import Backend
+from geer_ns.render.order import CompositeOrder
 from geer_ns.render.pbf import LambdaMode
 from geer_ns.selftest.sentinel import DEFAULT_EVERY
 
@@ -61,6 +63,11 @@ class GeerOwnOptions:
     compiled renderer; a disagreement switches the run to the PyTorch renderer (0: never; docs/cuda.md)."""
     lambda_mode: LambdaMode = "opacity"
     """PBF extent rule of the renderer (geer_ns.render.pbf)."""
+    composite_order: str = "view"
+    """How each ray composites its pairs (geer_ns/render/order.py): "view", the tile lists' one order per view (by
+    the distance to each Gaussian's mean); "ray", each ray its own exact order (by where it meets each Gaussian's
+    peak); "ray:K", the same holding at most K pending pairs a ray (exact while it holds at most K). The CUDA
+    kernels hold 64 ("ray" and "ray:64"). Measured: benchmarks/render_order.md."""
     max_pairs: int = 1 << 22
     """Renderer memory cap: (ray, Gaussian) pairs evaluated at once."""
     central_half_angles_deg: Optional[Tuple[float, float]] = None
@@ -165,3 +172,11 @@ def skipping_line(options: GeerOwnOptions, sh_choice_step: Optional[int], sharde
             if options.optimizer_rows == "visible" else "Adam steps every Gaussian (optimizer-rows all)")
     cull = "views render the Gaussians they can see" if options.view_cull else "views render every Gaussian"
     return f"{sh}; {rows}; {cull}"
+
+
+def check_composite_order(options: GeerOwnOptions) -> None:
+    """OptionError naming --pipeline.model.composite-order unless it is 'view', 'ray' or 'ray:K' (render/order.py)."""
+    try:
+        CompositeOrder.parse(options.composite_order)
+    except ValueError as err:
+        raise OptionError(f"--pipeline.model.composite-order: {err}") from None

@@ -154,8 +154,11 @@ def test_start_up_says_once_which_renderer_runs(ops):
     assert len(said) == 1, said
     lanes = "packs of 8 rays (AVX2)" if ops.render_lanes(False) == 8 else "one ray at a time"
     assert "compiled for the CPU" in said[0] and lanes in said[0], said
+    assert "one compositing order per view (composite-order view)" in said[0], said
     backend_module.announce_backend("torch", torch.device("cpu"), say=said.append)
-    assert said[-1] == "geer: renderer: the PyTorch renderer on cpu"
+    assert said[-1] == "geer: renderer: the PyTorch renderer on cpu; one compositing order per view (composite-order view)"
+    backend_module.announce_backend("auto", torch.device("cpu"), say=said.append, order="ray")
+    assert said[-1].endswith("each ray in its own exact order (composite-order ray)"), said
 
 
 def test_the_forward_records_blended_lanes_only_when_a_backward_will_run(ops, monkeypatch):

@@ -133,9 +133,14 @@ def _allowed_spill(k: Kernel) -> int:
     """Bytes a float32 kernel may spill: none, except the opt-in builds at 1024 threads (tiles over 16 pixels):
     the backward's ray-direction build (lens refinement, render.cu kDirGrad), whose 3 extra per-ray sums do not
     fit the 64 registers (measured 40 bytes with nvcc 13.0; docs/refinement.md), and the per-ray-origin builds
-    (rolling shutter, kOrigin: 32 bytes, 100 with kDirGrad; docs/rolling_shutter.md)."""
+    (rolling shutter, kOrigin: 32 bytes, 100 with kDirGrad; docs/rolling_shutter.md); and the per-ray order's
+    backward with ray gradients at either block (docs/compositing_order.md)."""
     opt_in = (k.base == "render_backward_kernel" and len(k.flags) == 3 and (k.flags[1] or k.flags[2])) or \
         (k.base == "render_forward_kernel" and k.flags == (True,))
+    if k.base == "render_backward_ordered_kernel" and k.flags[:1] == (True,):
+        # the per-ray order's backward with ray gradients (render_order.cu): it keeps its window of pending pairs
+        # in local memory anyway; measured 68-72 bytes, 366 with per-ray origins at 1024 threads (nvcc 13.0)
+        return 512
     return 128 if opt_in and k.max_threads == 1024 else 0
 
 
@@ -228,6 +233,11 @@ def test_every_kernel_launches_at_its_largest_block(build):
     assert variants == {(d, b, (f, g, o)) for d in ("float32", "float64") for b in (256, 1024) for f in flags
                         for g in flags for o in flags}
     variants = {(k.dtype, k.max_threads, k.flags) for k in found.values() if k.base == "render_forward_kernel"}
+    assert variants == {(d, b, (o,)) for d in ("float32", "float64") for b in (256, 1024) for o in flags}
+    # The per-ray order's (render_order.cu): forward [per-ray origins], backward [ray gradients, per-ray origins].
+    variants = {(k.dtype, k.max_threads, k.flags) for k in found.values() if k.base == "render_backward_ordered_kernel"}
+    assert variants == {(d, b, (g, o)) for d in ("float32", "float64") for b in (256, 1024) for g in flags for o in flags}
+    variants = {(k.dtype, k.max_threads, k.flags) for k in found.values() if k.base == "render_forward_ordered_kernel"}
     assert variants == {(d, b, (o,)) for d in ("float32", "float64") for b in (256, 1024) for o in flags}
     for base in ("preprocess_forward_kernel", "preprocess_backward_kernel", "count_tiles_kernel", "emit_pairs_kernel"):
         assert {k.dtype for k in found.values() if k.base == base} == {"float32", "float64"}, base

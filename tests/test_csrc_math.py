@@ -435,7 +435,7 @@ def test_early_termination_and_alpha_clamp(ops):
         _, _, _acc, t_final, n_contrib, _blended, _max_weight, _median = ops.render_forward(
             w, o_u, scene[4], scene[3], pbf_cull_pieces(bounds), grid.dirs, grid.ray_cull_bounds(F64),
             grid.warp_cull_bounds(F64),
-            grid.valid, ids, ranges, grid.height, grid.width, grid.tile_size, False, w.new_zeros(0))
+            grid.valid, ids, ranges, grid.height, grid.width, grid.tile_size, False, w.new_zeros(0), w.new_zeros(0), 0)
     assert float(t_final.min()) >= 1e-4 and float(t_final.min()) < 1e-2
     assert bool((n_contrib < (ranges[:, 1] - ranges[:, 0]).max()).any())
     ref_g = _grads(lambda *a: render(*a, vm, grid, backend="torch"), scene, 3, F64)

@@ -239,3 +239,26 @@ def test_rolling_shutter_matches_the_cpu_build(cuda_ops, tile_size):
         results.append([out.rgb.detach().cpu()] + [t.grad.cpu() for t in leaves + [org, dr]])
     for name, a, b in zip(("rgb", "means", "quats", "scales", "opacities", "colors", "origins", "dirs"), *results):
         assert _rel(b, a) <= 1e-9, f"{name}: {_rel(b, a):.3e}"
+
+
+@pytest.mark.parametrize("tile_size", [16, 32])
+@pytest.mark.parametrize("dtype", [F32, F64])
+def test_per_ray_order_matches_the_cpu_build(cuda_ops, tile_size, dtype):
+    """Each ray in its own order (render_order.cu, a window of 64 pending pairs): images, max_weight and every
+    gradient of the kernels against the CPU build's window of 64 (the same walk, geer_order.h), both blocks; float64
+    to 1e-9, float32 to 1e-4 (the kernels' atomics sum in another order)."""
+    from geer_ns.render.extensions import load_cpu_ops
+
+    grid_cpu = RayGrid.beap(48, 40, math.radians(80), math.radians(70), tile_size=tile_size, dtype=dtype)
+    scene = random_scene(150, 9, spread=0.6, scale_range=(0.05, 0.6))
+    results = []
+    for device, ops in (("cpu", load_cpu_ops()), (DEV, cuda_ops)):
+        leaves = [t.to(device, dtype).requires_grad_(True) for t in scene]
+        out = cuda_backend.render_cuda(*leaves, torch.eye(4, dtype=dtype, device=device), grid_cpu.to(device), ops=ops,
+                                       order="ray:64")
+        weights = torch.rand(out.rgb.shape, generator=torch.Generator().manual_seed(2), dtype=F64).to(device, dtype)
+        ((out.rgb * weights).sum() + out.depth.sum()).backward()
+        results.append([out.rgb.detach().cpu(), out.max_weight.cpu()] + [t.grad.cpu() for t in leaves])
+    tol = 1e-9 if dtype == F64 else 1e-4
+    for name, a, b in zip(("rgb", "max_weight", "means", "quats", "scales", "opacities", "colors"), *results):
+        assert _rel(b, a) <= tol, f"{name}: {_rel(b, a):.3e}"

@@ -76,6 +76,7 @@ def render_sharded(
     lambda_mode: str = "opacity",
     backend: str = "auto",
     max_pairs: int = 1 << 20,
+    order: Optional[str] = None,
     absgrad_sinks: Optional[Sequence[Tensor]] = None,
     lateral: Optional[Callable[[Tensor], Tensor]] = None,
 ) -> Tuple[RenderOutput, ShardViews]:
@@ -126,7 +127,7 @@ def render_sharded(
         basis = lateral(view_transform(r_means.detach(), viewmats[me]))
         extra["absgrad"] = (basis, received[:, PAYLOAD:])
     out = render(r_means, r_quats, r_scales, r_opac.squeeze(1), r_rgb, viewmats[me], grids[me], background=background,
-                 lambda_mode=lambda_mode, backend=backend, max_pairs=max_pairs, **extra)
+                 lambda_mode=lambda_mode, backend=backend, max_pairs=max_pairs, order=order, **extra)
     weights = _weights_home(out, send_counts, recv_counts, world.distributed, payload)
     return out, ShardViews(list(rows), list(weights.split(send_counts)), sum(send_counts))
 

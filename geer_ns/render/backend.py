@@ -110,10 +110,11 @@ def resolve_backend(backend: Backend, device: torch.device) -> Literal["torch", 
 _announced: set[tuple[str, str]] = set()
 
 
-def announce_backend(backend: Backend, device: torch.device, say=print) -> None:
-    """Say once per process (and backend request and device type) what `backend` renders tensors on `device`
-    with: the start-up line of a training run. Fallbacks are announced by resolve_backend itself."""
-    key = (backend, device.type)
+def announce_backend(backend: Backend, device: torch.device, say=print, order: str = "view") -> None:
+    """Say once per process (and backend request, device type and compositing order) what `backend` renders
+    tensors on `device` with, and in which order (order.py): the start-up line of a training run. Fallbacks are
+    announced by resolve_backend itself."""
+    key = (backend, device.type, str(order))
     if key in _announced:
         return
     _announced.add(key)
@@ -121,6 +122,19 @@ def announce_backend(backend: Backend, device: torch.device, say=print) -> None:
     if chosen == "cpu":
         lanes = extensions.load_cpu_ops().render_lanes(False)
         how = f"packs of {lanes} rays (AVX2)" if lanes > 1 else "one ray at a time (no AVX2 in this build)"
-        say(f"geer: renderer: the kernels' code compiled for the CPU ({torch.get_num_threads()} threads, {how})")
+        what = f"the kernels' code compiled for the CPU ({torch.get_num_threads()} threads, {how})"
     else:
-        say(f"geer: renderer: {'the CUDA kernels' if chosen == 'cuda' else 'the PyTorch renderer'} on {device}")
+        what = f"{'the CUDA kernels' if chosen == 'cuda' else 'the PyTorch renderer'} on {device}"
+    say(f"geer: renderer: {what}; {order_line(str(order), chosen)}")
+
+
+def order_line(order: str, chosen: str) -> str:
+    """The compositing order's part of the start-up line (composite-order)."""
+    if order == "view":
+        return "one compositing order per view (composite-order view)"
+    window = order.partition(":")[2]
+    if chosen == "cuda":
+        return f"each ray in its own order, holding 64 pending pairs (composite-order {order})"
+    if window:
+        return f"each ray in its own order, holding {window} pending pairs (composite-order {order})"
+    return f"each ray in its own exact order (composite-order {order})"

@@ -33,15 +33,18 @@ from .composite import composite, median_crossing
 from .transmittance import canonical_ray_response, half_line_sq, moving_ray_response, pair_alpha
 
 
-def _plan(counts: Tensor, rays_per_group: int, max_pairs: int) -> list[tuple[Tensor, list[tuple[int, int]]]]:
+def _plan(counts: Tensor, rays_per_group: int, max_pairs: int,
+          whole_lists: bool = False) -> list[tuple[Tensor, list[tuple[int, int]]]]:
     """[(groups, [(k0, k1), ...])]: groups batched by similar list length (longest first), each batch with
-    the list ranges it is blended in. Groups without Gaussians (empty or inactive tiles) are left out."""
+    the list ranges it is blended in. Groups without Gaussians (empty or inactive tiles) are left out.
+    whole_lists: never split a group's list (the per-ray order sorts a ray's whole list; max_pairs then bounds
+    the batching only)."""
     by_count = torch.sort(counts, descending=True, stable=True).indices
     by_count = by_count[counts[by_count] > 0]
     plan, start, p = [], 0, rays_per_group
     while start < by_count.numel():
         k = int(counts[by_count[start]])
-        if p * k <= max_pairs:
+        if p * k <= max_pairs or whole_lists:
             n_groups, pieces = max(1, max_pairs // (p * k)), [(0, k)]
         else:  # one group alone exceeds the budget: blend its list in pieces
             step = max(1, max_pairs // p)
@@ -51,12 +54,14 @@ def _plan(counts: Tensor, rays_per_group: int, max_pairs: int) -> list[tuple[Ten
     return plan
 
 
-def _blend_piece(o_u, whiten, opacities, colors, dirs, r_ok, g_ok, t_start, median=False, origins=None):
+def _blend_piece(o_u, whiten, opacities, colors, dirs, r_ok, g_ok, t_start, median=False, origins=None,
+                 per_ray=False):
     """One piece: o_u [G,K,3], whiten [G,K,3,3], opacities [G,K], colors [G,K,3] of the listed Gaussians,
     dirs [G,P,3] (origins [G,P,3]: the rays' own origins, None: the camera centre); r_ok [G,P] / g_ok [G,K] mask
     padding and invalid rays. Returns (rgb, depth sum, accumulation, t_end) per ray and the pairs' q, depth and
-    blend weight [G,P,K]; with `median`, the per-ray depth where the piece takes the transmittance below 0.5
-    (composite.median_crossing) after them."""
+    blend weight [G,P,K] (list order); with `median`, the per-ray depth where the piece takes the transmittance
+    below 0.5 (composite.median_crossing) after them. per_ray: each ray composites its pairs in its own order
+    (order.py: by depth = max(t*, 0), ties in list order), the piece being a whole list."""
     if origins is None:
         dist_sq, t_star = canonical_ray_response(o_u, whiten, dirs)
         o_sq = None
@@ -64,9 +69,18 @@ def _blend_piece(o_u, whiten, opacities, colors, dirs, r_ok, g_ok, t_start, medi
         dist_sq, t_star, o_sq = moving_ray_response(o_u, whiten, dirs, origins)
     q, depth, _ = half_line_sq(dist_sq, t_star, o_u, o_sq)
     alpha = pair_alpha(q, opacities[:, None, :], r_ok[:, :, None] & g_ok[:, None, :])
-    *sums, weights = composite(alpha, colors, depth, t_start)
+    ordered_alpha, ordered_depth, ordered_colors = alpha, depth, colors
+    if per_ray:  # pairs not kept (alpha 0) blend nothing: last
+        key = torch.where(alpha > 0, depth, torch.full_like(depth, float("inf"))).detach()
+        perm = torch.sort(key, dim=-1, stable=True).indices
+        ordered_alpha, ordered_depth = alpha.gather(-1, perm), depth.gather(-1, perm)
+        ordered_colors = colors[:, None].expand(*perm.shape, 3).gather(-2, perm[..., None].expand(*perm.shape, 3))
+    *sums, weights = composite(ordered_alpha, ordered_colors, ordered_depth, t_start)
+    crossed = median_crossing(ordered_alpha, ordered_depth, weights, t_start) if median else None
+    if per_ray:
+        weights = torch.zeros_like(weights).scatter(-1, perm, weights)
     if median:
-        return sums, q, depth, weights, median_crossing(alpha, depth, weights, t_start)
+        return sums, q, depth, weights, crossed
     return sums, q, depth, weights
 
 
@@ -77,12 +91,12 @@ class _BlendLists(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs, rows,
-                sink, origins=None):
+                sink, origins=None, per_ray=False):
         n_rays, p = dirs.shape[0], ray_index.shape[1]
         out = (o_u.new_zeros(n_rays, 3), o_u.new_zeros(n_rays), o_u.new_zeros(n_rays))
         max_weight = o_u.new_zeros(o_u.shape[0])
         median = o_u.new_zeros(n_rays)
-        plan = _plan(counts, p, max_pairs)
+        plan = _plan(counts, p, max_pairs, per_ray)
         starts = []
         for sel, pieces in plan:
             r_idx = ray_index[sel]
@@ -96,7 +110,8 @@ class _BlendLists(torch.autograd.Function):
                 g_idx = lists[sel, k0:k1]
                 g, listed = g_idx.clamp_min(0), g_idx >= 0
                 (*piece, t), _, _, weights, crossed = _blend_piece(o_u[g], whiten[g], opacities[g], colors[g], d,
-                                                                   r_ok, listed, t, median=True, origins=org)
+                                                                   r_ok, listed, t, median=True, origins=org,
+                                                                   per_ray=per_ray)
                 sums = [s + x for s, x in zip(sums, (*piece, crossed))]
                 max_weight.scatter_reduce_(0, g[listed], weights.amax(dim=-2)[listed], reduce="amax")
             keep = r_idx >= 0
@@ -105,7 +120,7 @@ class _BlendLists(torch.autograd.Function):
         t_starts = torch.cat([s.reshape(-1) for s in starts]) if starts else o_u.new_zeros(0)
         ctx.save_for_backward(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, t_starts,
                               rows, origins)
-        ctx.max_pairs = max_pairs
+        ctx.max_pairs, ctx.per_ray = max_pairs, per_ray
         ctx.mark_non_differentiable(max_weight, median)
         return (*out, max_weight, median)
 
@@ -123,7 +138,7 @@ class _BlendLists(torch.autograd.Function):
         with_absgrad = rows is not None and ctx.needs_input_grad[11]
         absgrad = o_u.new_zeros(o_u.shape[0], 2) if with_absgrad else None
         offset = 0
-        for sel, pieces in _plan(counts, ray_index.shape[1], ctx.max_pairs):
+        for sel, pieces in _plan(counts, ray_index.shape[1], ctx.max_pairs, ctx.per_ray):
             r_idx = ray_index[sel]
             keep = r_idx >= 0
             r_ok = keep & ray_valid[r_idx.clamp_min(0)]
@@ -147,7 +162,7 @@ class _BlendLists(torch.autograd.Function):
                     d_leaf = d.detach().requires_grad_(with_dirs)
                     o_leaf = None if org is None else org.detach().requires_grad_(with_origins)
                     (*outs, t_end), q, depth, weights = _blend_piece(*leaves, d_leaf, r_ok, g_idx >= 0, t0,
-                                                                     origins=o_leaf)
+                                                                     origins=o_leaf, per_ray=ctx.per_ray)
                     loss = sum((go * o).sum() for go, o in zip(g_out, outs)) + (g_t * t_end).sum()
                     wanted = leaves + [t0] + ([q, depth] if with_absgrad else []) + ([d_leaf] if with_dirs else []) \
                         + ([o_leaf] if with_origins else [])
@@ -171,11 +186,11 @@ class _BlendLists(torch.autograd.Function):
                     g_o = pair_o_u_grad(*piece_grads[5:7], o_pair, leaves[1].detach(), d, depth.detach())
                     over_rays = pair_absgrad(rows[g], g_o, weights.detach() > 0).sum(-3)  # [G, K, 2]
                     absgrad.index_add_(0, g.reshape(-1)[g_ok], over_rays.reshape(-1, 2)[g_ok])
-        return (*grads, g_dirs, None, None, None, None, None, None, absgrad, g_origins)
+        return (*grads, g_dirs, None, None, None, None, None, None, absgrad, g_origins, None)
 
 
 def blend_lists(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs, absgrad=None,
-                origins=None):
+                origins=None, per_ray=False):
     """Blend each group of rays ray_index [G, P] (-1 padded) against its Gaussian list lists [G, K] (-1
     padded, counts [G] entries), at most max_pairs pairs at a time (see the module's memory model).
 
@@ -184,8 +199,9 @@ def blend_lists(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, list
     the median distance [R], where the transmittance crosses 0.5 (0: it never does; no gradient).
     Differentiable w.r.t. o_u, whiten, opacities, colors and dirs [R, 3]; absgrad: (offset rows [N, 2, 3], sink [N, 2])
     (absgrad.py), whose sink gets the absgrad sums as its gradient; origins [R, 3] (None: every ray from the camera
-    centre): each ray's own origin in the camera frame (rolling shutter), differentiable too.
+    centre): each ray's own origin in the camera frame (rolling shutter), differentiable too. per_ray: each ray
+    composites its pairs in its own order (order.py), not the list's; its groups' lists are then never split.
     """
     rows, sink = absgrad if absgrad is not None else (None, None)
     return _BlendLists.apply(o_u, whiten, opacities, colors, dirs, ray_valid, ray_index, lists, counts, max_pairs,
-                             rows, sink, origins)
+                             rows, sink, origins, per_ray)

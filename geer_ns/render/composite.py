@@ -14,7 +14,8 @@ T_MIN = 1e-4
 def composite(
     alpha: Tensor, colors: Tensor, depths: Tensor, t_start: Tensor | None = None
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """alpha [..., P, K] (front to back, 0 = no contribution), colors [..., K, 3], depths [..., P, K], and the
+    """alpha [..., P, K] (front to back, 0 = no contribution), colors [..., K, 3] (or [..., P, K, 3]: each ray's
+    own), depths [..., P, K], and the
     transmittance each ray enters with, t_start [..., P] (1 when None): a list may be blended in pieces.
 
     Returns (rgb [..., P, 3] without background, accumulated depth [..., P], accumulation [..., P],
@@ -28,7 +29,10 @@ def composite(
     t_after = torch.cumprod(torch.cat([t_start[..., None], one_minus], dim=-1), dim=-1)
     t_before, t_after = t_after[..., :-1], t_after[..., 1:]
     weights = torch.where(t_after >= T_MIN, alpha * t_before, torch.zeros_like(alpha))
-    rgb = torch.einsum("...pk,...kc->...pc", weights, colors)
+    if colors.dim() == alpha.dim() + 1:  # per-ray colours [..., P, K, 3] (each ray's own order)
+        rgb = torch.einsum("...pk,...pkc->...pc", weights, colors)
+    else:
+        rgb = torch.einsum("...pk,...kc->...pc", weights, colors)
     # The last transmittance as its own tensor: a view would keep the piece's whole product alive.
     return rgb, (weights * depths).sum(-1), weights.sum(-1), t_after[..., -1].clone(), weights
 

@@ -18,6 +18,7 @@ from .absgrad import offset_rows
 from .associate import pbf_cull_pieces
 from .cones import gaussian_cone_form, tile_cones
 from .moving import MovingRays, motion_scales
+from .order import CompositeOrder, key_lower_bounds
 from .extensions import (  # noqa: F401 - the loaders, re-exported where callers have always found them
     _errors,
     _modules,
@@ -66,7 +67,7 @@ class _Rasterize(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, whiten, o_u, rgb, opacities, pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height,
-                width, tile_size, ops, absgrad_rows, sink, origins=None):
+                width, tile_size, ops, absgrad_rows, sink, origins=None, order_lower=None, order_window=0):
         # pieces [N,8] (associate.pbf_cull_pieces), ray_bounds [R,4] and warp_bounds (RayGrid.ray/warp_cull_bounds):
         # the cull.
         geometry = (pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges)
@@ -75,25 +76,32 @@ class _Rasterize(torch.autograd.Function):
         ctx.ray_grad = ctx.needs_input_grad[5] or (origins is not None and ctx.needs_input_grad[17])
         record = any(ctx.needs_input_grad[:4]) or ctx.ray_grad or ctx.needs_input_grad[16]
         origins = whiten.new_zeros(0) if origins is None else origins.contiguous()
+        order_lower = whiten.new_zeros(0) if order_lower is None else order_lower.contiguous()
         out_rgb, depth, acc, t_final, n_contrib, blended_lanes, max_weight, median = ops.render_forward(
-            whiten, o_u, rgb, opacities, *geometry, height, width, tile_size, record, origins
+            whiten, o_u, rgb, opacities, *geometry, height, width, tile_size, record, origins, order_lower,
+            order_window
         )
         # Off, the backward gets an empty tensor for the rows (csrc: the build without absgrad runs).
         rows = absgrad_rows if absgrad_rows is not None and ctx.needs_input_grad[16] else whiten.new_zeros(0)
-        ctx.save_for_backward(whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib, blended_lanes, rows, origins)
+        sums = (out_rgb, depth, acc) if order_lower.numel() else ()  # the per-ray order's totals (ops.render_grads)
+        ctx.save_for_backward(whiten, o_u, rgb, opacities, *geometry, t_final, n_contrib, blended_lanes, rows, origins,
+                              order_lower, *sums)
         ctx.layout = (height, width, tile_size)
-        ctx.ops = ops
+        ctx.ops, ctx.order_window = ops, order_window
         ctx.mark_non_differentiable(max_weight, median)
         return out_rgb, depth, acc, max_weight, median
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_rgb, g_depth, g_acc, _g_max_weight, _g_median):
-        *saved, rows, origins = ctx.saved_tensors
+        saved = list(ctx.saved_tensors)
+        rows, origins, order_lower, *sums = saved[14:]
         origins = origins if origins.numel() else None
-        *grads, absgrad, g_dirs, g_origins = render_grads(ctx.ops, saved, ctx.layout, g_rgb, g_depth, g_acc, rows,
-                                                          ctx.ray_grad, origins)
-        return tuple(grads) + (None, g_dirs) + (None,) * 10 + (absgrad, g_origins)[:len(ctx.needs_input_grad) - 16]
+        order = (order_lower, ctx.order_window, tuple(sums)) if order_lower.numel() else None
+        *grads, absgrad, g_dirs, g_origins = render_grads(ctx.ops, saved[:14], ctx.layout, g_rgb, g_depth, g_acc, rows,
+                                                          ctx.ray_grad, origins, order)
+        return (tuple(grads) + (None, g_dirs) + (None,) * 10 + (absgrad, g_origins, None, None)
+                )[:len(ctx.needs_input_grad)]
 
 
 # ----------------------------------------------------------------------------------------- helpers
@@ -154,10 +162,12 @@ def render_cuda(
     ops: ModuleType | None = None,
     absgrad: tuple[Tensor, Tensor] | None = None,
     motion: MovingRays | None = None,
+    order: CompositeOrder | None = None,
 ):
     """rasterize.render on the kernels (inputs already validated by render). `ops` defaults to the torch
     operators (ops.KERNELS: the kernels for CUDA tensors, the CPU build for CPU ones); an extension module
     (load_cpu_ops(), load_extension()) is called directly."""
+    order = CompositeOrder.parse(order)
     if ops is None:
         ops = KERNELS
     if lambda_mode not in ("opacity", "paper"):
@@ -199,6 +209,9 @@ def render_cuda(
     cone = gaussian_cone_form(w_pbf, o_u_pbf, lam2, inside)
     tiles = grid if motion is None else motion.tile_grid(grid).to(device)  # the tests take the rays' directions
     ids, ranges, counts, _tests = associate_pairs(ops, bounds, alive, means_c.detach().norm(dim=-1), tiles, cone)
+    order_lower = None
+    if order.per_ray:  # each ray in its own order: the Gaussians' key bounds (order.py)
+        order_lower = key_lower_bounds(means_c, scales, opacities, o_u, 0.0 if motion is None else motion.offset)
 
     # Stage 3. Per tile / ray. absgrad's offset rows per Gaussian here (absgrad.offset_rows, an [N] einsum), so
     # that the kernels only take dot products with them (no W x lateral product in their registers).
@@ -210,7 +223,7 @@ def render_cuda(
     rgb_sum, depth_sum, acc, max_weight, median = _Rasterize.apply(
         whiten, o_u, rgb, opacities.contiguous(), pbf_cull_pieces(bounds), dirs, tiles.ray_cull_bounds(dtype),
         tiles.warp_cull_bounds(dtype), grid.valid.contiguous(), ids, ranges, grid.height, grid.width, grid.tile_size, ops,
-        rows, sink, origins,
+        rows, sink, origins, order_lower, order.window,
     )
     out_rgb, out_depth, out_acc = images(grid.height, grid.width, rgb_sum, depth_sum, acc, background)
 

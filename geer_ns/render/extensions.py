@@ -35,9 +35,9 @@ from typing import Sequence
 import torch
 
 CSRC = Path(__file__).resolve().parents[2] / "csrc"
-_CUDA_SOURCES = ("bindings.cpp", "preprocess.cu", "associate.cu", "render.cu", "preprocess_backward.cu",
-                 "launch_probe.cu")
-_CPU_SOURCES = ("cpu_ops.cpp", "cpu_render.cpp", "cpu_render_backward.cpp")
+_CUDA_SOURCES = ("bindings.cpp", "preprocess.cu", "associate.cu", "render.cu", "render_order.cu",
+                 "preprocess_backward.cu", "launch_probe.cu")
+_CPU_SOURCES = ("cpu_ops.cpp", "cpu_render.cpp", "cpu_render_backward.cpp", "cpu_render_order.cpp")
 _HEADER_SUFFIXES = (".h", ".cuh", ".hpp")
 # What a build is called when it announces itself, and how long it takes on a cold cache.
 _WHAT = {"geer_cpu_ops": ("the CPU renderer", "about a minute"), "geer_cuda": ("the CUDA kernels", "a few minutes")}

@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from .backend import Backend
+from .order import CompositeOrder
 from .pbf import LambdaMode
 from .rasterize import render
 from .raygrid import RayGrid
@@ -62,10 +63,11 @@ def render_normals(
     lambda_mode: LambdaMode = "opacity",
     backend: Backend = "auto",
     max_pairs: int = 1 << 20,
+    order: CompositeOrder | str | None = None,
 ) -> NormalImages:
     """The normal images of one view, inputs as rasterize.render's (no colors). Forward only: no loss of geer
     uses normals."""
     normals = gaussian_normals(means, quats, scales, camera_center(viewmat.to(means.dtype)))
     out = render(means, quats, scales, opacities, normals, viewmat, grid, background=None, lambda_mode=lambda_mode,
-                 backend=backend, max_pairs=max_pairs)
+                 backend=backend, max_pairs=max_pairs, order=order)
     return blended_normals(out.rgb, viewmat)

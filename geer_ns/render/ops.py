@@ -153,27 +153,35 @@ def _(bounds, alive, order, node_bounds, node_active, tiles_x, tiles_y, gauss_co
 @torch.library.custom_op("geer::render_forward", mutates_args=())
 def render_forward(whiten: Tensor, o_u: Tensor, rgb: Tensor, opacities: Tensor, pbf_pieces: Tensor, dirs: Tensor,
                    ray_bounds: Tensor, warp_bounds: Tensor, valid: Tensor, ids: Tensor, ranges: Tensor, height: int,
-                   width: int, tile_size: int, record: bool, origins: Optional[Tensor] = None) -> T8:
+                   width: int, tile_size: int, record: bool, origins: Optional[Tensor] = None,
+                   order_lower: Optional[Tensor] = None, order_window: int = 0) -> T8:
     """Per ray -> (rgb [R,3], depth [R], acc [R], T_final [R], n_contrib [R] int32, blended lanes int32 (the CPU
-    build's record for its backward, when `record`; empty from the kernels), max_weight [N], median distance [R]).
+    build's record for its backward, when `record`: the lanes that blended each entry, or in the per-ray order the
+    pairs each ray blended; empty from the kernels), max_weight [N], median distance [R]).
     Pass record=True when a backward will run. origins [R,3]: each ray's own origin in the camera frame (rolling
-    shutter; None: every ray from the camera centre)."""
+    shutter; None: every ray from the camera centre). order_lower [N]: each ray in its own order (order.py
+    key_lower_bounds; None: the list's per-view order), holding at most order_window pending pairs (0: all)."""
     _one_device("render_forward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
-                ranges, *_given(origins))
+                ranges, *_given(origins), *_given(order_lower))
     return tuple(_build(whiten).render_forward(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds,
                                                warp_bounds, valid, ids, ranges, height, width, tile_size, record,
-                                               _or_empty(origins, whiten)))
+                                               _or_empty(origins, whiten), _or_empty(order_lower, whiten),
+                                               order_window))
 
 
 @render_forward.register_fake
 def _(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height, width,
-      tile_size, record, origins=None):
+      tile_size, record, origins=None, order_lower=None, order_window=0):
     _one_device("render_forward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
-                ranges, *_given(origins))
+                ranges, *_given(origins), *_given(order_lower))
     r, new = height * width, whiten.new_empty
     on_cpu = whiten.device.type == "cpu" and record
-    lanes = new(ids.shape[0], warp_bounds.shape[0] // ranges.shape[0], dtype=torch.int32) if on_cpu else \
-        new(0, dtype=torch.int32)
+    if not on_cpu:
+        lanes = new(0, dtype=torch.int32)
+    elif order_lower is not None and order_lower.numel():  # the per-ray order's record: its length is data
+        lanes = new(torch.library.get_ctx().new_dynamic_size(), dtype=torch.int32)
+    else:
+        lanes = new(ids.shape[0], warp_bounds.shape[0] // ranges.shape[0], dtype=torch.int32)
     return new(r, 3), new(r), new(r), new(r), new(r, dtype=torch.int32), lanes, new(whiten.shape[0]), new(r)
 
 
@@ -182,23 +190,30 @@ def render_backward(whiten: Tensor, o_u: Tensor, rgb: Tensor, opacities: Tensor,
                     ray_bounds: Tensor, warp_bounds: Tensor, valid: Tensor, ids: Tensor, ranges: Tensor, height: int,
                     width: int, tile_size: int, t_final: Tensor, n_contrib: Tensor, blended_lanes: Tensor,
                     g_rgb: Tensor, g_depth: Tensor, g_acc: Tensor, absgrad_rows: Tensor, dir_grad: bool,
-                    origins: Optional[Tensor] = None) -> T4:
+                    origins: Optional[Tensor] = None, order_lower: Optional[Tensor] = None, order_window: int = 0,
+                    ray_totals: Optional[Tensor] = None) -> T4:
     """-> (gradient rows [N,16]: the canonical moment K = dL/dW W^T row-major (what the preprocess backward takes in
     W's slot), o_u, color, opacity; absgrad [N,2], empty when absgrad_rows is; dL/d(ray directions) [R,3] when
-    `dir_grad`, else empty; dL/d(ray origins) [R,3] when `dir_grad` and `origins` (render_forward's), else empty)."""
+    `dir_grad`, else empty; dL/d(ray origins) [R,3] when `dir_grad` and `origins` (render_forward's), else empty).
+    order_lower, order_window: render_forward's; with them ray_totals [R], each ray's gC . rgb + gZ depth + gA acc
+    of the forward's sums."""
     _one_device("render_backward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
-                ranges, t_final, n_contrib, g_rgb, g_depth, g_acc, absgrad_rows, *_given(origins))
+                ranges, t_final, n_contrib, g_rgb, g_depth, g_acc, absgrad_rows, *_given(origins),
+                *_given(order_lower), *_given(ray_totals))
     return tuple(_build(whiten).render_backward(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds,
                                                 warp_bounds, valid, ids, ranges, height, width, tile_size, t_final,
                                                 n_contrib, blended_lanes, g_rgb, g_depth, g_acc, absgrad_rows,
-                                                dir_grad, _or_empty(origins, whiten)))
+                                                dir_grad, _or_empty(origins, whiten), _or_empty(order_lower, whiten),
+                                                order_window, _or_empty(ray_totals, whiten)))
 
 
 @render_backward.register_fake
 def _(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids, ranges, height, width,
-      tile_size, t_final, n_contrib, blended_lanes, g_rgb, g_depth, g_acc, absgrad_rows, dir_grad, origins=None):
+      tile_size, t_final, n_contrib, blended_lanes, g_rgb, g_depth, g_acc, absgrad_rows, dir_grad, origins=None,
+      order_lower=None, order_window=0, ray_totals=None):
     _one_device("render_backward", whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, valid, ids,
-                ranges, t_final, n_contrib, g_rgb, g_depth, g_acc, absgrad_rows, *_given(origins))
+                ranges, t_final, n_contrib, g_rgb, g_depth, g_acc, absgrad_rows, *_given(origins),
+                *_given(order_lower), *_given(ray_totals))
     n = whiten.shape[0]
     # absgrad on: rows [N, 6] (N may be a symbolic count); off: an empty 1-D tensor
     absgrad = whiten.new_empty(n, ABSGRAD_VALUES) if absgrad_rows.dim() == 2 else whiten.new_empty(0)
@@ -208,16 +223,23 @@ def _(whiten, o_u, rgb, opacities, pbf_pieces, dirs, ray_bounds, warp_bounds, va
 
 
 def render_grads(kernels, saved, layout, g_rgb, g_depth, g_acc, rows: Tensor, dir_grad: bool = False,
-                 origins: Optional[Tensor] = None) -> Tuple[Tensor, ...]:
+                 origins: Optional[Tensor] = None, order: Optional[tuple] = None) -> Tuple[Tensor, ...]:
     """The render stage's backward (missing gradients are zeros): (W's slot (K), o_u, color, opacity, absgrad or
     None, ray directions or None, ray origins or None (without `origins` or `dir_grad`)). saved: the forward's 11
-    inputs from whiten to ranges, then T_final, n_contrib, blended lanes; origins: the forward's, if it had them."""
+    inputs from whiten to ranges, then T_final, n_contrib, blended lanes; origins: the forward's, if it had them;
+    order: (order_lower, order_window, (rgb, depth, acc) sums of the forward) where it ran in each ray's order."""
     whiten, dirs = saved[0], saved[5]
     r = dirs.shape[0]
     g_rgb, g_depth, g_acc = (_zeros_if_none(g, shape, whiten) for g, shape in
                              ((g_rgb, (r, 3)), (g_depth, (r,)), (g_acc, (r,))))
+    lower, window, totals = None, 0, None
+    if order is not None:
+        lower, window, (rgb, depth, acc) = order
+        totals = (g_rgb * rgb).sum(-1) + g_depth * depth + g_acc * acc  # V of geer_order.h
     grads, absgrad, g_dirs, g_origins = kernels.render_backward(*saved[:11], *layout, *saved[11:], g_rgb, g_depth,
-                                                                g_acc, rows, dir_grad, _or_empty(origins, whiten))
+                                                                g_acc, rows, dir_grad, _or_empty(origins, whiten),
+                                                                _or_empty(lower, whiten), window,
+                                                                _or_empty(totals, whiten))
     gw, go, gc, gs = grads.split([9, 3, 3, 1], dim=1)
     return (gw.unflatten(1, (3, 3)), go, gc, gs.squeeze(1), (absgrad if rows.dim() == 2 else None),
             (g_dirs if dir_grad else None), (g_origins if dir_grad and origins is not None else None))
@@ -225,18 +247,23 @@ def render_grads(kernels, saved, layout, g_rgb, g_depth, g_acc, rows: Tensor, di
 
 def _render_setup(ctx, inputs, output) -> None:
     origins = inputs[15] if len(inputs) > 15 else None
-    ctx.with_origins = origins is not None
-    ctx.save_for_backward(*inputs[:11], *output[3:6], *_given(origins))
+    lower = inputs[16] if len(inputs) > 16 and inputs[16] is not None and inputs[16].numel() else None
+    ctx.with_origins, ctx.with_order = origins is not None, lower is not None
+    ctx.order_window = inputs[17] if len(inputs) > 17 else 0
+    ctx.save_for_backward(*inputs[:11], *output[3:6], *_given(origins), *_given(lower),
+                          *(output[:3] if lower is not None else ()))
     ctx.layout = tuple(inputs[11:14])
 
 
 def _render_backward(ctx, g_rgb, g_depth, g_acc, *_):
     saved = ctx.saved_tensors
-    origins = saved[14] if ctx.with_origins else None
+    rest = list(saved[14:])
+    origins = rest.pop(0) if ctx.with_origins else None
+    order = (rest[0], ctx.order_window, tuple(rest[1:4])) if ctx.with_order else None
     ray_grad = ctx.needs_input_grad[5] or (ctx.with_origins and ctx.needs_input_grad[15])
     grads = render_grads(KERNELS, saved[:14], ctx.layout, g_rgb, g_depth, g_acc, saved[0].new_zeros(0), ray_grad,
-                         origins)
-    return grads[:4] + (None, grads[5]) + (None,) * 9 + (grads[6],)
+                         origins, order)
+    return grads[:4] + (None, grads[5]) + (None,) * 9 + (grads[6], None, None)[:len(ctx.needs_input_grad) - 15]
 
 
 torch.library.register_autograd("geer::render_forward", _render_backward, setup_context=_render_setup)

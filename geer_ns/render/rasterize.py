@@ -25,6 +25,7 @@ from .blend import blend_lists
 from .cuda_backend import render_cuda
 from .extensions import load_cpu_ops
 from .moving import MovingRays, motion_pbf
+from .order import CompositeOrder
 from .outputs import RenderOutput, images
 from .pbf import PBF, LambdaMode, compute_pbf, pbf_lambda_sq
 from .raygrid import RayGrid
@@ -95,6 +96,7 @@ def render(
     max_pairs: int = 1 << 20,
     absgrad: tuple[Tensor, Tensor] | None = None,
     motion: MovingRays | None = None,
+    order: CompositeOrder | str | None = None,
 ) -> RenderOutput:
     """Render one view with 3DGEER.
 
@@ -111,8 +113,11 @@ def render(
     `motion` (moving.MovingRays): each ray's own origin and direction in this view's camera frame (a rolling-shutter
     view: every ray at its own time); the grid still gives the rays' pixels, tiles and validity. SH colours are
     evaluated from the view's camera centre.
+    `order` (order.CompositeOrder or 'view' / 'ray' / 'ray:K'): the compositing order, the tile list's per view
+    (default) or each ray's own; the PyTorch renderer composites every per-ray order exactly (it has no window).
     """
     _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background, sh_degree)
+    order = CompositeOrder.parse(order)
     if absgrad is not None:
         check_absgrad(absgrad, means)
     if motion is not None:
@@ -121,7 +126,8 @@ def render(
     if chosen != "torch":  # the kernels (CUDA), or their math compiled for the CPU
         return render_cuda(means, quats, scales, opacities, colors, viewmat, grid, sh_degree=sh_degree,
                            background=background, lambda_mode=lambda_mode,
-                           ops=load_cpu_ops() if chosen == "cpu" else None, absgrad=absgrad, motion=motion)
+                           ops=load_cpu_ops() if chosen == "cpu" else None, absgrad=absgrad, motion=motion,
+                           order=order)
     dirs = grid.dirs.to(means.dtype) if motion is None else motion.dirs.to(means.dtype)
     origins = None if motion is None else motion.origins.to(means.dtype)
     # viewmat keeps its dtype: the view transform runs in float64 (transforms.view_transform)
@@ -133,7 +139,7 @@ def render(
     rows = (offset_rows(absgrad[0], pre.whiten), absgrad[1]) if absgrad is not None else None
     rgb, depth, acc, max_weight, median = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs,
                                                       grid.valid, grid.tile_rays, tiles.gaussians, tiles.counts,
-                                                      max_pairs, rows, origins)
+                                                      max_pairs, rows, origins, per_ray=order.per_ray)
     out_rgb, out_depth, out_acc = images(grid.height, grid.width, rgb, depth, acc, background)
     visible = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
     listed = tiles.gaussians[grid.tile_active]
@@ -157,6 +163,7 @@ def render_batch(
     backend: Backend = "auto",
     max_pairs: int = 1 << 20,
     absgrad: Sequence[tuple[Tensor, Tensor] | None] | None = None,
+    order: CompositeOrder | str | None = None,
 ) -> list[RenderOutput]:
     """Render C cameras of one scene: viewmats [C,4,4], grids one RayGrid for every camera or one per camera
     (mixed rigs); `absgrad` one (lateral, sink) pair (or None) per camera, as `render`'s, each view's statistics
@@ -174,7 +181,7 @@ def render_batch(
         raise ValueError(f"absgrad: expected {views} (lateral, sink) pairs or None (one per viewmat), got {len(absgrad)}")
     return [render(means, quats, scales, opacities, colors, viewmats[c], grids[c], sh_degree=sh_degree,
                    background=background, lambda_mode=lambda_mode, backend=backend, max_pairs=max_pairs,
-                   absgrad=absgrad[c])
+                   absgrad=absgrad[c], order=order)
             for c in range(views)]
 
 
@@ -191,23 +198,27 @@ def render_brute_force(
     background: Tensor | None = None,
     rays_per_group: int = 64,
     max_pairs: int = 1 << 20,
+    order: CompositeOrder | str | None = None,
 ) -> RenderOutput:
-    """Reference renderer: every valid ray against every Gaussian, no PBF, no tiles, same ordering.
+    """Reference renderer: every valid ray against every Gaussian, no PBF, no tiles, same ordering (`order`:
+    render's, the exact per-ray order or the per-view one).
 
     The tiled renderer must match it exactly whenever association is complete.
     """
+    order = CompositeOrder.parse(order)
     _check_inputs(means, quats, scales, opacities, colors, viewmat, grid, background, sh_degree)
     dirs = grid.dirs.to(means.dtype)
     pre = preprocess(means, quats, scales, opacities, colors, viewmat.to(means.dtype), sh_degree)
-    order = torch.sort(pre.depth, stable=True).indices
+    by_depth = torch.sort(pre.depth, stable=True).indices
     n_rays = grid.num_rays
     pad = (-n_rays) % rays_per_group
     ray_index = torch.cat([torch.arange(n_rays, device=means.device), means.new_full((pad,), -1).long()])
     ray_index = ray_index.reshape(-1, rays_per_group)
-    lists = order[None].expand(ray_index.shape[0], -1)
-    counts = torch.full((ray_index.shape[0],), order.numel(), dtype=torch.long, device=means.device)
+    lists = by_depth[None].expand(ray_index.shape[0], -1)
+    counts = torch.full((ray_index.shape[0],), by_depth.numel(), dtype=torch.long, device=means.device)
     rgb, depth, acc, max_weight, median = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs,
-                                                      grid.valid, ray_index, lists, counts, max_pairs)
+                                                      grid.valid, ray_index, lists, counts, max_pairs,
+                                                      per_ray=order.per_ray)
     out_rgb, out_depth, out_acc = images(grid.height, grid.width, rgb, depth, acc, background)
     visible = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
     return RenderOutput(out_rgb, out_depth, out_acc, visible, means.new_zeros(0).long(), pre.means_c, pre.pbf, None,

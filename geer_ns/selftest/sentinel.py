@@ -44,7 +44,9 @@ class ViewInputs:
 
 
 def _render(inputs: ViewInputs, backend: str) -> tuple[Tensor, list[Tensor]]:
-    """(rgb, [dL/dmeans, dL/dopacities]) of a fixed random loss on the image."""
+    """(rgb, [dL/dmeans, dL/dopacities]) of a fixed random loss on the image, composited in the per-view order
+    whatever the run's (per-ray order: its float32 near-ties and the kernels' window would make the comparison
+    flaky; every per-pair function it runs is the per-view order's, and tests/test_render_order.py checks it)."""
     means = inputs.means.detach().clone().requires_grad_(True)
     opacities = inputs.opacities.detach().clone().requires_grad_(True)
     motion = inputs.motion

@@ -47,6 +47,7 @@ class Case:
     degenerate: bool = False  # the float64 gradient tolerance of the stress scenes (1e-7)
     capacity: bool = False
     rolling: bool = False  # every ray at its own pose (a rolling shutter: per-ray origins, moved directions)
+    order: str = "view"  # the compositing order (render/order.py): "ray", each ray's own (the kernels: a window of 64)
 
 
 def _mixed(seed: int) -> Scene:
@@ -75,6 +76,9 @@ def suite(device_type: str) -> list[Case]:
             Case(f"rolling-fisheye200-{tag}", _mixed_0, "fisheye200", s, dtype, absgrad=True, degenerate=True,
                  rolling=True),
         ]
+        if dtype == F64:  # float32 near-ties of two keys would flip a pixel's order between the builds
+            cases.append(Case("ray-order-beap-f64", _front, "beap", 2 * s if big else s, dtype, absgrad=True,
+                              order="ray"))
     if big:
         cases.append(Case("capacity-1M-1920x1080-f32", capacity_scene, "pinhole1080", 1920, F32, capacity=True))
     return cases
@@ -125,7 +129,7 @@ def render_case(case: Case, backend: str, device: torch.device, dtype, perturb: 
     viewmat, motion = torch.eye(4, dtype=dtype, device=device), None
     if case.rolling:
         viewmat, motion = _rolling(grid, dtype, device)
-    out = render(*leaves, viewmat, grid, backend=backend, motion=motion,
+    out = render(*leaves, viewmat, grid, backend=backend, motion=motion, order=case.order,
                  background=torch.tensor(BACKGROUND, dtype=dtype, device=device), absgrad=absgrad)
     rgb = out.rgb * (1.0 + perturb) if perturb else out.rgb
     gen = torch.Generator().manual_seed(1)
