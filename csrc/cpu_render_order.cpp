@@ -259,6 +259,10 @@ std::vector<at::Tensor> render_backward_ordered(const RenderInputs& in, const Ra
         // Each ray's blended pairs' gradients in its order (16 values, absgrad's 2) and their entries.
         constexpr int kRow = kGradValues + kAbsgradValues;
         std::vector<std::vector<T>> blended(blk.threads);
+        const auto write_row = [&](const geer::PairGrad<T>& pg, int j, T* row) {
+            geer::lane_grad_values(pg, true, row);
+            if (rows) geer::lane_absgrad_values(rows + geer::kAbsgradRow * id[j], pg, true, row + kGradValues);
+        };
         const auto blend = [&](int tid, int pos) {
             const int j = start + pos;
             geer::PairGrad<T> pg;
@@ -267,9 +271,7 @@ std::vector<at::Tensor> render_backward_ordered(const RenderInputs& in, const Ra
                 return false;
             std::vector<T>& out = blended[tid];
             out.resize(out.size() + kRow, T(0));
-            T* row = out.data() + out.size() - kRow;
-            geer::lane_grad_values(pg, true, row);
-            if (rows) geer::lane_absgrad_values(rows + geer::kAbsgradRow * id[j], pg, true, row + kGradValues);
+            write_row(pg, j, out.data() + out.size() - kRow);
             return true;
         };
         std::vector<std::vector<int32_t>> entries(blk.threads);  // the entries of `blended`, exactly
@@ -292,12 +294,11 @@ std::vector<at::Tensor> render_backward_ordered(const RenderInputs& in, const Ra
                     const GaussFrame<T>& g = f[id[start + seq[k]]];
                     RecordedPair<T> r{geer::eval_pair<T, T, kOrigin>(g, blk.dir[tid], blk.origin_of(tid)), s.fwd.trans,
                                       T(0), T(0), seq[k]};
-                    const T key = r.e.front ? r.e.t_star : T(0);  // pending_of's
+                    const T key = geer::pair_depth<T, T>(r.e);
                     r.w = geer::ray_blend<T, T>(s.fwd, true, r.e.alpha, key, g.rgb, seq[k]);
                     TORCH_CHECK(!s.fwd.done, "geer: the per-ray order's record does not replay (a recorded pair stops "
                                 "its ray)");
-                    r.v = s.g_rgb[0] * g.rgb[0] + s.g_rgb[1] * g.rgb[1] + s.g_rgb[2] * g.rgb[2] + s.g_depth * key +
-                          s.g_acc;
+                    r.v = geer::blend_value<T, T>(s.g_rgb, g.rgb, s.g_depth, key, s.g_acc);
                     pairs.push_back(r);
                 }
                 // back to front: the suffix sums S_i = sum_{j > i} w_j v_j summed as they grow, no V - prefix
@@ -312,9 +313,7 @@ std::vector<at::Tensor> render_backward_ordered(const RenderInputs& in, const Ra
                     geer::PairGrad<T> pg;
                     geer::pair_backward_from_alpha<T, T, kDirGrad, kOrigin>(r.e, f[id[j]], r.w, g_alpha, s.g_rgb,
                                                                             s.g_depth, true, pg, s.g_dir, s.g_origin);
-                    T* row = blended[tid].data() + size_t(k) * kRow;
-                    geer::lane_grad_values(pg, true, row);
-                    if (rows) geer::lane_absgrad_values(rows + geer::kAbsgradRow * id[j], pg, true, row + kGradValues);
+                    write_row(pg, j, blended[tid].data() + size_t(k) * kRow);
                 }
                 for (const RecordedPair<T>& r : pairs) entries[tid].push_back(start + r.pos);
             }

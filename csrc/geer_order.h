@@ -207,7 +207,7 @@ GEER_HD bool blend_pending(RayForward<T>& s, const Pending<T>& p, const T* rgb, 
 
 // A kept pair's pending record (the forward's eval_pair, lane i).
 template <typename T, typename L> GEER_HD Pending<T> pending_of(const PairEval<L>& e, int lane, int pos) {
-    const T key = lane_get(lane_select(e.front, e.t_star, splat<L>(T(0))), lane);
+    const T key = lane_get(pair_depth<T, L>(e), lane);
     return Pending<T>{key, lane_get(e.alpha, lane), pos};
 }
 
@@ -232,11 +232,11 @@ template <typename T, bool kDirGrad, bool kOrigin>
 GEER_HD bool backward_pending(RayOrderBackward<T>& s, const GaussFrame<T>& g, const Vec3<T>& d, int pos,
                               PairGrad<T>& pg, const Vec3<T>* origin) {
     const PairEval<T> e = eval_pair<T, T, kOrigin>(g, d, origin);
-    const T key = e.front ? e.t_star : T(0);  // pending_of's
+    const T key = pair_depth<T, T>(e);
     const T t_before = s.fwd.trans;
     const T w = ray_blend<T, T>(s.fwd, true, e.alpha, key, g.rgb, pos);
     if (s.fwd.done) return false;
-    const T v = s.g_rgb[0] * g.rgb[0] + s.g_rgb[1] * g.rgb[1] + s.g_rgb[2] * g.rgb[2] + s.g_depth * key + s.g_acc;
+    const T v = blend_value<T, T>(s.g_rgb, g.rgb, s.g_depth, key, s.g_acc);
     s.prefix = s.prefix + w * v;
     const T g_alpha = t_before * v - (s.total - s.prefix) / (T(1) - e.alpha);
     pair_backward_from_alpha<T, T, kDirGrad, kOrigin>(e, g, w, g_alpha, s.g_rgb, s.g_depth, true, pg, s.g_dir,

@@ -127,6 +127,17 @@ GEER_HD PairEval<L> eval_pair(const GaussFrame<T>& g, const Vec3<L>& d, const Ve
     return e;
 }
 
+// A pair's position on the ray as blended and reported: max(t*, 0) (the depth; the per-ray order's key).
+template <typename T, typename L> GEER_HD L pair_depth(const PairEval<L>& e) {
+    return lane_select(e.front, e.t_star, splat<L>(T(0)));
+}
+
+// v = gC . c + gZ z + gA of one pair (colour c, depth z): what its blend weight is worth to the loss.
+template <typename T, typename L>
+GEER_HD L blend_value(const L* g_rgb, const T* rgb, L g_depth, L z, L g_acc) {
+    return g_rgb[0] * rgb[0] + g_rgb[1] * rgb[1] + g_rgb[2] * rgb[2] + g_depth * z + g_acc;
+}
+
 // ================================================================================ forward: ray
 template <typename L> struct RayForward;
 template <typename T, typename L>
@@ -165,7 +176,7 @@ GEER_HD L ray_forward_step(RayForward<L>& s, const GaussFrame<T>& g, const Vec3<
     const PairEval<L> e = eval_pair<T, L, kOrigin>(g, d, origin);
     const Mask kept = open & e.keep;
     if (!lane_any(kept)) return zero;
-    return ray_blend<T, L>(s, kept, e.alpha, lane_select(e.front, e.t_star, zero), g.rgb, pos);  // depth: clamped t
+    return ray_blend<T, L>(s, kept, e.alpha, pair_depth<T, L>(e), g.rgb, pos);
 }
 
 // Blend one Gaussian (colour rgb, alpha, at t_hit = max(t*, 0) on the ray, list position pos) into the lanes of
@@ -342,8 +353,7 @@ GEER_HD typename Lane<L>::Mask ray_backward_step(RayBackward<L>& s, const GaussF
     const L one_minus = splat<L>(T(1)) - e.alpha;
     const L t_before = s.trans / one_minus;
     const L w = e.alpha * t_before;
-    const L z = lane_select(e.front, e.t_star, zero);
-    const L v = s.g_rgb[0] * g.rgb[0] + s.g_rgb[1] * g.rgb[1] + s.g_rgb[2] * g.rgb[2] + s.g_depth * z + s.g_acc;
+    const L v = blend_value<T, L>(s.g_rgb, g.rgb, s.g_depth, pair_depth<T, L>(e), s.g_acc);
     const L g_alpha = t_before * (v - s.rec);
     s.rec = lane_select(live, e.alpha * v + one_minus * s.rec, s.rec);
     s.trans = lane_select(live, t_before, s.trans);
