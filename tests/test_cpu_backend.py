@@ -159,6 +159,9 @@ def test_start_up_says_once_which_renderer_runs(ops):
     assert said[-1] == "geer: renderer: the PyTorch renderer on cpu; one compositing order per view (composite-order view)"
     backend_module.announce_backend("auto", torch.device("cpu"), say=said.append, order="ray")
     assert said[-1].endswith("each ray in its own exact order (composite-order ray)"), said
+    backend_module.announce_backend("torch", torch.device("cpu"), say=said.append, order="ray:16")
+    assert said[-1].endswith("each ray in its own exact order (composite-order ray:16: the PyTorch renderer has no "
+                             "window)"), said
 
 
 def test_the_forward_records_blended_lanes_only_when_a_backward_will_run(ops, monkeypatch):

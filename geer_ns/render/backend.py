@@ -135,6 +135,8 @@ def order_line(order: str, chosen: str) -> str:
     window = order.partition(":")[2]
     if chosen == "cuda":
         return f"each ray in its own order, holding 64 pending pairs (composite-order {order})"
+    if window and chosen == "torch":  # the PyTorch renderer has no window: it sorts each ray's whole list
+        return f"each ray in its own exact order (composite-order {order}: the PyTorch renderer has no window)"
     if window:
         return f"each ray in its own order, holding {window} pending pairs (composite-order {order})"
     return f"each ray in its own exact order (composite-order {order})"
