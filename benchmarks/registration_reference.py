@@ -6,7 +6,8 @@ is only as good as the scene it solves against: against a scene trained on the t
 reaches 0.01 degree (benchmarks/refinement.md). This measures the reference the recipe actually has.
 
 Each round trains the scene --steps-per-round steps with the poses (and, by default, the means) held, then solves
-every training pose (pose_solve.solve_poses, the recipe's solve) and reads the camera errors against the truth
+every training pose (pose_solve.solve_poses, the recipe's solve; where the lens is perturbed, the lens first:
+lens_solve.solve_lens, unless --no-lens-solve) and reads the camera errors against the truth
 (truth-fitted similarity, geer_ns/refinement/camera_errors.py). Training runs nerfstudio's train_iteration
 directly, without the training callbacks (so no densification, no opacity reset, no scheduled solve). Cameras:
 the dev room at --size^2 as given (`--cameras true`: does the solve keep good poses?) or perturbed as in
@@ -46,6 +47,8 @@ def main() -> None:
     ap.add_argument("--steps-per-round", type=int, default=1500)
     ap.add_argument("--rounds", type=int, default=1)
     ap.add_argument("--train-means", action="store_true", help="train the means too (the recipe holds them)")
+    ap.add_argument("--no-lens-solve", action="store_true",
+                    help="leave the lens to Adam (the recipe solves it before the poses)")
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--work", type=Path, default=Path("/tmp/geer_refinement"))
@@ -53,6 +56,7 @@ def main() -> None:
     args = ap.parse_args()
 
     import geer_ns.config  # noqa: F401 - before nerfstudio's writer (docs/training.md)
+    from geer_ns.refinement.lens_solve import solve_lens
     from geer_ns.refinement.pose_solve import solve_poses
     from geer_ns.refinement.refined_cameras import refined_poses
 
@@ -79,9 +83,12 @@ def main() -> None:
             for name in held:  # this iteration only: the scheduler sets the rate again after the step
                 for group in trainer.optimizers.optimizers[name].param_groups:
                     group["lr"] = 0.0
+            model.update_to_step(step)  # what nerfstudio's callback does: the lens and SH schedules read it
             trainer.train_iteration(step)
             step += 1
         start = time.perf_counter()
+        if lens and not args.no_lens_solve:
+            solve_lens(model, pipeline.datamanager, range(len(model.camera_optimizer.pose_adjustment)), 2)
         moved = solve_poses(model, pipeline.datamanager, range(len(model.camera_optimizer.pose_adjustment)), 2)
         seconds = time.perf_counter() - start
         e = errors(refined_poses(pipeline).double().numpy(), true_c2w, extent)
@@ -89,7 +96,8 @@ def main() -> None:
         if lens:
             le = lens_errors(pipeline, truth)
             lens_cells = f"{le['focal_pct']:.3f} | {le['lens_px']:.3f}"
-        line = (f"| {args.cameras} (seed {args.seed}) | {'trained' if args.train_means else 'held'} | {step} | "
+        how = "" if not lens else (", lens by Adam" if args.no_lens_solve else ", lens solved")
+        line = (f"| {args.cameras}{how} (seed {args.seed}) | {'trained' if args.train_means else 'held'} | {step} | "
                 f"{seconds:.0f} | {moved['rotation_deg']:.3f} | {e['rot'][0]:.3f} / {e['rot'][1]:.3f} / "
                 f"{e['rot'][2]:.3f} | {e['pos'][1]:.3f} | {e['rpe_rot'][1]:.3f} | {lens_cells} |")
         print(line, flush=True)

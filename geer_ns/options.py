@@ -99,8 +99,8 @@ class GeerOwnOptions:
     """"register": the registration recipe for rough cameras (geer_ns/refinement/registration.py): SO3xR3 pose
     adjustments, the first 20 % of the run a low-capacity scene (the seed Gaussians held in place, SH degree 0, no
     densification)
-    against which every training pose is solved twice, then the poses held while the scene forms, solved once
-    more against it and held to the end. Measured on the dev room it leaves the cameras bent by ~0.5 degree
+    against which every training pose is solved twice (with lens-refinement, the lens solved first), then the poses
+    held while the scene forms, solved once more against it and held to the end. Measured on the dev room it leaves the cameras bent by ~0.5 degree
     against the truth and moves good poses as far: for rough cameras only (docs/refinement.md). "manual":
     camera-optimizer.mode, pose-solve-every and pose-refinement-start as set."""
     pose_refinement_start: int = 0

@@ -52,6 +52,30 @@ def fisheye_camera(size: int = 32, c2w: torch.Tensor | None = None, kind: str = 
     return cam
 
 
+def four_fisheye_views(model, size: int = 32):
+    """Four 180-degree fisheye cameras (native rays, cam_idx 0-3) a few degrees and tenths of a unit apart, the
+    model's renders from them as their images, and a datamanager-like object whose train_view serves them: the
+    rig the pose and lens solve tests recover known cameras from. Returns (cameras, images, views)."""
+    cams = []
+    for i, (angle, shift) in enumerate([(0.0, 0.0), (8.0, 0.2), (-6.0, -0.15), (4.0, 0.1)]):
+        c2w = torch.eye(4)[:3].clone()
+        c, s = math.cos(math.radians(angle)), math.sin(math.radians(angle))
+        c2w[:3, :3] = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+        c2w[0, 3] = shift
+        camera = fisheye_camera(size, c2w, kind="native")
+        camera.metadata = {**camera.metadata, "cam_idx": i}
+        cams.append(camera)
+    model.train()
+    with torch.no_grad():
+        images = [model.get_outputs(camera)["rgb"].clone() for camera in cams]
+
+    class Views:  # the datamanager's train_view, for these images
+        def train_view(self, index):
+            return cams[index], {"image": images[index]}
+
+    return cams, images, Views()
+
+
 def adam_optimizers(model) -> dict:
     return {name: torch.optim.Adam([p], lr=1e-3) for name, p in model.gauss_params.items()}
 

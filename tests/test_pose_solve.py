@@ -72,33 +72,18 @@ def test_solve_brings_perturbed_training_poses_back_to_the_ground_truth(cpu_ops,
     a 2-degree turn and a 0.06-unit move; four solve iterations put every camera within 0.02 degree and 0.002
     units of its ground-truth pose (the zero adjustment) and lower the residuals."""
     from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
-    from test_nerfstudio_model import fisheye_camera, make_model
+    from test_nerfstudio_model import four_fisheye_views, make_model
 
     model = make_model(n=80, camera_optimizer=CameraOptimizerConfig(mode=mode), pose_solve_every=100,
                        renderer_backend="cpu")
-    poses = []
-    for i, (angle, shift) in enumerate([(0.0, 0.0), (8.0, 0.2), (-6.0, -0.15), (4.0, 0.1)]):
-        c2w = torch.eye(4)[:3].clone()
-        c, s = math.cos(math.radians(angle)), math.sin(math.radians(angle))
-        c2w[:3, :3] = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-        c2w[0, 3] = shift
-        camera = fisheye_camera(32, c2w, kind="native")
-        camera.metadata = {**camera.metadata, "cam_idx": i}
-        poses.append(camera)
-    model.train()
-    with torch.no_grad():
-        images = [model.get_outputs(camera)["rgb"].clone() for camera in poses]
-
-    class Views:  # the datamanager's train_view, for these images
-        def train_view(self, index):
-            return poses[index], {"image": images[index]}
+    poses, images, views = four_fisheye_views(model)
 
     adjustment = model.camera_optimizer.pose_adjustment
     with torch.no_grad():
         for i, axis in enumerate([(1, 0, 0), (0, 1, 1), (1, -1, 0), (0.3, 0.2, 1)]):
             adjustment[i, 3:] = _turn(axis, 2.0)  # both tangents: translation first, rotation last
             adjustment[i, :3] = torch.tensor([0.05, -0.03, 0.0])
-    summary = solve_poses(model, Views(), range(4), iterations=4)
+    summary = solve_poses(model, views, range(4), iterations=4)
     rotation = torch.rad2deg(adjustment[:, 3:].detach().double().norm(dim=-1))
     translation = adjustment[:, :3].detach().double().norm(dim=-1)
     assert float(rotation.max()) < 0.02, rotation

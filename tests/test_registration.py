@@ -35,14 +35,18 @@ def test_register_sets_the_run_up_once_and_manual_changes_nothing():
     before = (model.warmup_length, model.sh_degree_interval, model.camera_optimizer.mode)
     registration.apply(config)
     assert (model.warmup_length, model.sh_degree_interval, model.camera_optimizer.mode) == before
+    assert "lens" not in said
+    model.lens_refinement = "focal"
+    assert registration.apply(config).endswith("; at each solve the lens first, then the poses")
     manual = _config(2000, "manual")
     snapshot = repr(manual.pipeline.model)
     assert registration.apply(manual) == "" and repr(manual.pipeline.model) == snapshot
 
 
 def test_a_run_solves_at_its_steps_and_then_holds_the_poses(tmp_path, capsys):
-    """12 steps on four frames of the embedded room: the means held during registration (steps 0-1), solves at
-    steps 1, 2 and 6 (densification ends at 6), and no pose adjustment changes after the last solve."""
+    """12 steps on four frames of the embedded room, focal refinement on: the means held during registration (steps
+    0-1), solves (the lens, then the poses) at steps 1, 2 and 6 (densification ends at 6), and no pose adjustment
+    changes after the last solve."""
     from conftest import copy_room, tiny_trainer_config
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
     from nerfstudio.utils import writer
@@ -53,6 +57,7 @@ def test_a_run_solves_at_its_steps_and_then_holds_the_poses(tmp_path, capsys):
     model = config.pipeline.model
     model.camera_refinement, model.stop_split_at, model.sh_per_gaussian = "register", 6, False
     model.pose_solve_iterations = 1
+    model.lens_refinement, model.lens_refinement_start = "focal", 0
     seen, means = {}, {}
 
     def record(step: int, trainer=None) -> None:
@@ -78,6 +83,8 @@ def test_a_run_solves_at_its_steps_and_then_holds_the_poses(tmp_path, capsys):
     out = capsys.readouterr().out
     for step in (1, 2, 6):
         assert f"registration solve at step {step}:" in out
+        lens = out.index(f"registration lens solve at step {step}: 1 lens(es)")
+        assert lens < out.index(f"registration solve at step {step}:")
     assert "registration: steps 0-2" in out
     for step in range(7, 12):
         assert torch.equal(seen[step], seen[6]), step

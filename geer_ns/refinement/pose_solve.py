@@ -16,7 +16,7 @@ from __future__ import annotations
 import copy
 import math
 import time
-from typing import Callable, Dict, Iterable, Sequence, Tuple
+from typing import Callable, Dict, Iterable, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
@@ -140,14 +140,16 @@ def adjusted_camera(camera, x: Tensor):
 
 
 def coarse_to_fine(residual_at: Callable[[float], Callable[[Tensor], Tensor]], x0: Tensor, iterations: int,
-                   blur_levels: Sequence[float] = BLUR_LEVELS_PX) -> Tuple[Tensor, float, float]:
+                   blur_levels: Sequence[float] = BLUR_LEVELS_PX, steps: Optional[Tensor] = None
+                   ) -> Tuple[Tensor, float, float]:
     """Levenberg-Marquardt from x0 over residuals blurred by each of `blur_levels` in turn, `iterations` each.
 
     Args:
-        residual_at: blur (pixels) -> the residual function x [6] -> [M] at that blur.
-        x0: [6] float64, the start.
+        residual_at: blur (pixels) -> the residual function x [D] -> [M] at that blur.
+        x0: [D] float64, the start.
         iterations: per level.
         blur_levels: the blurs, coarse to fine.
+        steps: [D] the central-difference steps (default: a pose's, difference_steps()).
 
     Returns:
         (x, the unblurred cost at x0, at x). No level's own cost rises, but a blurred level can lead where the
@@ -157,7 +159,8 @@ def coarse_to_fine(residual_at: Callable[[float], Callable[[Tensor], Tensor]], x
     cost0 = float(sharp(x0).square().sum())
     x = x0
     for blur in blur_levels:
-        x, _, cost1 = levenberg_marquardt(residual_at(blur), x, difference_steps(), iterations)
+        x, _, cost1 = levenberg_marquardt(residual_at(blur), x, difference_steps() if steps is None else steps,
+                                          iterations)
     if not blur_levels or blur_levels[-1] > 0:  # the last level was blurred: its cost is not the image's
         cost1 = float(sharp(x).square().sum())
     if not cost1 < cost0:

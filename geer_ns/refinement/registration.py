@@ -17,7 +17,9 @@ solve reaches 0.03). So the recipe splits the run:
 2. Formation, to the end of densification: the poses held, the scene densifies and gains its SH bands.
 3. A final solve against the formed scene, then training on with the poses held.
 
-Lens refinement (--pipeline.model.lens-refinement) joins as set: its rays are what every solve renders through.
+Lens refinement (--pipeline.model.lens-refinement) joins as set: its rays are what every solve renders through, and
+each solve solves the lens first (lens_solve.py: a pose solve under a wrong lens moves the poses away from the
+truth), then the poses.
 """
 
 from __future__ import annotations
@@ -72,7 +74,8 @@ def apply(config) -> str:
     model.warmup_length = max(model.warmup_length, steps.register_until)
     model.sh_degree_interval = max(model.sh_degree_interval, steps.register_until)
     model.pose_refinement_start = 0
-    return steps.describe()
+    lens = "" if model.lens_refinement == "off" else "; at each solve the lens first, then the poses"
+    return steps.describe() + lens
 
 
 def pose_callbacks(attributes, say: Callable[[str], None]) -> List:
@@ -108,8 +111,31 @@ class Registration:
         from geer_ns.refinement.pose_solve import solve_every_camera
 
         if step in self.plan.solves:
+            solve_lenses(self.pipeline, self.optimizers, self.iterations, step, self.say)
             solve_every_camera(self.pipeline, self.optimizers, self.iterations, f"registration solve at step {step}",
                                self.say)
         held = "camera_opt" if step >= self.plan.hold_from else "means"
         for group in getattr(self.optimizers.optimizers.get(held), "param_groups", []):
             group["lr"] = 0.0  # this iteration's step only: the scheduler sets it again after
+
+
+def solve_lenses(pipeline, optimizers, iterations: int, step: int, say: Callable[[str], None]) -> None:
+    """Where the lens is refined (and active): solve it against the scene before the poses are (lens_solve.py: a
+    pose solve under a lens Adam has not brought home moves the poses away from the truth), then restart Adam's
+    momentum of it; says what moved."""
+    import time
+
+    from geer_ns.refinement.lens_solve import solve_lens
+
+    model = pipeline.model
+    if model.lens is None or not model.lens.active(model.step):
+        return
+    start = time.perf_counter()
+    summary = solve_lens(model, pipeline.datamanager, range(len(model.lens.image_camera)), iterations)
+    optimizer = optimizers.optimizers.get("lens_opt")
+    for state in ([] if optimizer is None else optimizer.state.values()):
+        if "exp_avg" in state:
+            state["exp_avg"].zero_()
+    say(f"geer: registration lens solve at step {step}: {summary['lenses']} lens(es), focal moved "
+        f"{100 * summary['focal_change']:.2f} % at most, residuals {100 * summary['residual_change']:+.1f} %, "
+        f"{time.perf_counter() - start:.0f} s")

@@ -1,0 +1,60 @@
+"""The Levenberg-Marquardt lens solve (geer_ns/refinement/lens_solve.py): a geer model's refined lens solved back to
+the lens its training images were rendered with."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from geer_ns.refinement.lens_solve import solve_lens, spread
+
+
+def _lens_setup(mode: str, start: int = 0):
+    """A model with lens refinement `mode`, four 180-degree fisheye training images (32^2, native rays) rendered
+    from known poses through the true lens (deltas zero), and their train_view."""
+    from nerfstudio.cameras.cameras import Cameras as NsCameras
+
+    from geer_ns.refinement.lens import attach
+    from test_nerfstudio_model import four_fisheye_views, make_model
+
+    model = make_model(n=80, lens_refinement=mode, lens_refinement_start=start, renderer_backend="cpu")
+    cameras, _, _ = four_fisheye_views(model)  # rendered below, once the model knows these cameras' lens
+    train = NsCameras(camera_to_worlds=torch.cat([c.camera_to_worlds for c in cameras]),
+                      fx=torch.cat([c.fx for c in cameras]), fy=torch.cat([c.fy for c in cameras]),
+                      cx=torch.cat([c.cx for c in cameras]), cy=torch.cat([c.cy for c in cameras]), width=32,
+                      height=32, camera_type=cameras[0].camera_type.expand(4, 1), distortion_params=torch.zeros(4, 6))
+    attach(model, train)
+    _, _, views = four_fisheye_views(model)
+    return model, views
+
+
+@pytest.mark.parametrize("mode, wrong", [("focal", (0.02,)), ("focal+principal", (-0.02, 0.01, -0.008))])
+def test_lens_solve_brings_a_wrong_lens_back_to_the_one_the_images_were_rendered_with(cpu_ops, mode, wrong):
+    """Focal 2 % off (and the principal point 0.01 / 0.008 focal lengths, ~0.1 px, off): the solve returns every
+    delta within 1e-4 of zero (the true lens) and lowers the residuals by more than 99 %."""
+    model, views = _lens_setup(mode)
+    with torch.no_grad():
+        model.lens.deltas[0, : len(wrong)] = torch.tensor(wrong, dtype=torch.float64)
+    summary = solve_lens(model, views, range(4), iterations=4)
+    deltas = model.lens.deltas.detach()[0]
+    assert float(deltas.abs().max()) < 1e-4, deltas
+    assert summary["lenses"] == 1 and summary["residual_change"] < -0.99
+    assert summary["focal_change"] == pytest.approx(1 - math.exp(-abs(wrong[0])), rel=0.05)
+    assert model.training and model.views == []  # the mode it found; the solve's renders are not training views
+
+
+def test_lens_solve_leaves_an_inactive_lens_alone(cpu_ops):
+    """Before lens-refinement-start the renders do not use the refined lens: nothing is solved or moved."""
+    model, views = _lens_setup("focal", start=100)
+    with torch.no_grad():
+        model.lens.deltas[0, 0] = 0.02
+    assert solve_lens(model, views, range(4), iterations=2)["lenses"] == 0
+    assert float(model.lens.deltas.detach()[0, 0]) == 0.02
+
+
+def test_spread_picks_images_evenly_along_the_path():
+    assert spread([3, 5, 7], 12) == [3, 5, 7]
+    assert spread(list(range(10)), 4) == [0, 3, 6, 9]
+    assert spread(list(range(10)), 1) == [0]
