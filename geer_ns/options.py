@@ -100,8 +100,8 @@ class GeerOwnOptions:
     adjustments, the first 20 % of the run a low-capacity scene (the seed Gaussians held in place, SH degree 0, no
     densification)
     against which every training pose is solved twice (with lens-refinement, the lens solved first), then the poses
-    held while the scene forms, solved once more against it and held to the end. Measured on the dev room it leaves the cameras bent by ~0.5 degree
-    against the truth and moves good poses as far: for rough cameras only (docs/refinement.md). "manual":
+    held while the scene forms, solved once more against it and held to the end. Measured on the dev room it leaves
+    the cameras bent by ~0.5 degree against the truth and moves good poses as far: for rough cameras only (docs/refinement.md). "manual":
     camera-optimizer.mode, pose-solve-every and pose-refinement-start as set."""
     pose_refinement_start: int = 0
     """With camera-optimizer.mode SO3xR3 or SE3: the step from which training renders use (and train) the pose

@@ -245,6 +245,15 @@ class PoseSolver:
         solve_every_camera(self.pipeline, self.optimizers, self.iterations, f"pose solve at step {step}", self.say)
 
 
+def restart_momentum(optimizers, name: str) -> None:
+    """Zero Adam's momentum of nerfstudio optimizer `name` (if it exists) after a solve moved its parameters: stale
+    momentum would carry them on along their old steps."""
+    optimizer = optimizers.optimizers.get(name)
+    for state in ([] if optimizer is None else optimizer.state.values()):
+        if "exp_avg" in state:
+            state["exp_avg"].zero_()
+
+
 def solve_every_camera(pipeline, optimizers, iterations: int, label: str, say: Callable[[str], None]) -> None:
     """solve_poses for every training camera of `pipeline`, then Adam's momentum of the poses restarted (optimizers:
     nerfstudio's Optimizers); says what moved, after `label`."""
@@ -252,10 +261,7 @@ def solve_every_camera(pipeline, optimizers, iterations: int, label: str, say: C
     model = pipeline.model
     count = len(model.camera_optimizer.pose_adjustment)
     summary = solve_poses(model, pipeline.datamanager, range(count), iterations)
-    optimizer = optimizers.optimizers.get("camera_opt")
-    for state in ([] if optimizer is None else optimizer.state.values()):
-        if "exp_avg" in state:  # stale momentum would carry the cameras on along their old steps
-            state["exp_avg"].zero_()
+    restart_momentum(optimizers, "camera_opt")
     say(f"geer: {label}: {count} cameras moved {summary['rotation_deg']:.3f} deg and {summary['translation']:.2e} "
         f"scene units on average, residuals {100 * summary['residual_change']:+.1f} %, "
         f"{time.perf_counter() - start:.0f} s")

@@ -126,16 +126,14 @@ def solve_lenses(pipeline, optimizers, iterations: int, step: int, say: Callable
     import time
 
     from geer_ns.refinement.lens_solve import solve_lens
+    from geer_ns.refinement.pose_solve import restart_momentum
 
     model = pipeline.model
     if model.lens is None or not model.lens.active(model.step):
         return
     start = time.perf_counter()
     summary = solve_lens(model, pipeline.datamanager, range(len(model.lens.image_camera)), iterations)
-    optimizer = optimizers.optimizers.get("lens_opt")
-    for state in ([] if optimizer is None else optimizer.state.values()):
-        if "exp_avg" in state:
-            state["exp_avg"].zero_()
+    restart_momentum(optimizers, "lens_opt")
     say(f"geer: registration lens solve at step {step}: {summary['lenses']} lens(es), focal moved "
         f"{100 * summary['focal_change']:.2f} % at most, residuals {100 * summary['residual_change']:+.1f} %, "
         f"{time.perf_counter() - start:.0f} s")
