@@ -156,6 +156,13 @@ template <typename T> GEER_HD Mat3<T> matTmul(const Mat3<T>& a, const Mat3<T>& b
             c.m[3 * i + j] = a.m[i] * b.m[j] + a.m[3 + i] * b.m[3 + j] + a.m[6 + i] * b.m[6 + j];
     return c;
 }
+// Element-wise conversion between compute types (the Gaussian frame is made in float64: canonical_frame).
+template <typename U, typename T> GEER_HD Vec3<U> convert3(const Vec3<T>& a) { return Vec3<U>{U(a.x), U(a.y), U(a.z)}; }
+template <typename U, typename T> GEER_HD Mat3<U> convert_mat3(const Mat3<T>& a) {
+    Mat3<U> c;
+    for (int i = 0; i < 9; ++i) c.m[i] = U(a.m[i]);
+    return c;
+}
 template <typename T> GEER_HD Mat3<T> load_mat3(const T* p) {
     Mat3<T> a;
     for (int i = 0; i < 9; ++i) a.m[i] = p[i];
@@ -358,14 +365,34 @@ template <typename T> struct GaussianForward {
     bool camera_inside;
 };
 
+// A Gaussian's frame for one view (transforms.canonical_frame): R_v = R_c R(q), W = S^-1 R_v^T and o_u = -W mu_c,
+// made in float64 from the inputs and rounded once to T. Why: q = D^2 is ill-conditioned in W and o_u by about
+// |o_u|^2 / D^2, so the few roundings of a float32 chain move q by ~1e-6 relative, enough to put a pair on the
+// other side of the 1/255 threshold (docs/cuda.md, "The frame in float64").
+template <typename T> struct CanonicalFrame {
+    Mat3<T> rot_v;
+    Mat3<T> w;
+    Vec3<T> o_u;
+};
+template <typename T>
+GEER_HD CanonicalFrame<T> canonical_frame(const Vec3<T>& mean_c, const T* quat, const T* scales, const Mat3<T>& rot_c) {
+    const double q[4] = {double(quat[0]), double(quat[1]), double(quat[2]), double(quat[3])};
+    const double s[3] = {double(scales[0]), double(scales[1]), double(scales[2])};
+    const Mat3<double> rot_v = matmul(convert_mat3<double>(rot_c), quat_to_rotmat(q));
+    const Mat3<double> w = whitening(rot_v, s);
+    return CanonicalFrame<T>{convert_mat3<T>(rot_v), convert_mat3<T>(w),
+                             convert3<T>(camera_in_canonical(w, convert3<double>(mean_c)))};
+}
+
 // The per-Gaussian forward of rasterize.preprocess (without colour): view rotation, whitening, o_u, PBF.
 template <typename T>
 GEER_HD GaussianForward<T> preprocess_gaussian(const Vec3<T>& mean_c, const T* quat, const T* scales, T opacity,
                                                const Mat3<T>& rot_c, bool paper_lambda) {
     GaussianForward<T> g;
-    const Mat3<T> rot_v = matmul(rot_c, quat_to_rotmat(quat));
-    g.w = whitening(rot_v, scales);
-    g.o_u = camera_in_canonical(g.w, mean_c);
+    const CanonicalFrame<T> frame = canonical_frame(mean_c, quat, scales, rot_c);
+    const Mat3<T>& rot_v = frame.rot_v;
+    g.w = frame.w;
+    g.o_u = frame.o_u;
     g.lam2 = pbf_lambda_sq(opacity, paper_lambda);
     g.alive = pbf_alive(opacity);
     g.camera_inside = dot(g.o_u, g.o_u) <= g.lam2;

@@ -25,7 +25,7 @@ from torch import Tensor
 from .cones import gaussian_cone_form
 from .pbf import PBF, compute_pbf, pbf_lambda_sq
 from .raygrid import RayGrid
-from .transforms import MIN_SCALE, covariance_factor, whitening
+from .transforms import MIN_SCALE, canonical_frame, covariance_factor
 
 
 @dataclass
@@ -75,15 +75,15 @@ def motion_scales(scales: Tensor, lam2: Tensor, offset: float) -> Tensor:
         return torch.sqrt((1.0 + 1.0 / p) * a * a + (1.0 + p) * offset * offset) / lam
 
 
-def motion_pbf(means_c: Tensor, rot_v: Tensor, scales: Tensor, opacities: Tensor, lambda_mode: str,
+def motion_pbf(means_c: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, lambda_mode: str,
                motion: MovingRays) -> PBF:
     """The PyTorch renderer's PBF (with its cone form) for `motion`'s rays: pbf.compute_pbf of the Gaussians with
-    motion_scales (means_c [N,3], rot_v [N,3,3] in the reference camera frame). No gradient."""
+    motion_scales (means_c [N,3] in the reference camera frame, quats [N,4], scales [N,3], opacities [N], viewmat
+    [4,4] the reference pose). No gradient."""
     with torch.no_grad():
         lam2, alive = pbf_lambda_sq(opacities.detach(), lambda_mode)
         scales_m = motion_scales(scales.detach(), lam2, motion.offset)
-        w = whitening(rot_v.detach(), scales_m)
-        o_u = -torch.einsum("nij,nj->ni", w, means_c.detach())
-        pbf = compute_pbf(means_c.detach(), covariance_factor(rot_v.detach(), scales_m), lam2, alive, o_u)
+        rot_v, w, o_u = canonical_frame(means_c.detach(), quats.detach(), scales_m, viewmat.detach())
+        pbf = compute_pbf(means_c.detach(), covariance_factor(rot_v, scales_m), lam2, alive, o_u)
         pbf.cone = gaussian_cone_form(w, o_u, lam2, pbf.camera_inside)
         return pbf

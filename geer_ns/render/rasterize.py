@@ -30,7 +30,7 @@ from .outputs import RenderOutput, images
 from .pbf import PBF, LambdaMode, compute_pbf, pbf_lambda_sq
 from .raygrid import RayGrid
 from .sh import sh_to_color
-from .transforms import camera_offsets, covariance_factor, to_view_space, whitening
+from .transforms import camera_offsets, canonical_frame, covariance_factor, view_transform
 from .validate import check_gaussians, check_shape
 
 
@@ -57,11 +57,10 @@ def preprocess(
     sh_degree: int | Tensor | None = None,
     lambda_mode: LambdaMode = "opacity",
 ) -> Preprocessed:
-    means_c, rot_v = to_view_space(means, quats, viewmat)
+    means_c = view_transform(means, viewmat)
     if means_c.requires_grad:
         means_c.retain_grad()
-    w = whitening(rot_v, scales)
-    o_u = -torch.einsum("nij,nj->ni", w, means_c)
+    rot_v, w, o_u = canonical_frame(means_c, quats, scales, viewmat)
     lam2, alive = pbf_lambda_sq(opacities.detach(), lambda_mode)
     pbf = compute_pbf(means_c.detach(), covariance_factor(rot_v, scales).detach(), lam2, alive, o_u.detach())
     pbf.cone = gaussian_cone_form(w.detach(), o_u.detach(), lam2, pbf.camera_inside)
@@ -133,8 +132,7 @@ def render(
     # viewmat keeps its dtype: the view transform runs in float64 (transforms.view_transform)
     pre = preprocess(means, quats, scales, opacities, colors, viewmat, sh_degree, lambda_mode)
     if motion is not None:
-        pre.pbf = motion_pbf(pre.means_c, to_view_space(means.detach(), quats.detach(), viewmat)[1], scales,
-                             opacities, lambda_mode, motion)
+        pre.pbf = motion_pbf(pre.means_c, quats, scales, opacities, viewmat, lambda_mode, motion)
     tiles = associate(pre.pbf, grid if motion is None else motion.tile_grid(grid), pre.depth)
     rows = (offset_rows(absgrad[0], pre.whiten), absgrad[1]) if absgrad is not None else None
     rgb, depth, acc, max_weight, median = blend_lists(pre.o_u, pre.whiten, pre.opacities, pre.colors, dirs,

@@ -73,11 +73,29 @@ def camera_offsets(means: Tensor, viewmat: Tensor) -> Tensor:
     return (means.to(torch.float64) - center).to(means.dtype)
 
 
+def view_rotations(quats: Tensor, viewmat: Tensor, dtype: torch.dtype) -> Tensor:
+    """R_v = R_c R(q) [N, 3, 3] in float64, with R_c rounded to `dtype` first (the kernels read it so)."""
+    return viewmat[:3, :3].to(dtype).to(torch.float64) @ quat_to_rotmat(quats.to(torch.float64))
+
+
 def to_view_space(means: Tensor, quats: Tensor, viewmat: Tensor) -> tuple[Tensor, Tensor]:
-    """View-space means [N, 3] and view-space rotations R_v = R_c R [N, 3, 3]."""
-    means_c = view_transform(means, viewmat)
-    rot_v = viewmat[:3, :3].to(means.dtype) @ quat_to_rotmat(quats)
-    return means_c, rot_v
+    """View-space means [N, 3] and view-space rotations R_v = R_c R [N, 3, 3] (made in float64, in means' dtype)."""
+    return view_transform(means, viewmat), view_rotations(quats, viewmat, means.dtype).to(means.dtype)
+
+
+def canonical_frame(means_c: Tensor, quats: Tensor, scales: Tensor, viewmat: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Each Gaussian's frame for one view: (R_v [N, 3, 3], W = S^-1 R_v^T [N, 3, 3], o_u = -W mu_c [N, 3]), made in
+    float64 and returned in means_c's dtype (differentiable; geer_math.h canonical_frame is the kernels' twin).
+
+    Why float64: the squared distance q = D^2 that every pair is kept or skipped on is ill-conditioned in W and o_u
+    (by ~|o_u|^2 / D^2), and the roundings of a float32 chain move it by ~1e-6 relative, enough to put a pair on
+    the other side of the 1/255 threshold (docs/cuda.md, "The frame in float64"). Rounded once, W and o_u are
+    as exact as float32 can hold them; the per-Gaussian cost is negligible.
+    """
+    rot_v = view_rotations(quats, viewmat, means_c.dtype)
+    w = whitening(rot_v, scales.to(torch.float64))
+    o_u = -torch.einsum("nij,nj->ni", w, means_c.to(torch.float64))
+    return rot_v.to(means_c.dtype), w.to(means_c.dtype), o_u.to(means_c.dtype)
 
 
 def whitening(rot_v: Tensor, scales: Tensor) -> Tensor:
