@@ -13,6 +13,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 
@@ -20,7 +21,9 @@ from geer_ns.cameras import FOVCamera, Fisheye624Camera, MeiCamera, OpenCVFishey
 from geer_ns.data.nerfstudio_parser import GeerNerfstudioDataParserConfig
 from geer_ns.data.synthetic_room import default_scene_dir
 from geer_ns.data.views import camera_model
+from geer_ns.data.rolling_shutter import MOTION_KEY, READOUT_KEY
 from geer_ns.refinement.lens import LensRefinement
+from geer_ns.refinement.readout import ReadoutRefinement
 from geer_ns.process_data.camera import read_calibration
 from geer_ns.refinement.refined_cameras import FILE_NAME, colmap_camera, nerfstudio_intrinsics, refined_poses, write_refined_cameras
 
@@ -33,14 +36,24 @@ def _fields_close(a, b, rel=1e-6):
         assert getattr(a, f.name) == pytest.approx(getattr(b, f.name), rel=rel, abs=1e-9), f.name
 
 
-@pytest.fixture()
-def run(tmp_path):
-    """A refined 'run' of the embedded room: parsed cameras, lens deltas and pose corrections set at random."""
+def _refined_run(tmp_path, rolling: bool = False):
+    """A refined 'run' of the embedded room: parsed cameras, lens deltas and pose corrections set at random;
+    `rolling`: every frame read out top to bottom while turning 2 degrees and moving 3 cm, and the readout
+    refinement's adjustments set at random too."""
     room = default_scene_dir()
     meta = json.loads((room / "transforms.json").read_text())
     meta.pop("ply_file_path", None)
     for f in meta["frames"]:
         f["file_path"], f["mask_path"] = str(room / f["file_path"]), str(room / f["mask_path"])
+        if rolling:
+            start = np.asarray(f["transform_matrix"], dtype=np.float64)
+            turn = Rotation.from_rotvec(np.radians(2.0) * np.array([0.6, 0.8, 0.0])).as_matrix()
+            end = start.copy()
+            end[:3, :3] = start[:3, :3] @ turn
+            end[:3, 3] += [0.03, 0.0, 0.01]
+            f["transform_matrix_end"] = end.tolist()
+    if rolling:
+        meta["rolling_shutter"] = {"readout": "top-to-bottom"}
     meta = {k: v for k, v in meta.items() if not k.endswith("_filenames")}
     data = tmp_path / "data"
     data.mkdir()
@@ -53,7 +66,11 @@ def run(tmp_path):
     with torch.no_grad():
         lens.deltas.copy_(0.01 * torch.randn(lens.deltas.shape, generator=gen, dtype=torch.float64))
         optimizer.pose_adjustment.copy_(0.02 * torch.randn(optimizer.pose_adjustment.shape, generator=gen))
-    model = SimpleNamespace(lens=lens, camera_optimizer=optimizer, step=7, refined_frame=None,
+    readout = ReadoutRefinement(len(cameras)) if rolling else None
+    if readout is not None:
+        with torch.no_grad():
+            readout.adjustments.copy_(0.01 * torch.randn(readout.adjustments.shape, generator=gen, dtype=torch.float64))
+    model = SimpleNamespace(lens=lens, camera_optimizer=optimizer, step=7, refined_frame=None, readout=readout,
                             config=SimpleNamespace(lens_refinement="full"))
     datamanager = SimpleNamespace(train_dataparser_outputs=outputs, train_dataset=SimpleNamespace(cameras=cameras),
                                   config=SimpleNamespace(dataparser=SimpleNamespace(data=data)))
@@ -62,6 +79,11 @@ def run(tmp_path):
     path = write_refined_cameras(pipeline, out)
     outputs.save_dataparser_transform(tmp_path / "dataparser_transforms.json")
     return SimpleNamespace(pipeline=pipeline, path=path, out=out, lens=lens, tmp=tmp_path, outputs=outputs)
+
+
+@pytest.fixture()
+def run(tmp_path):
+    return _refined_run(tmp_path)
 
 
 def test_cameras_refined_json_parses_back_to_the_refined_cameras(run):
@@ -124,3 +146,32 @@ def test_a_run_without_refinement_writes_nothing(run):
     run.pipeline.model.camera_optimizer.config.mode = "off"
     assert write_refined_cameras(run.pipeline, run.tmp / "none") is None
     assert not (run.tmp / "none" / FILE_NAME).exists()
+
+
+def test_a_rolling_shutter_runs_refined_readouts_parse_back(tmp_path):
+    """Each frame's readout and refined end-of-readout pose: parsed back on its own (the parser's motion from the
+    written start and end poses, in its own scale), the motion is the data's with the readout refinement's
+    adjustment applied (rotation as is, travel per unit of each parse's scale)."""
+    run = _refined_run(tmp_path, rolling=True)
+    frames = json.loads(run.path.read_text())["frames"]
+    assert all(f["rolling_shutter"] == {"readout": "top-to-bottom"} and "transform_matrix_end" in f for f in frames)
+    parsed = GeerNerfstudioDataParserConfig(data=run.path, eval_mode="all").setup().get_dataparser_outputs("train")
+    given, refinement = run.outputs.cameras.metadata, run.pipeline.model.readout
+    assert torch.equal(parsed.cameras.metadata[READOUT_KEY], given[READOUT_KEY])
+    with torch.no_grad():
+        expected = torch.stack([refinement.adjusted(given[MOTION_KEY][i].double(), i) for i in range(len(frames))])
+    assert (expected - given[MOTION_KEY].double()).abs().max() > 1e-3  # the adjustments moved the motion
+    back = parsed.cameras.metadata[MOTION_KEY].double().reshape(-1, 3, 4)
+    expected = expected.reshape(-1, 3, 4)
+    assert torch.allclose(back[..., :3], expected[..., :3], atol=2e-6)
+    travel = lambda m, scale: m[..., 3] / float(scale)  # noqa: E731 - in the file's units
+    assert torch.allclose(travel(back, parsed.dataparser_scale), travel(expected, run.outputs.dataparser_scale),
+                          atol=1e-6)
+
+
+def test_readout_refinement_alone_writes_the_refined_cameras(tmp_path):
+    run = _refined_run(tmp_path, rolling=True)
+    run.pipeline.model.lens = None
+    run.pipeline.model.camera_optimizer.config.mode = "off"
+    path = write_refined_cameras(run.pipeline, run.tmp / "readouts_only")
+    assert path is not None and all("transform_matrix_end" in f for f in json.loads(path.read_text())["frames"])

@@ -1,11 +1,14 @@
 """The training cameras as refined (lens refinement, pose refinement) written beside a run's checkpoints.
 
     <run>/cameras_refined.json   nerfstudio transforms.json style: per frame its refined camera-to-world (in the
-                                 data's own frame, nerfstudio's dataparser transform undone) and its camera's
-                                 refined intrinsics; top level the first camera's intrinsics, so that
-                                 `geer-process-data --calibration cameras_refined.json` reads it
+                                 data's own frame, nerfstudio's dataparser transform undone), a rolling-shutter
+                                 frame's readout and refined end-of-readout pose (`rolling_shutter`,
+                                 `transform_matrix_end`), and its camera's refined intrinsics; top level the first
+                                 camera's intrinsics, so that `geer-process-data --calibration cameras_refined.json`
+                                 reads it
     <run>/colmap/cameras.txt     COLMAP text model of the same: cameras.txt (one camera per refined camera that
-         images.txt              COLMAP has a model for), images.txt (world-to-camera of every training image),
+         images.txt              COLMAP has a model for), images.txt (world-to-camera of every training image;
+                                 a rolling-shutter image's start pose: COLMAP has no readout),
          points3D.txt            an empty points3D.txt; pycolmap.Reconstruction reads the folder
 
 docs/refinement.md says when they are written.
@@ -32,6 +35,8 @@ from geer_ns.cameras import (
     ThinPrismFisheyeCamera,
 )
 from geer_ns.cameras.convert import _COLMAP_MODELS
+from geer_ns.cameras.shutter import READOUTS
+from geer_ns.data.rolling_shutter import GLOBAL, MOTION_KEY, READOUT_KEY, end_pose
 from geer_ns.refinement.refined_frame import adjusted_poses
 
 FILE_NAME = "cameras_refined.json"
@@ -78,15 +83,48 @@ def nerfstudio_intrinsics(camera: CameraModel) -> Dict[str, object]:
     return {**out, **base, **extra}
 
 
+def _in_given_frame(model, c2w: torch.Tensor) -> torch.Tensor:
+    """Run-frame camera-to-worlds [N, 3, 4] with the similarity the scene drifted by taken out
+    (geer_ns/refinement/refined_frame.py), so that they sit beside the poses the run was given (its test views')."""
+    frame = model.refined_frame
+    return c2w if frame is None else frame.similarity(model.camera_optimizer).inverse().apply(c2w)
+
+
+def _run_frame_poses(pipeline) -> torch.Tensor:
+    """[N, 3, 4] float64 the training images' camera-to-worlds with the camera optimizer's corrections, in the
+    run's frame."""
+    given = pipeline.datamanager.train_dataset.cameras.camera_to_worlds
+    return adjusted_poses(pipeline.model.camera_optimizer, given)
+
+
 def refined_poses(pipeline) -> torch.Tensor:
     """[N, 3, 4] float64 the training images' refined camera-to-worlds in the run's given frame: the camera
-    optimizer's corrections applied, then the similarity the scene drifted by taken out (geer_ns/refinement/refined_frame.py),
-    so that they sit beside the poses the run was given (its test views')."""
+    optimizer's corrections applied, the scene's drift taken out (_in_given_frame). A rolling-shutter image's is
+    its start-of-readout pose (refined_readouts: its end)."""
+    return _in_given_frame(pipeline.model, _run_frame_poses(pipeline))
+
+
+def refined_readouts(pipeline, starts: torch.Tensor) -> Tuple[List[Optional[str]], torch.Tensor]:
+    """(each training image's readout, None for a global shutter; [N, 3, 4] float64 its refined camera-to-world at
+    the end of the readout in the frame of refined_poses, the start's for a global shutter), from the run-frame
+    refined starts [N, 3, 4] (_run_frame_poses). The end follows the refined start by the data's motion during the
+    readout, with the readout refinement's adjustment where the run has one (geer_ns/refinement/readout.py)."""
     model = pipeline.model
-    given = pipeline.datamanager.train_dataset.cameras.camera_to_worlds
-    refined = adjusted_poses(model.camera_optimizer, given)
-    frame = model.refined_frame
-    return refined if frame is None else frame.similarity(model.camera_optimizer).inverse().apply(refined)
+    cameras = pipeline.datamanager.train_dataset.cameras
+    ends = starts.clone()
+    names: List[Optional[str]] = [None] * len(starts)
+    metadata = cameras.metadata or {}
+    refinement = getattr(model, "readout", None)
+    if READOUT_KEY in metadata:
+        for i, index in enumerate(metadata[READOUT_KEY].reshape(-1).tolist()):
+            if index == GLOBAL:
+                continue
+            motion = metadata[MOTION_KEY][i].detach().cpu().double()
+            if refinement is not None:
+                with torch.no_grad():
+                    motion = refinement.adjusted(motion, i).detach().cpu()
+            names[i], ends[i] = READOUTS[index], end_pose(starts[i], motion)
+    return names, _in_given_frame(model, ends)
 
 
 def to_data_frame(c2w: torch.Tensor, transform: torch.Tensor, scale: float,
@@ -124,23 +162,29 @@ def refined_cameras(pipeline) -> Tuple[List[CameraModel], List[int]]:
 
 
 def write_refined_cameras(pipeline, out_dir: Path) -> Optional[Path]:
-    """Write cameras_refined.json and colmap/ into `out_dir` when the run refines its lens or poses (else
-    nothing; returns None). Returns the JSON's path."""
+    """Write cameras_refined.json and colmap/ into `out_dir` when the run refines its lens, poses or readouts
+    (else nothing; returns None). Returns the JSON's path."""
     model = pipeline.model
-    if model.lens is None and model.camera_optimizer.config.mode == "off":
+    if model.lens is None and model.camera_optimizer.config.mode == "off" and getattr(model, "readout", None) is None:
         return None
     out_dir = Path(out_dir)
     outputs = pipeline.datamanager.train_dataparser_outputs
     cams, image_camera = refined_cameras(pipeline)
-    c2w = to_data_frame(refined_poses(pipeline), outputs.dataparser_transform, float(outputs.dataparser_scale),
-                        _applied_transform(pipeline.datamanager))
+    to_data = lambda poses: to_data_frame(poses, outputs.dataparser_transform,  # noqa: E731
+                                          float(outputs.dataparser_scale), _applied_transform(pipeline.datamanager))
+    starts = _run_frame_poses(pipeline)
+    c2w = to_data(_in_given_frame(model, starts))
+    readouts, ends = refined_readouts(pipeline, starts)
+    c2w_end = to_data(ends)
     data = Path(pipeline.datamanager.config.dataparser.data)
     out_dir.mkdir(parents=True, exist_ok=True)
     frames = []
     for i, name in enumerate(outputs.image_filenames):  # paths relative to the file (it parses where it lies)
         rel = os.path.relpath(Path(name).resolve(), out_dir.resolve())
-        frames.append({"file_path": rel, "transform_matrix": c2w[i].tolist(),
-                       **nerfstudio_intrinsics(cams[image_camera[i]])})
+        frame = {"file_path": rel, "transform_matrix": c2w[i].tolist()}
+        if readouts[i] is not None:
+            frame.update(rolling_shutter={"readout": readouts[i]}, transform_matrix_end=c2w_end[i].tolist())
+        frames.append({**frame, **nerfstudio_intrinsics(cams[image_camera[i]])})
     meta = {**nerfstudio_intrinsics(cams[0]), "frames": frames,
             "refinement": {"lens": model.config.lens_refinement, "poses": model.camera_optimizer.config.mode,
                            "step": int(model.step), "data": str(data)}}
