@@ -5,10 +5,11 @@ step's views see, the view cull. Writes benchmarks/skip_unneeded.md (device, com
 
 1. The dev room at 128^2, fisheye and pinhole, each run in its own process (nerfstudio's loop) on the defaults'
    schedule scaled down: refinement every 100 steps from step 200, splits until 600, the SH degree up every 150
-   steps (3 from step 450; the degrees are chosen at step 600). VARIANTS against every band at the same Adam
+   steps (3 from step 450; the degrees are chosen at the last step). VARIANTS against every band at the same Adam
    rows; held-out views at the last step; bytes per Gaussian of the final checkpoint and of geer-export's PLY and
-   SPZ. On each every-band run with Adam on seen rows, degrees applied to its final Gaussians without training
-   after (every Gaussian at one degree; the choice at several budgets). Runs and sweeps in --work are kept.
+   SPZ. On the first seed's every-band runs, degrees applied to their final Gaussians without training after
+   (every Gaussian at one degree, its bands cut off and refit; the choice at several budgets). Runs and sweeps in
+   --work are kept.
 2. The colour stage: the CPU build's preprocess forward + backward (SH evaluated there), every band against each
    Gaussian's own degree, alternated, median.
 3. A training step at 1M Gaussians, each view seeing a few percent (a corridor, pinhole views of its walls):
@@ -101,46 +102,48 @@ def one_run(name: str, work: Path, steps: int) -> dict:
             "degree_counts": None if degrees is None else np.bincount(degrees.cpu().numpy(), minlength=4).tolist()}
 
 
-def degree_sweep(name: str, work: Path, budgets=(0.02, 0.1, 0.2)) -> list:
+def degree_sweep(name: str, work: Path, budgets=(0.02, 0.1, 0.2, 0.5)) -> list:
     """Degrees applied to the final Gaussians of the every-band run `name` (loaded, one step), no training after:
-    every Gaussian at one degree, and the choice at each budget. Rows: (rule, highest degree, Gaussians per
-    degree, training views' loss in dB, test PSNR change in dB)."""
-    from geer_ns.sh_degrees.choice import choose
-    from geer_ns.sh_degrees.packing import DEGREES, kept
+    every Gaussian at one degree, its bands cut off and refit (geer_ns/sh_degrees/refit.py), and the choice at each
+    budget (refit). Rows: (rule, highest degree, Gaussians per degree, training views' loss in dB, test PSNR
+    change in dB)."""
+    from geer_ns.sh_degrees.choice import band_errors, choose, set_degrees
+    from geer_ns.sh_degrees.packing import DEGREES
 
     _, variant, seed, data, tag = _parts(name, work)
     base, _, pipeline = train_and_score(trainer_config(
         f"{tag}_sweep", data, 1, {**SCHEDULE, **VARIANTS[variant]}, work, seed=seed,
         load_dir=work / "runs" / tag / "geer" / "run" / "nerfstudio_models"))
     model = pipeline.model
-    features = model.gauss_params["features_rest"]
-    dense = features.detach().clone()
+    rest, dc = model.gauss_params["features_rest"], model.gauss_params["features_dc"]
+    dense_rest, dense_dc = rest.detach().clone(), dc.detach().clone()
 
-    def applied(degrees):
-        features.data.copy_(dense)
+    def applied(degrees, fits=None):
+        rest.data.copy_(dense_rest)
+        dc.data.copy_(dense_dc)
+        model.strategy_state.pop(DEGREES, None)
         if degrees is not None:
-            features.data[~kept(degrees, dense.shape[1])] = 0.0
-            model.strategy_state[DEGREES] = degrees.to(torch.uint8)
-        else:
-            model.strategy_state.pop(DEGREES, None)
+            set_degrees(model, degrees, fits)
 
-    def test_change(degrees) -> float:
-        applied(degrees)
+    def test_change(degrees, fits=None) -> float:
+        applied(degrees, fits)
         psnr = pipeline.get_average_eval_image_metrics(step=model.step)["psnr"]
         pipeline.train()
         return psnr - base["psnr"]
 
+    fits = band_errors(model, pipeline).fits
     rows = []
     for d in range(3):
         degrees = torch.full((model.num_points,), d, dtype=torch.uint8)
-        rows.append((f"every Gaussian at {d}", d, [model.num_points if k == d else 0 for k in range(4)], None,
-                     test_change(degrees)))
+        counts = [model.num_points if k == d else 0 for k in range(4)]
+        rows.append((f"every Gaussian at {d}, cut off", d, counts, None, test_change(degrees)))
+        rows.append((f"every Gaussian at {d}, refit", d, counts, None, test_change(degrees, fits)))
     for budget in budgets:
         applied(None)
         choice = choose(model, pipeline, budget)
         rows.append((f"the choice, budget {budget} dB", choice.cap,
                      torch.bincount(choice.degrees.long(), minlength=4).tolist(), choice.loss_db,
-                     test_change(choice.degrees)))
+                     test_change(choice.degrees, choice.fits)))
     return rows
 
 
@@ -323,7 +326,8 @@ def main() -> None:
         return
     names = [f"{c} {v} seed {s}" for s in args.seeds for c in ("fisheye", "pinhole") for v in VARIANTS]
     chosen = [n for n in names if args.only is None or any(n.startswith(o) for o in args.only)]
-    for part, name in [("run", n) for n in chosen] + [("sweep", n) for n in chosen if "band, Adam on seen" in n]:
+    sweeps = [n for n in chosen if "every band, Adam on every row" in n and n.endswith(f" seed {args.seeds[0]}")]
+    for part, name in [("run", n) for n in chosen] + [("sweep", n) for n in sweeps]:
         if not (dirs[part] / f"{name.replace(' ', '_')}.json").is_file():
             print(f"[skip_unneeded] {part} {name}", flush=True)
             subprocess.run([sys.executable, "-m", "benchmarks.skip_unneeded", "--part", part, name, "--steps",

@@ -67,7 +67,7 @@ from geer_ns.render.transforms import view_transform, world_to_camera_opencv
 from geer_ns.render_guard import RenderGuard, camera_problem, in_viewer_thread, is_viewer_interrupt
 from geer_ns.selftest.sentinel import KernelSentinel, ViewInputs
 from geer_ns.sh_degrees import packing as sh_packing
-from geer_ns.sh_degrees.choice import BandChoice, choice_step
+from geer_ns.sh_degrees.choice import BandChoice
 from geer_ns.shutter_views import model_view
 
 View = Union[BeapView, NativeView]
@@ -460,7 +460,8 @@ class GeerModel(SplatfactoModel):
         self._step_background = None
         if not self._said_skipping:
             self._said_skipping = True
-            CONSOLE.log(f"geer: {skipping_line(self.config, self.sh_choice_step(), self.scene_gaussians is not None)}")
+            sharded = self.scene_gaussians is not None
+            CONSOLE.log(f"geer: {skipping_line(self.config, self.chooses_sh_degrees(), sharded)}")
         if step == self.config.pose_refinement_start > 0:
             CONSOLE.log(f"geer: step {step}: pose refinement starts ({self.camera_optimizer.config.mode}, "
                         "pose-refinement-start)")
@@ -497,18 +498,16 @@ class GeerModel(SplatfactoModel):
                              args=[training_callback_attributes.optimizers]),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.step_post_backward),
         ]
-        if self.sh_choice_step() is not None:
+        if self.chooses_sh_degrees() and training_callback_attributes.trainer is not None:
             callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], BandChoice(
-                training_callback_attributes.pipeline, training_callback_attributes.optimizers, self.sh_choice_step(),
-                self.config.sh_budget_db, say=CONSOLE.log)))
+                training_callback_attributes.pipeline, training_callback_attributes.optimizers,
+                training_callback_attributes.trainer, self.config.sh_budget_db, say=CONSOLE.log)))
         return callbacks + pose_callbacks(training_callback_attributes, say=CONSOLE.log)
 
-    def sh_choice_step(self) -> Optional[int]:
-        """The step each Gaussian's SH degree is chosen at (geer_ns/sh_degrees/choice.py), or None: not chosen
-        (sh-per-gaussian off, no SH, or Gaussians sharded over processes)."""
-        if not self.config.sh_per_gaussian or self.config.sh_degree == 0 or self.scene_gaussians is not None:
-            return None
-        return choice_step(self.config.stop_split_at, self.config.sh_degree, self.config.sh_degree_interval)
+    def chooses_sh_degrees(self) -> bool:
+        """Whether each Gaussian's SH degree is chosen, at the run's last step (geer_ns/sh_degrees/choice.py): not
+        with sh-per-gaussian off, without SH, or with the Gaussians sharded over processes."""
+        return self.config.sh_per_gaussian and self.config.sh_degree > 0 and self.scene_gaussians is None
 
     # ------------------------------------------------------------------------------------- losses
     def supervised_mask(self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]) -> Tensor:

@@ -34,12 +34,14 @@ class GeerOwnOptions:
     """Prune Gaussians whose blend weight stayed below 1/255 on every training ray for a whole pass over the
     training images (too faint, or hidden behind opaque surfaces in every view)."""
     sh_per_gaussian: bool = True
-    """Each Gaussian keeps only the SH bands its training images show: chosen once, at the end of densification,
-    by measuring the training views' PSNR (sh-budget-db); the kernels evaluate and train each Gaussian only up to
-    its degree, and checkpoints and exports store only what it keeps (geer_ns/sh_degrees). False: every Gaussian
-    keeps every band (splatfacto). Not with --pipeline.model.distributed gaussians."""
-    sh_budget_db: float = 0.02
-    """sh-per-gaussian: the most PSNR the training views may lose, measured when the bands are chosen."""
+    """Each Gaussian keeps only the SH bands its training images show: chosen once, at the run's last step, by
+    measuring the training views' PSNR (sh-budget-db), the kept bands refit to the colours its views saw; the
+    kernels evaluate (and a resumed run trains) each Gaussian only up to its degree, and checkpoints and exports
+    store only what it keeps (geer_ns/sh_degrees). False: every Gaussian keeps every band (splatfacto).
+    Not with --pipeline.model.distributed gaussians."""
+    sh_budget_db: float = 0.05
+    """sh-per-gaussian: the most PSNR the training views may lose, measured when the bands are chosen (0.05 dB:
+    below the spread of runs that differ only in their seed, ~0.1 dB on the dev room)."""
     optimizer_rows: Literal["visible", "all"] = "all"
     """"all": every Gaussian, every step (torch's Adam). "visible": Adam steps only the Gaussians the step's views
     can see (geer_ns/optim/selective_adam.py: torch's Adam on those rows, its bias correction; the others and their
@@ -98,11 +100,11 @@ class GeerOwnOptions:
     camera_refinement: CameraRefinement = "manual"
     """"register": the registration recipe for rough cameras (geer_ns/refinement/registration.py): SO3xR3 pose
     adjustments, the first 20 % of the run a low-capacity scene (the seed Gaussians held in place, SH degree 0, no
-    densification)
-    against which every training pose is solved twice (with lens-refinement, the lens solved first), then the poses
-    held while the scene forms, solved once more against it and held to the end. Measured on the dev room it leaves
-    the cameras bent by ~0.5 degree against the truth and moves good poses as far: for rough cameras only (docs/refinement.md). "manual":
-    camera-optimizer.mode, pose-solve-every and pose-refinement-start as set."""
+    densification) against which every training pose is solved twice (with lens-refinement, the lens solved
+    first), then the poses held while the scene forms, solved once more against it and held to the end. Measured
+    on the dev room it leaves the cameras bent by ~0.5 degree against the truth and moves good poses as far: for
+    rough cameras only (docs/refinement.md). "manual": camera-optimizer.mode, pose-solve-every and
+    pose-refinement-start as set."""
     pose_refinement_start: int = 0
     """With camera-optimizer.mode SO3xR3 or SE3: the step from which training renders use (and train) the pose
     adjustments (and pose-solve-every solves them). Poses refined while the scene forms wander, and the scene
@@ -159,11 +161,11 @@ def ignored_options_set(config, defaults) -> List[str]:
             if getattr(config, name) != getattr(defaults, name)]
 
 
-def skipping_line(options: GeerOwnOptions, sh_choice_step: Optional[int], sharded: bool) -> str:
-    """The start-up line on what training skips: per-Gaussian SH degrees (chosen at `sh_choice_step`, None: not
-    chosen; never with Gaussians `sharded` over processes), the optimizer's rows and the view cull."""
-    if sh_choice_step is not None:
-        sh = (f"each Gaussian's SH degree chosen at step {sh_choice_step}, the end of densification (sh-per-gaussian, "
+def skipping_line(options: GeerOwnOptions, sh_chosen: bool, sharded: bool) -> str:
+    """The start-up line on what training skips: per-Gaussian SH degrees (`sh_chosen`: at the run's last step;
+    never with Gaussians `sharded` over processes), the optimizer's rows and the view cull."""
+    if sh_chosen:
+        sh = ("each Gaussian's SH degree chosen at the run's last step, its kept bands refit (sh-per-gaussian, "
               f"budget {options.sh_budget_db} dB)")
     elif options.sh_per_gaussian and sharded:
         sh = "every SH band kept (sh-per-gaussian is not chosen with Gaussians sharded over processes)"

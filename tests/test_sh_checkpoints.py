@@ -1,5 +1,6 @@
-"""Per-Gaussian SH degrees through training (geer_ns/sh_degrees): chosen at the end of densification, stored packed
-in checkpoints (features_rest and its Adam moments: the kept coefficients only), loaded back dense, resumed, and a
+"""Per-Gaussian SH degrees through training (geer_ns/sh_degrees): chosen at the run's last step, stored packed
+in checkpoints (features_rest and its Adam moments: the kept coefficients only; the first run's degrees set in turn
+over the rows, _mixed_choice), loaded back dense, resumed, and a
 checkpoint in the format before per-Gaussian degrees (dense, torch's Adam) resumed by today's defaults. Runs of
 nerfstudio's own training loop on four frames of the embedded room."""
 
@@ -16,7 +17,7 @@ from conftest import copy_room, tiny_trainer_config, train_in_process
 from geer_ns.sh_degrees.packing import kept, pack, unpacked_checkpoint
 
 REST = "_model.gauss_params.features_rest"
-CHOICE = 8  # max(stop_split_at, (sh_degree + 1) * sh_degree_interval)
+CHOICE = 11  # the first run's last step (12 steps): where the degrees are chosen (choice.last_step)
 
 
 def _config(data: Path, out: Path, name: str, steps: int, load_dir=None, **model):
@@ -30,6 +31,15 @@ def _config(data: Path, out: Path, name: str, steps: int, load_dir=None, **model
     return config
 
 
+def _mixed_choice(model, pipeline, budget_db):
+    """Degrees 0-3 in turn over the rows (with their measured refits): on four frames after 8 steps every
+    Gaussian's colour is its DC refit, so the measured choice puts all at one degree; the packing needs a mix."""
+    from geer_ns.sh_degrees.choice import Choice, band_errors
+
+    fits = band_errors(model, pipeline).fits
+    return Choice((torch.arange(model.num_points) % 4).to(torch.uint8), 3, 0.0, 0.0, 1, fits)
+
+
 def _degrees(ckpt):
     return ckpt["pipeline"]["_model._extra_state"]["strategy_state"].get("sh_degree")
 
@@ -40,7 +50,9 @@ def runs(tmp_path_factory, single_thread):
     data = copy_room(out / "data", 4, n_eval=1)
     first_config = _config(data, out, "first", 12)
     first_config.save_config()  # for geer-export / eval_setup
-    first = train_in_process(first_config)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr("geer_ns.sh_degrees.choice.choose", _mixed_choice)
+        first = train_in_process(first_config)
     resumed = train_in_process(_config(data, out, "resumed", 3, load_dir=first.parent))
     old_config = _config(data, out, "old", 6, sh_per_gaussian=False)  # the format before per-Gaussian degrees
     for group in ("means", "scales", "quats", "features_dc", "features_rest", "opacities"):
@@ -100,7 +112,7 @@ def test_a_packed_checkpoint_resumes(runs):
 def test_a_checkpoint_from_before_per_gaussian_degrees_resumes(runs):
     old, resumed = runs["old"], runs["old_resumed"]
     assert old["pipeline"][REST].dim() == 3 and _degrees(old) is None  # dense, no degrees: the former format
-    assert resumed["step"] == old["step"] + 6 >= CHOICE  # the resumed run passed the choice step
+    assert resumed["step"] == old["step"] + 6 == CHOICE  # the resumed run ends at step 11 and chooses there
     degrees = _degrees(resumed)
     assert degrees is not None and resumed["pipeline"][REST].shape[0] == int(((degrees.long() + 1) ** 2 - 1).sum())
 
