@@ -124,21 +124,14 @@ def scene_and_poses() -> tuple[tuple[torch.Tensor, ...], torch.Tensor]:
 def write_seed_points(path: Path, scene: tuple[torch.Tensor, ...], count: int = 20000, seed: int = 0) -> None:
     """`count` of the scene's means, jittered by 1 % of the box, with their colours: the SfM-like seed both
     methods start from."""
-    from plyfile import PlyData, PlyElement
+    from geer_ns.data.ply import write_ply_points
 
     g = torch.Generator().manual_seed(seed)
     means, colors = scene[0], scene[4]
     pick = torch.randperm(means.shape[0], generator=g)[:count]
     extent = float((means.max(0).values - means.min(0).values).max())
-    xyz = (means[pick] + 0.01 * extent * torch.randn(count, 3, generator=g, dtype=torch.float64)).numpy()
-    rgb = (colors[pick] * 255).round().clamp(0, 255).numpy().astype(np.uint8)
-    vertex = np.empty(count, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"),
-                                    ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    for i, k in enumerate("xyz"):
-        vertex[k] = xyz[:, i]
-    for i, k in enumerate(("red", "green", "blue")):
-        vertex[k] = rgb[:, i]
-    PlyData([PlyElement.describe(vertex, "vertex")]).write(str(path))
+    xyz = means[pick] + 0.01 * extent * torch.randn(count, 3, generator=g, dtype=torch.float64)
+    write_ply_points(path, xyz.numpy(), (colors[pick] * 255).round().clamp(0, 255).numpy().astype(np.uint8))
 
 
 def donut_room(work: Path, size: int, check_views: int = 2) -> Path:

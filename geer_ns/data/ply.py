@@ -1,4 +1,4 @@
-"""Seed point clouds from PLY files, read with plyfile.
+"""Seed point clouds as PLY files, read and written with plyfile.
 
 nerfstudio-data reads `ply_file_path` with open3d, whose import fails on machines without Debian's
 libusb-1.0-0; plyfile reads the same files with no system library.
@@ -24,3 +24,17 @@ def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
     else:
         rgb = np.full_like(xyz, 255.0)
     return xyz, rgb.astype(np.uint8)
+
+
+def write_ply_points(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
+    """A binary little-endian PLY point cloud: x y z float from `xyz` [N,3], red green blue uchar from `rgb`
+    [N,3] uint8 (what ns-process-data writes and `read_ply_points` reads)."""
+    from plyfile import PlyData, PlyElement
+
+    vertex = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                       ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    for i, axis in enumerate("xyz"):
+        vertex[axis] = xyz[:, i]
+    for i, channel in enumerate(("red", "green", "blue")):
+        vertex[channel] = rgb[:, i]
+    PlyData([PlyElement.describe(vertex, "vertex")], byte_order="<").write(str(path))

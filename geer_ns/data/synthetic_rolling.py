@@ -25,6 +25,7 @@ from typing import List
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from geer_ns.data.ply import write_ply_points
 from geer_ns.data.synthetic_cameras import fisheye_intrinsics, fisheye_pixel_dirs
 from geer_ns.data.synthetic_room import (
     SUPERSAMPLE,
@@ -32,7 +33,6 @@ from geer_ns.data.synthetic_room import (
     _seed_points,
     _splits,
     _to_u8,
-    _write_ply,
     _write_png,
     camera_poses,
     opencv_to_nerfstudio_c2w,
@@ -85,7 +85,7 @@ def write_rolling_room(root: Path, n_views: int = 24, size: int = 96, turn_deg: 
     held = set(_splits(n_views, list(range(n_views)))["test_filenames"])
     rolling, as_global, still, test = [], [], [], []
     mids = camera_poses(n_views, seed)
-    _write_ply(root / "points3d.ply", *_seed_points(mids, 4000, rng))  # the room's seed cloud, as synthetic_room's
+    write_ply_points(root / "points3d.ply", *_seed_points(mids, 4000, rng))  # the room's seed cloud, as synthetic_room's
     for i, mid in enumerate(mids):
         start, end = readout_poses(mid, turn_deg, move, rng)
         pose = lambda c2w: np.round(opencv_to_nerfstudio_c2w(c2w), 12).tolist()  # noqa: E731

@@ -41,6 +41,7 @@ from typing import Callable, Dict, List, Tuple
 import cv2
 import numpy as np
 
+from geer_ns.data.ply import write_ply_points
 from geer_ns.data.synthetic_materials import (  # noqa: F401 (ROOM_MIN/ROOM_MAX: part of this module's API)
     ROOM_MAX,
     ROOM_MIN,
@@ -335,24 +336,6 @@ def _write_png(path: Path, img_u8: np.ndarray) -> None:
         raise OSError(f"failed to write {path}")
 
 
-def _write_ply(path: Path, xyz: np.ndarray, rgb_u8: np.ndarray) -> None:
-    """Binary little-endian PLY with float xyz and uchar rgb (what open3d / ns-process-data use)."""
-    n = xyz.shape[0]
-    header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        f"element vertex {n}\n"
-        "property float x\nproperty float y\nproperty float z\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-        "end_header\n"
-    )
-    rec = np.empty(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
-    rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    rec["r"], rec["g"], rec["b"] = rgb_u8[:, 0], rgb_u8[:, 1], rgb_u8[:, 2]
-    with open(path, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(rec.tobytes())
-
-
 def _seed_points(poses_cv: List[np.ndarray], n_points: int, rng: np.random.Generator):
     """Surface points visible from the cameras (like an SfM cloud): cast random rays from
     random camera centers and keep the hits with their exact shaded colors."""
@@ -424,7 +407,7 @@ def _write_dataset(root: Path, n_views: int, size: int, seed: int) -> None:
             frames[name].append(frame)
 
     xyz, rgb = _seed_points(poses_cv, 4000, rng)
-    _write_ply(root / "points3d.ply", xyz, rgb)
+    write_ply_points(root / "points3d.ply", xyz, rgb)
 
     def names(name: str) -> List[str]:
         return [f["file_path"] for f in frames[name]]

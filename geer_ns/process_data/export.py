@@ -22,8 +22,9 @@ import numpy as np
 import pycolmap
 from nerfstudio.process_data.colmap_utils import parse_colmap_camera_params
 from nerfstudio.utils.rich_utils import CONSOLE
-from plyfile import PlyData, PlyElement
 from rich.table import Table
+
+from geer_ns.data.ply import write_ply_points
 
 def camera_dict(camera: "pycolmap.Camera") -> Dict[str, object]:
     """nerfstudio intrinsics of a COLMAP camera (camera_model, fl_x, ..., k1..k4 / p1, p2)."""
@@ -44,15 +45,8 @@ def nerfstudio_c2w(image: "pycolmap.Image") -> np.ndarray:
 def write_ply(path: Path, recon: "pycolmap.Reconstruction") -> int:
     """The sparse points (in the transforms.json world) as a binary PLY: x y z float, red green blue uchar."""
     pts = [p for _, p in sorted(recon.points3D.items())]
-    xyz = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
-    rgb = np.array([p.color for p in pts], dtype=np.uint8).reshape(-1, 3)
-    vertex = np.empty(len(pts), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"),
-                                       ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    for i, axis in enumerate("xyz"):
-        vertex[axis] = xyz[:, i]
-    for i, channel in enumerate(("red", "green", "blue")):
-        vertex[channel] = rgb[:, i]
-    PlyData([PlyElement.describe(vertex, "vertex")]).write(str(path))
+    write_ply_points(path, np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3),
+                     np.array([p.color for p in pts], dtype=np.uint8).reshape(-1, 3))
     return len(pts)
 
 
