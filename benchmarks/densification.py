@@ -33,6 +33,9 @@ from benchmarks.common import BENCHMARKS, ROOT, commit, dev_room, header, run_co
 
 FORMER_COMMIT = "7f04c26~1"  # the last commit whose geer_ns had the former densification signal
 FORMER = {"densify_signal": "pixels", "use_absgrad": False, "densify_grad_thresh": 0.0002, "prune_unseen": False}
+# This report compares the angular signal with the former one, both in the reference camera's units (the units
+# themselves: benchmarks/densify_default.py); the former tree has no densify_units option.
+CURRENT = {"densify_units": "reference"}
 
 
 def plan(work: Path, steps: int) -> dict:
@@ -43,17 +46,18 @@ def plan(work: Path, steps: int) -> dict:
             "central_half_angles_deg": (60.0, 60.0)}
     room = default_scene_dir()
     runs = {"embedded room, former (demo: splits to 250)": (room, 800, {**FORMER, **demo, "stop_split_at": 251}),
-            "embedded room, current (splits throughout)": (room, 800, dict(demo))}
+            "embedded room, current (splits throughout)": (room, 800, {**demo, **CURRENT})}
     for width in (1000, 500):  # the reference camera's width (signal.REFERENCE_WIDTH_PIXELS, 300): its calibration
-        runs[f"embedded room, current with W_ref {width}"] = (room, 800, {**demo, "reference_width": width})
+        runs[f"embedded room, current with W_ref {width}"] = (room, 800, {**demo, **CURRENT,
+                                                                          "reference_width": width})
     dev = {"warmup_length": 300, "refine_every": 100, "stop_split_at": 1000, "num_downscales": 0}
     for size, n in ((128, steps), (256, max(steps // 3, 1000))):
         for camera in ("fisheye", "pinhole"):
             data = dev_room(work, size) / f"transforms_{camera}.json"
-            runs[f"{camera} {size}, current"] = (data, n, dict(dev))
+            runs[f"{camera} {size}, current"] = (data, n, {**dev, **CURRENT})
             runs[f"{camera} {size}, former"] = (data, n, {**FORMER, **dev})
     fisheye = dev_room(work, 128) / "transforms_fisheye.json"  # a user's first run: geer's own schedule
-    runs["fisheye 128, current, default schedule"] = (fisheye, 5000, {})
+    runs["fisheye 128, current, default schedule"] = (fisheye, 5000, dict(CURRENT))
     runs["fisheye 128, former, default schedule"] = (fisheye, 5000, dict(FORMER))
     return runs
 

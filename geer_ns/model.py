@@ -49,12 +49,12 @@ from geer_ns.data.datamanager import VIEW_KEY
 from geer_ns.data.views import BeapView, NativeView, beap_view, camera_model, host_camera_model, native_view
 from geer_ns.refinement.lens import LensRefinement
 from geer_ns.refinement.readout import ReadoutRefinement
-from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angular_signal
+from geer_ns.densify.signal import StepStatistics, ViewProbe, ViewRecord, angular_signal, statistic_widths
 from geer_ns.densify.strategy import GeerDefaultStrategy, build_strategy
 from geer_ns.errors import OptionError
 from geer_ns.distributed.engine import EngineState
 from geer_ns.metrics.regions import central_region, downscale_mask, masked_psnr, region_psnr
-from geer_ns.options import GeerOwnOptions, check_composite_order, ignored_options_set, skipping_line
+from geer_ns.options import GeerOwnOptions, check_composite_order, densification_line, ignored_options_set, skipping_line
 from geer_ns.metrics.perceptual import build_lpips_if_cached
 from geer_ns.refinement.registration import pose_callbacks
 from geer_ns.refinement.refined_frame import RefinedFrame, scene_pose
@@ -112,9 +112,7 @@ def exact_activation(fn, x: Tensor) -> Tensor:
     return fn(x.double()).to(x.dtype) if x.dtype == torch.float32 else fn(x)
 
 
-# ==================================================================================================
-# The model
-# ==================================================================================================
+# ------------------------------------------------------------------------------------- the model
 
 
 class GeerModel(SplatfactoModel):
@@ -394,8 +392,10 @@ class GeerModel(SplatfactoModel):
         (None). means, scales, opacities: those Gaussians' ([K,3], [K,3] activated, [K])."""
         means_c = view_transform(means.detach(), viewmat)
         lam2, _ = pbf_lambda_sq(opacities.detach(), self.config.lambda_mode)
+        full = 1 if isinstance(view, BeapView) else self._get_downscale_factor()  # a BEAP view's camera is full size
+        widths = statistic_widths(view.camera.width * full, view.camera.height * full, self.config.densify_units)
         signal = angular_signal(view.project, view.rays.num_valid, view.center_solid_angle, means_c,
-                                scales, lam2, view.source_project)
+                                scales, lam2, view.source_project, widths)
         return ViewProbe.zeros(signal, means, self.config.use_absgrad, rows)
 
     def render_background(self) -> Tensor:
@@ -461,7 +461,8 @@ class GeerModel(SplatfactoModel):
         if not self._said_skipping:
             self._said_skipping = True
             sharded = self.scene_gaussians is not None
-            CONSOLE.log(f"geer: {skipping_line(self.config, self.chooses_sh_degrees(), sharded)}")
+            CONSOLE.log(f"geer: {densification_line(self.config)}; "
+                        f"{skipping_line(self.config, self.chooses_sh_degrees(), sharded)}")
         if step == self.config.pose_refinement_start > 0:
             CONSOLE.log(f"geer: step {step}: pose refinement starts ({self.camera_optimizer.config.mode}, "
                         "pose-refinement-start)")

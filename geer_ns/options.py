@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import List, Literal, Optional, Tuple
 
+from geer_ns.densify.signal import DensifyUnits
 from geer_ns.refinement.lens import LensMode
 from geer_ns.refinement.registration import CameraRefinement
 from geer_ns.errors import OptionError
@@ -27,6 +28,11 @@ class GeerOwnOptions:
     max_gaussians: int = 0
     """Most Gaussians densification may create (0: no limit); the strongest candidates grow first. With
     strategy=mcmc, the cap of MCMCStrategy when set."""
+    densify_units: DensifyUnits = "image"
+    """What densification's gradient and screen-size statistics count: halves of each camera's own image, as
+    gsplat counts ("image": splatfacto's thresholds mean what they mean there, at every resolution), or pixels of
+    a 60-degree reference camera 300 pixels across ("reference": fewer Gaussians below 300 pixels, more above).
+    The default measured best over two scenes and two cameras (benchmarks/densify_default.md)."""
     densify_min_pixels: float = 1.0
     """A Gaussian splits or duplicates only where some training view resolves it: its radius (the 1/255
     contour) at least this many of that view's pixels. Finer Gaussians add nothing the images can show."""
@@ -139,7 +145,8 @@ IGNORED_OPTIONS = ("rasterize_mode", "output_depth_during_training", "color_corr
 OWN_OPTIONS_HELP = (
     "geer's own options: --pipeline.model.renderer-backend {auto,torch,cuda,cpu}, --pipeline.model.lambda-mode "
     "{opacity,paper}, --pipeline.model.strategy {default,mcmc}, "
-    "--pipeline.model.max-gaussians, --pipeline.model.densify-min-pixels, --pipeline.model.prune-unseen, "
+    "--pipeline.model.max-gaussians, --pipeline.model.densify-units {reference,image}, "
+    "--pipeline.model.densify-min-pixels, --pipeline.model.prune-unseen, "
     "--pipeline.model.distributed {images,gaussians}, --pipeline.model.sh-per-gaussian, "
     "--pipeline.model.sh-budget-db, --pipeline.model.optimizer-rows {visible,all}, --pipeline.model.view-cull, "
     "--pipeline.model.max-pairs, --pipeline.model.kernel-check-every, "
@@ -159,6 +166,15 @@ def ignored_options_set(config, defaults) -> List[str]:
     the one start-up line that says geer does not use them."""
     return [f"{name}={getattr(config, name)!r}" for name in IGNORED_OPTIONS
             if getattr(config, name) != getattr(defaults, name)]
+
+
+def densification_line(options: GeerOwnOptions) -> str:
+    """The start-up words on densification: the strategy and, for DefaultStrategy, its statistics' units."""
+    if options.strategy == "mcmc":
+        return "densification by gsplat's MCMCStrategy"
+    units = ("gsplat's units of each camera's image (densify-units image)" if options.densify_units == "image"
+             else "pixels of the 300-pixel reference camera (densify-units reference)")
+    return f"densification by DefaultStrategy, statistics in {units}"
 
 
 def skipping_line(options: GeerOwnOptions, sh_chosen: bool, sharded: bool) -> str:

@@ -43,7 +43,8 @@ def _model(rim: bool = False):
         xyz[:, :2] = (torch.rand(N, 2, generator=gen) - 0.5) * 1.0
         xyz[:, 2] = -2.0 - torch.rand(N, generator=gen)  # nerfstudio's camera looks along world -z
     rgb = (torch.rand(N, 3, generator=gen) * 255).to(torch.uint8)
-    config = GeerModelConfig(background_color="black", sh_degree=0, num_downscales=0)
+    # the reference camera's units, whose values grow with resolution (image units: gsplat's, checked below)
+    config = GeerModelConfig(background_color="black", sh_degree=0, num_downscales=0, densify_units="reference")
     box = SceneBox(aabb=torch.tensor([[-2.0, -2.0, -4.0], [2.0, 2.0, 0.0]]))
     model = config.setup(scene_box=box, num_train_data=1, metadata={}, device="cpu", seed_points=(xyz, rgb))
     with torch.no_grad():
@@ -168,17 +169,25 @@ def test_the_screen_statistic_is_the_same_in_every_view(statistics):
     assert torch.allclose(found["BEAP 180"][1], found["fisheye 180"][1], rtol=1e-6)  # the same camera's pixels
 
 
-@pytest.mark.parametrize("size", [int(REFERENCE_WIDTH_PIXELS), 128])
-def test_at_the_reference_camera_the_statistics_are_gsplats(statistics, size):
-    """For the reference camera, a 60-degree pinhole W_ref pixels across, at its centre the statistic is gsplat's
-    |dL/d(position)| in units of half the image; for a `size`-pixel one it is gsplat's x size / W_ref (geer
-    counts pixels of the reference camera, gsplat halves of this image: the conversion geer-compare's
-    geer-gsplat-units applies to the thresholds). Checked on the Gaussian nearest the axis of a dedicated view."""
-    model = _model()
+def _reference_pinhole(size: int):
+    """A 60-degree pinhole `size` pixels across at the world origin, supervised on its own pixels; its focal."""
     f = (size / 2) / math.tan(math.radians(30))
     camera = Cameras(camera_to_worlds=torch.eye(4)[:3][None], fx=f, fy=f, cx=size / 2, cy=size / 2, width=size,
                      height=size, camera_type=CameraType.PERSPECTIVE)
     camera.metadata = {VIEW_KEY: "native"}
+    return camera, f
+
+
+@pytest.mark.parametrize("units", ["reference", "image"])
+@pytest.mark.parametrize("size", [int(REFERENCE_WIDTH_PIXELS), 128])
+def test_at_the_reference_camera_the_statistics_are_gsplats(statistics, size, units):
+    """For the reference camera, a 60-degree pinhole W_ref pixels across, at its centre the statistic is gsplat's
+    |dL/d(position)| in units of half the image; for a `size`-pixel one it is gsplat's x size / W_ref (geer
+    counts pixels of the reference camera, gsplat halves of this image), and gsplat's own with densify-units
+    image, at every size. Checked on the Gaussian nearest the axis of a dedicated view."""
+    model = _model()
+    model.config.densify_units = units
+    camera, f = _reference_pinhole(size)
     target = _target(model, camera)
     out = model.get_outputs(camera)
     loss = ((out["rgb"] - target) ** 2)[out["valid_rays"][..., 0]].mean()
@@ -193,4 +202,26 @@ def test_at_the_reference_camera_the_statistics_are_gsplats(statistics, size):
     gsplat = float(leaf.grad[k].norm()) / f * (size / 2)
     ours = float(model.step_statistics().grad[k])
     print(f"Gaussian {off_axis:.1f} deg off-axis: statistic {ours:.4g}, gsplat's {gsplat:.4g}")
-    assert ours == pytest.approx(gsplat * size / REFERENCE_WIDTH_PIXELS, rel=0.05)  # cos^1.5 of a few degrees
+    expected = gsplat if units == "image" else gsplat * size / REFERENCE_WIDTH_PIXELS
+    assert ours == pytest.approx(expected, rel=0.05)  # cos^1.5 of a few degrees
+
+
+def test_image_units_count_the_full_image_while_the_resolution_schedule_downscales():
+    """During splatfacto's resolution schedule a view is rendered at half size; in image units its statistics
+    still count the camera's full image (as thresholds scaled by the capture's size would), so they are the
+    reference units' x W_ref / the full side, not / the downscaled one."""
+    size = 128
+    found = {}
+    for units in ("reference", "image"):
+        model = _model()
+        model.config.densify_units, model.config.num_downscales = units, 1
+        assert model._get_downscale_factor() == 2  # step 0 of the schedule
+        camera, _ = _reference_pinhole(size)
+        target = _target(model, camera)
+        out = model.get_outputs(camera)
+        assert out["rgb"].shape[0] == size // 2
+        ((out["rgb"] - target) ** 2)[out["valid_rays"][..., 0]].mean().backward()
+        stats = model.step_statistics()
+        found[units] = (stats.grad.double(), stats.radius.double())
+    for k in range(2):
+        assert torch.allclose(found["image"][k], found["reference"][k] * REFERENCE_WIDTH_PIXELS / size, rtol=1e-6)

@@ -103,3 +103,12 @@ def test_gaussians_finer_than_a_pixel_in_every_view_do_not_grow():
     assert entry["duplicated (gradient)"] == 15 and entry["held back (finer than a pixel)"] == 25
     assert len(params["means"]) == 55
     assert float(state["pixels"].max()) == 0.0  # the next refinement judges its own window
+
+
+def test_the_start_up_line_names_the_strategy_and_its_units():
+    from geer_ns.model import GeerModelConfig
+    from geer_ns.options import densification_line
+
+    assert "densify-units image" in densification_line(GeerModelConfig())  # the default
+    assert "300-pixel reference camera" in densification_line(GeerModelConfig(densify_units="reference"))
+    assert "MCMCStrategy" in densification_line(GeerModelConfig(strategy="mcmc"))

@@ -28,7 +28,8 @@ class Compare:
     steps: int = 2000
     """Training steps of every method (30000 and more: splatfacto's own schedule; fewer: docs/compare.md)."""
     methods: Tuple[str, ...] = DEFAULT_METHODS
-    """Any of geer (its default supervision), geer-native, geer-beap (supervision forced), geer-mcmc, splatfacto,
+    """Any of geer (its default supervision), geer-native, geer-beap (supervision forced), geer-gsplat-units
+    (splatfacto's density), geer-reference-units (geer's former densification units), geer-mcmc, splatfacto,
     splatfacto-pinhole, splatfacto-fisheye (the last two: fisheye captures)."""
     seeds: Tuple[int, ...] = (42,)
     """Every method trains once per seed; the tables give the mean and, with two seeds or more, the 95 % interval

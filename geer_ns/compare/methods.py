@@ -11,8 +11,8 @@ from geer_ns.compare.capture import Capture, write_resampled
 from geer_ns.compare.resample import equidistant_like, widest_pinhole
 from geer_ns.errors import OptionError
 
-METHODS = ("geer", "geer-native", "geer-beap", "geer-gsplat-units", "geer-mcmc", "splatfacto", "splatfacto-pinhole",
-           "splatfacto-fisheye")
+METHODS = ("geer", "geer-native", "geer-beap", "geer-gsplat-units", "geer-reference-units", "geer-mcmc", "splatfacto",
+           "splatfacto-pinhole", "splatfacto-fisheye")
 DEFAULT_METHODS = ("geer", "splatfacto", "splatfacto-pinhole", "splatfacto-fisheye")
 
 
@@ -25,19 +25,11 @@ class Method:
     render_camera: Optional[str]  # None: its test renders are the capture's own pixels; "pinhole" / "equidistant"
 
 
-def gsplat_units(model, camera):
-    """`model` (a GeerModelConfig) with its densification thresholds in gsplat's units for `camera`'s images.
-
-    gsplat scales a mean's pixel gradient by half the image's side (of a loss averaged over W x H pixels) and
-    divides screen radii by the larger side; geer counts both in pixels of a REFERENCE_WIDTH_PIXELS-wide camera
-    (geer_ns/densify/signal.py). Multiplying geer's thresholds by side / REFERENCE_WIDTH_PIXELS makes the same
-    Gaussians cross them; geer's two extra rules (min pixels, unseen prune) are turned off."""
-    from geer_ns.densify.signal import REFERENCE_WIDTH_PIXELS
-
-    larger_side = max(camera.width, camera.height) / REFERENCE_WIDTH_PIXELS
-    model.densify_grad_thresh *= min(camera.width, camera.height) / REFERENCE_WIDTH_PIXELS
-    model.split_screen_size *= larger_side
-    model.cull_screen_size *= larger_side
+def gsplat_units(model):
+    """`model` (a GeerModelConfig) at splatfacto's density: its statistics in gsplat's units (densify-units image,
+    the default: halves of each camera's own image, geer_ns/densify/signal.py), so the same Gaussians cross
+    splatfacto's thresholds, and geer's two extra rules (min pixels, unseen prune) off."""
+    model.densify_units = "image"
     model.densify_min_pixels, model.prune_unseen = 0.0, False
     return model
 
@@ -70,9 +62,14 @@ def plan(capture: Capture, names: Tuple[str, ...], work: Path, pinhole_fov_deg: 
                                   capture.transforms, config, None))
         elif name == "geer-gsplat-units":
             methods.append(Method(name, "3DGEER densified by splatfacto's rules in gsplat's units at this image size "
-                                  "(geer's pixel thresholds x the image's side / 300, no min-pixels or unseen-prune "
-                                  "rule): splatfacto's density", capture.transforms,
-                                  geer_trainer_config(name, gsplat_units(GeerModelConfig(), capture.camera)), None))
+                                  "(--pipeline.model.densify-units image, no min-pixels or unseen-prune rule): "
+                                  "splatfacto's density", capture.transforms,
+                                  geer_trainer_config(name, gsplat_units(GeerModelConfig())), None))
+        elif name == "geer-reference-units":
+            methods.append(Method(name, "3DGEER densified in pixels of the 300-pixel reference camera "
+                                  "(--pipeline.model.densify-units reference, geer's default before "
+                                  "benchmarks/densify_default.md)", capture.transforms,
+                                  geer_trainer_config(name, GeerModelConfig(densify_units="reference")), None))
         elif name == "geer-mcmc":
             methods.append(Method(name, "3DGEER with gsplat's MCMCStrategy", capture.transforms,
                                   geer_trainer_config("geer-mcmc", GeerModelConfig(strategy="mcmc")), None))

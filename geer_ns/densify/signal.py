@@ -5,10 +5,13 @@ screen radius. geer renders along rays and has no 2-D splat, so each training vi
 per Gaussian that turns its mean's direction from the camera (`ViewSignal.lateral`); its gradient after backward
 is dL/d(that direction). The statistics count the view's own supervised pixels, so they mean the same at every
 field of view, projection and resolution, in the units gsplat's thresholds were tuned on (a 60-degree pinhole
-REFERENCE_WIDTH_PIXELS across):
+W_ref pixels across):
 
     gradient  = |dL_v/d alpha| * P_v * omega_v(u) / sqrt(max(omega_v, omega_camera)(u)) / (2 W_ref)
     screen    = rho / sqrt(max(omega_v, omega_camera)(u)) / W_ref
+
+W_ref is REFERENCE_WIDTH_PIXELS (densify-units reference) or, as gsplat counts, the camera's own image sides
+(densify-units image: the smaller for the gradient, the larger for the screen size; `statistic_widths`).
 
 Derivation, calibration of W_ref and measurements: docs/densification.md.
 """
@@ -17,7 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Optional, Sequence, Tuple
+from typing import Callable, Literal, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
@@ -25,6 +28,17 @@ from torch import Tensor
 # The reference camera of gsplat's thresholds: a pinhole 60 degrees and W_ref pixels across (module docstring).
 REFERENCE_WIDTH_PIXELS = 300.0
 Projection = Callable[[Tensor], Tuple[Tensor, Tensor]]  # camera-frame points [N,3] -> (pixels [N,2], valid [N])
+DensifyUnits = Literal["reference", "image"]
+
+
+def statistic_widths(width: int, height: int, units: DensifyUnits) -> Tuple[float, float]:
+    """W_ref of the gradient and of the screen-size statistic of a camera whose full-resolution images are
+    width x height: the reference camera's for "reference"; gsplat's for "image" (a position gradient in halves
+    of the image's smaller side, isotropic where gsplat halves each side per axis; a radius over its larger side).
+    Views downscaled by the resolution schedule count the full image's sides, as thresholds scaled by them would."""
+    if units == "image":
+        return float(min(width, height)), float(max(width, height))
+    return REFERENCE_WIDTH_PIXELS, REFERENCE_WIDTH_PIXELS
 
 
 def tangent_basis(means_c: Tensor) -> Tensor:
@@ -75,7 +89,8 @@ class ViewSignal:
 
 
 def angular_signal(project: Projection, supervised_pixels: int, center_solid_angle: float, means_c: Tensor,
-                   scales: Tensor, lam2: Tensor, source: Optional[Projection] = None) -> ViewSignal:
+                   scales: Tensor, lam2: Tensor, source: Optional[Projection] = None,
+                   widths: Tuple[float, float] = (REFERENCE_WIDTH_PIXELS, REFERENCE_WIDTH_PIXELS)) -> ViewSignal:
     """A view's statistics (module docstring), offsets in radians of direction.
 
     Args:
@@ -84,15 +99,16 @@ def angular_signal(project: Projection, supervised_pixels: int, center_solid_ang
         center_solid_angle: a pixel's solid angle on the axis (used where `project` cannot project).
         means_c, scales, lam2: [N,3] camera-frame means, [N,3] scales, [N] squared PBF extents.
         source: the camera whose pixels a resampled view (BEAP) was made from; None: the view's own.
+        widths: W_ref of the gradient and of the screen size (`statistic_widths`).
     """
     lateral = lateral_basis(means_c)
     omega = pixel_solid_angle(project, means_c, center_solid_angle)
     resolved = omega if source is None else torch.maximum(omega, pixel_solid_angle(source, means_c, 0.0))
     side = torch.sqrt(resolved)  # the side of the pixel the supervision resolves there
-    scale = (supervised_pixels * omega / side / (2.0 * REFERENCE_WIDTH_PIXELS))[:, None]
+    scale = (supervised_pixels * omega / side / (2.0 * widths[0]))[:, None]
     rho = angular_radius(means_c, scales, lam2)
     pixels = rho / side
-    radius = pixels / REFERENCE_WIDTH_PIXELS
+    radius = pixels / widths[1]
     return ViewSignal(lateral, scale.to(means_c.dtype), radius.to(means_c.dtype), pixels.to(means_c.dtype))
 
 
