@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 from benchmarks.common import BENCHMARKS, ROOT, commit, dev_room, header
+from geer_ns.compare.report import interval
 
 VARIANTS = ("geer-reference-units", "geer", "geer-gsplat-units")
 CELLS = [(scene, views) for scene in ("dev_room", "donut_room") for views in ("fisheye", "pinhole")]
@@ -66,18 +67,6 @@ def runs_of(table: Path, method: str) -> List[dict]:
     return [r for r in json.loads(table.read_text())["results"] if r["method"] == method]
 
 
-def mean_interval(values: List[float]) -> Tuple[float, float]:
-    """The mean and the half-width of its 95 % interval (Student's t)."""
-    from scipy.stats import t
-
-    n = len(values)
-    mean = sum(values) / n
-    if n < 2:
-        return mean, float("nan")
-    sd = math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1))
-    return mean, float(t.ppf(0.975, n - 1)) * sd / math.sqrt(n)
-
-
 def welch(a: List[float], b: List[float]) -> Tuple[float, float]:
     """mean(a) - mean(b) and the half-width of Welch's 95 % interval."""
     from scipy.stats import ttest_ind
@@ -104,12 +93,8 @@ def report(tables: Dict[Tuple[str, str, str], Path], variants: List[str], defaul
                 continue
             cell = []
             for key, fmt in formats:
-                values = [x[key] for x in runs[(s, v, method)] if x.get(key) is not None and not math.isnan(x[key])]
-                if not values:
-                    cell.append("n/a")
-                    continue
-                m, h = mean_interval(values)
-                cell.append(fmt.format(m) + ("" if math.isnan(h) else " +- " + fmt.format(h)))
+                m, h = interval([x.get(key) for x in runs[(s, v, method)]])
+                cell.append("n/a" if math.isnan(m) else fmt.format(m) + ("" if math.isnan(h) else " +- " + fmt.format(h)))
             lines.append(f"| {scene} | {views} | {method} | " + " | ".join(cell) + f" | {made_at(path)} |")
     base = variants[0]
     lines += ["", f"## Each variant against `{base}` (difference of the means, 95 % Welch interval)", "",

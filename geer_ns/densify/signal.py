@@ -89,8 +89,8 @@ class ViewSignal:
 
 
 def angular_signal(project: Projection, supervised_pixels: int, center_solid_angle: float, means_c: Tensor,
-                   scales: Tensor, lam2: Tensor, source: Optional[Projection] = None,
-                   widths: Tuple[float, float] = (REFERENCE_WIDTH_PIXELS, REFERENCE_WIDTH_PIXELS)) -> ViewSignal:
+                   scales: Tensor, lam2: Tensor, source: Optional[Projection],
+                   widths: Tuple[float, float]) -> ViewSignal:
     """A view's statistics (module docstring), offsets in radians of direction.
 
     Args:
