@@ -1,28 +1,26 @@
 """Which densification default geer ships: its statistics in halves of each camera's own image with geer's two
 extra rules (`geer`, densify-units image: the default this study chose), in pixels of the 300-pixel reference
 camera (`geer-reference-units`, the default before it), or at splatfacto's density (`geer-gsplat-units`: gsplat's
-units, neither rule). Each trains on both scenes of benchmarks/vs_splatfacto.sh (the dev room and the donut room at
+units, neither rule). Each trains on both scenes of benchmarks/vs_splatfacto.py (the dev room and the donut room at
 128^2) and both of their cameras, over the same seeds, through geer-compare; the report gives every cell and each
 method's difference from the first one.
 
     python -m benchmarks.densify_default --work DIR [--steps 1000] [--seeds 1 2 3] [--note TEXT ...]
 
-Runs train into DIR/SCENE/VIEWS_METHOD; a finished table of the same steps and seeds there is reused (with the
-commit it was made at). Where DIR is also vs_splatfacto.sh's WORK, its splatfacto runs of a cell are shown beside
-geer's (not trained here). Writes benchmarks/densify_default.md.
+Runs train into DIR/SCENE/VIEWS_METHOD (benchmarks/compare_cells.py); a table there made with today's config, steps
+and seeds is kept (with the commit it was made at). Where DIR is also vs_splatfacto.py's --work, its splatfacto runs of
+a cell are shown beside geer's (not trained here). Writes benchmarks/densify_default.md.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import subprocess
-import sys
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Tuple
 
-from benchmarks.common import BENCHMARKS, ROOT, commit, dev_room, header
+from benchmarks.common import BENCHMARKS, header
+from benchmarks.compare_cells import cell_dir, made_at, run_cell, runs_of, welch
 from geer_ns.compare.report import interval
 
 VARIANTS = ("geer-reference-units", "geer", "geer-gsplat-units")
@@ -30,57 +28,9 @@ CELLS = [(scene, views) for scene in ("dev_room", "donut_room") for views in ("f
 FIGURES = ("psnr", "ssim", "central_psnr", "peripheral_psnr")
 
 
-def scene_dir(work: Path, scene: str) -> Path:
-    if scene == "dev_room":
-        return dev_room(work, 128)
-    from benchmarks.gaussian_scene import donut_room
-
-    return donut_room(work, 128)
-
-
-def find_table(work: Path, scene: str, method: str, views: str, steps: int, seeds: List[int]) -> Optional[Path]:
-    """A compare.json with `method`'s runs on `views` at these steps and seeds, or None: geer's in this script's
-    work/scene/VIEWS_METHOD (a table elsewhere may hold a former default's rows under the same name), splatfacto's
-    anywhere under work/scene."""
-    pattern = "*" if method.startswith("splatfacto") else f"{views}_{method}"
-    for path in sorted((work / scene).glob(f"{pattern}/compare.json")):
-        table = json.loads(path.read_text())
-        if not any(f"transforms_{views}.json" in line for line in table["protocol"]):  # its "Capture: ..." line
-            continue
-        runs = {(r["steps"], r["seed"]) for r in table["results"] if r["method"] == method}
-        if runs == {(steps, s) for s in seeds}:
-            return path
-    return None
-
-
-def run_cell(work: Path, scene: str, views: str, method: str, steps: int, seeds: List[int]) -> Path:
-    """geer-compare of `method` alone on the scene's `views`; its table (compare.json)."""
-    out = work / scene / f"{views}_{method}"
-    data = scene_dir(work, scene) / f"transforms_{views}.json"
-    subprocess.run([sys.executable, "-m", "geer_ns.compare", "--data", str(data), "--steps", str(steps), "--seeds",
-                    *map(str, seeds), "--methods", method, "--output-dir", str(out)], cwd=ROOT, check=True)
-    (out / "commit").write_text(commit() + "\n")
-    return out / "compare.json"
-
-
-def runs_of(table: Path, method: str) -> List[dict]:
-    return [r for r in json.loads(table.read_text())["results"] if r["method"] == method]
-
-
-def welch(a: List[float], b: List[float]) -> Tuple[float, float]:
-    """mean(a) - mean(b) and the half-width of Welch's 95 % interval."""
-    from scipy.stats import ttest_ind
-
-    low, high = ttest_ind(a, b, equal_var=False).confidence_interval(0.95)
-    return sum(a) / len(a) - sum(b) / len(b), (high - low) / 2
-
-
 def report(tables: Dict[Tuple[str, str, str], Path], variants: List[str], default: str = "geer") -> str:
     """The report's tables: every cell (`tables` may also hold a splatfacto peer's runs for a cell, shown beside
     them), each variant's difference from the first, and the default's from the peer where there is one."""
-    def made_at(path: Path) -> str:
-        return (path.parent / "commit").read_text().strip() if (path.parent / "commit").is_file() else "?"
-
     runs = {key: runs_of(path, key[2]) for key, path in tables.items()}
     lines = ["## Every cell (mean +- 95 % interval over the seeds)", "",
              "| scene | views | method | PSNR | SSIM | central PSNR | peripheral PSNR | Gaussians | train s | table made at |",
@@ -132,21 +82,17 @@ def main() -> None:
     tables = {}
     for method in args.methods:  # one method over every cell, then the next
         for scene, views in CELLS:
-            found = find_table(args.work, scene, method, views, args.steps, args.seeds)
-            if found is None:
-                print(f"[densify_default] {scene} {views} {method}: training", flush=True)
-                found = run_cell(args.work, scene, views, method, args.steps, args.seeds)
-            else:
-                print(f"[densify_default] {scene} {views} {method}: reusing {found}", flush=True)
-            tables[(scene, views, method)] = found
-    for scene, views in CELLS:  # splatfacto's runs of a cell, when DIR holds them (not trained here)
+            print(f"[densify_default] {scene} {views} {method}", flush=True)
+            tables[(scene, views, method)] = run_cell(args.work, scene, views, method, args.steps, args.seeds)
+    for scene, views in CELLS:  # splatfacto's runs of a cell, where vs_splatfacto.py left them in DIR (not trained here)
         peer = "splatfacto-fisheye" if views == "fisheye" else "splatfacto"
-        found = find_table(args.work, scene, peer, views, args.steps, args.seeds)
-        if found is not None:
+        found = cell_dir(args.work, scene, views, peer) / "compare.json"
+        if found.is_file() and {(r["steps"], r["seed"]) for r in runs_of(found, peer)} == {
+                (args.steps, s) for s in args.seeds}:
             tables[(scene, views, peer)] = found
     text = header("Densification default: gsplat's units against geer's reference units, two scenes, two cameras",
                   f"every run: {args.steps} steps of nerfstudio's trainer through geer-compare (the same schedule, "
-                  f"scoring and pixels as benchmarks/vs_splatfacto.sh), seeds {' '.join(map(str, args.seeds))}, 128^2",
+                  f"scoring and pixels as benchmarks/vs_splatfacto.py), seeds {' '.join(map(str, args.seeds))}, 128^2",
                   "methods: " + "; ".join(f"`{m}`" for m in args.methods) + " (geer_ns/compare/methods.py)",
                   *args.note)
     text += "\n" + report(tables, args.methods)

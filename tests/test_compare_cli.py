@@ -145,3 +145,57 @@ def test_a_bad_option_or_capture_ends_in_one_line(small_room, tmp_path):
                               capture_output=True, text=True, timeout=300)
         assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
         assert message in done.stderr.strip().splitlines()[-1], done.stderr
+
+
+def test_geer_capped_needs_its_cap_and_trains_with_it(small_room, tmp_path):
+    from geer_ns.compare.capture import load_capture
+    from geer_ns.compare.methods import plan
+    from geer_ns.errors import OptionError
+
+    capture = load_capture(small_room, 45.0)
+    with pytest.raises(OptionError, match="--max-gaussians 0: the method geer-capped needs its cap"):
+        plan(capture, ("geer", "geer-capped"), tmp_path, 120.0)
+    (geer, capped), _ = plan(capture, ("geer", "geer-capped"), tmp_path, 120.0, max_gaussians=1234)
+    assert capped.config.pipeline.model.max_gaussians == 1234 and geer.config.pipeline.model.max_gaussians == 0
+    assert "at most 1,234 Gaussians" in capped.description
+
+
+def test_config_digest_names_what_a_run_was_made_with(small_room, tmp_path):
+    from geer_ns.compare.capture import load_capture
+    from geer_ns.compare.methods import config_digest, plan
+
+    capture = load_capture(small_room, 45.0)
+    names = ("geer", "geer-reference-units", "splatfacto", "splatfacto-fisheye")
+    first, _ = plan(capture, names, tmp_path / "a", 120.0)
+    again, _ = plan(capture, names, tmp_path / "b", 120.0)  # another work folder: paths are not part of it
+    digests = [config_digest(m) for m in first]
+    assert digests == [config_digest(m) for m in again] and len(set(digests)) == len(names)
+    first[0].config.pipeline.model.densify_units = "reference"  # a changed default is another config
+    assert config_digest(first[0]) != digests[0]
+
+
+def test_keep_finished_keeps_only_a_table_of_todays_runs(small_room, tmp_path, single_thread, monkeypatch):
+    from geer_ns.compare import report, run
+    from geer_ns.compare.cli import Compare
+
+    options = dict(data=small_room, steps=4, methods=("geer",), seeds=(1,), output_dir=tmp_path)
+    text = Compare(**options).main()
+    results, skipped, lines = report.load(tmp_path)
+    assert [(r.name, r.seed, len(r.renders)) for r in results] == [("geer", 1, report.PICTURED_VIEWS)]
+    table = [line for line in text.splitlines() if line.startswith("| geer ")]
+    assert table and table == [line for line in report.markdown(results, skipped, lines).splitlines()
+                               if line.startswith("| geer ")]
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("trained again")
+
+    monkeypatch.setattr(run, "run_method", no_training)
+    assert Compare(**options, keep_finished=True).main() == text
+    for changed in (dict(options, steps=5), dict(options, seeds=(1, 2)), dict(options, methods=("geer-beap",))):
+        with pytest.raises(AssertionError, match="trained again"):
+            Compare(**changed, keep_finished=True).main()
+    stale = json.loads((tmp_path / "compare.json").read_text())
+    stale["results"][0]["config_digest"] = "made-before"  # a table made with other defaults
+    (tmp_path / "compare.json").write_text(json.dumps(stale))
+    with pytest.raises(AssertionError, match="trained again"):
+        Compare(**options, keep_finished=True).main()

@@ -29,8 +29,9 @@ class Compare:
     """Training steps of every method (30000 and more: splatfacto's own schedule; fewer: docs/compare.md)."""
     methods: Tuple[str, ...] = DEFAULT_METHODS
     """Any of geer (its default supervision), geer-native, geer-beap (supervision forced), geer-gsplat-units
-    (splatfacto's density), geer-reference-units (geer's former densification units), geer-mcmc, splatfacto,
-    splatfacto-pinhole, splatfacto-fisheye (the last two: fisheye captures)."""
+    (splatfacto's density), geer-reference-units (geer's former densification units), geer-capped (at most
+    --max-gaussians), geer-mcmc, splatfacto, splatfacto-pinhole, splatfacto-fisheye (the last two: fisheye
+    captures)."""
     seeds: Tuple[int, ...] = (42,)
     """Every method trains once per seed; the tables give the mean and, with two seeds or more, the 95 % interval
     of the mean (Student's t over the seeds)."""
@@ -40,6 +41,12 @@ class Compare:
     """Field of view across the width of the pinhole splatfacto-pinhole's capture is undistorted to."""
     central_half_angle_deg: float = 45.0
     """The central region: rays within this angle of the optical axis, horizontally and vertically."""
+    max_gaussians: int = 0
+    """geer-capped's cap: geer's defaults with densification stopped at this many Gaussians (a comparison at
+    equal counts: e.g. the fewest Gaussians of splatfacto's runs)."""
+    keep_finished: bool = False
+    """Keep the table already in --output-dir, without training, when it holds exactly these methods, steps and
+    seeds made with today's options and defaults (each run's config digest); otherwise train as usual."""
 
     def main(self) -> str:
         from nerfstudio.utils.rich_utils import CONSOLE
@@ -56,7 +63,12 @@ class Compare:
             raise OptionError(f"--seeds {' '.join(map(str, self.seeds))}: give one or more distinct seeds")
         capture = load_capture(self.data, self.central_half_angle_deg)
         self.output_dir.mkdir(parents=True, exist_ok=True)
-        methods, skipped = plan(capture, tuple(self.methods), self.output_dir, self.pinhole_fov_deg)
+        methods, skipped = plan(capture, tuple(self.methods), self.output_dir, self.pinhole_fov_deg,
+                                self.max_gaussians)
+        if self.keep_finished and self._finished(methods):
+            text = (self.output_dir / "compare.md").read_text()
+            print(f"[geer-compare] kept the table in {self.output_dir}: the same methods, steps, seeds and configs")
+            return text
         self._build_geer_kernels(methods)
         lpips = lpips_metric()
         lpips_reason = ("torchmetrics' LPIPS (AlexNet), the same for every method" if lpips is not None else
@@ -69,6 +81,19 @@ class Compare:
         print(text)
         print(f"[geer-compare] wrote {self.output_dir / 'compare.md'}, compare.json and compare.png")
         return text
+
+    def _finished(self, methods) -> bool:
+        """Whether --output-dir holds a table of exactly these runs, each made with today's config."""
+        import json
+
+        from geer_ns.compare.methods import config_digest
+
+        table = self.output_dir / "compare.json"
+        if not table.is_file() or not (self.output_dir / "compare.md").is_file():
+            return False
+        made = sorted((r["method"], r["seed"], r["steps"], r.get("config_digest")) for r in
+                      json.loads(table.read_text())["results"])
+        return made == sorted((m.name, seed, self.steps, config_digest(m)) for m in methods for seed in self.seeds)
 
     @staticmethod
     def _build_geer_kernels(methods) -> None:

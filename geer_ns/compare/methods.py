@@ -3,6 +3,8 @@ test renders are in (to be brought back to the capture's own pixels)."""
 
 from __future__ import annotations
 
+import copy
+import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
@@ -11,8 +13,8 @@ from geer_ns.compare.capture import Capture, write_resampled
 from geer_ns.compare.resample import equidistant_like, widest_pinhole
 from geer_ns.errors import OptionError
 
-METHODS = ("geer", "geer-native", "geer-beap", "geer-gsplat-units", "geer-reference-units", "geer-mcmc", "splatfacto",
-           "splatfacto-pinhole", "splatfacto-fisheye")
+METHODS = ("geer", "geer-native", "geer-beap", "geer-gsplat-units", "geer-reference-units", "geer-capped", "geer-mcmc",
+           "splatfacto", "splatfacto-pinhole", "splatfacto-fisheye")
 DEFAULT_METHODS = ("geer", "splatfacto", "splatfacto-pinhole", "splatfacto-fisheye")
 
 
@@ -34,8 +36,24 @@ def gsplat_units(model):
     return model
 
 
-def plan(capture: Capture, names: Tuple[str, ...], work: Path, pinhole_fov_deg: float) -> Tuple[List[Method], Dict[str, str]]:
-    """The methods to train on this capture, and the ones that do not apply with the reason."""
+def config_digest(method: Method) -> str:
+    """A fingerprint of what the method trains: its nerfstudio config as planned (every default included, no
+    paths), the name of the transforms file it trains on and the camera it renders in. A table whose runs carry
+    today's digest was made with today's options and defaults (geer-compare --keep-finished)."""
+    import yaml
+
+    config = copy.deepcopy(method.config)
+    config.data = None
+    config.pipeline.datamanager.data = None
+    config.pipeline.datamanager.dataparser.data = Path(".")
+    text = yaml.dump(config) + f"\n{method.data.name}\n{method.render_camera}"
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def plan(capture: Capture, names: Tuple[str, ...], work: Path, pinhole_fov_deg: float,
+         max_gaussians: int = 0) -> Tuple[List[Method], Dict[str, str]]:
+    """The methods to train on this capture, and the ones that do not apply with the reason. `max_gaussians` is
+    geer-capped's cap (required by it, used by no other method)."""
     import torch
 
     from geer_ns.compare.splatfacto import splatfacto_trainer_config
@@ -45,6 +63,9 @@ def plan(capture: Capture, names: Tuple[str, ...], work: Path, pinhole_fov_deg: 
     unknown = [n for n in names if n not in METHODS]
     if unknown:
         raise OptionError(f"geer-compare: unknown method(s) {unknown}; choose from {list(METHODS)}")
+    if "geer-capped" in names and max_gaussians < 1:
+        raise OptionError(f"geer-compare: --max-gaussians {max_gaussians}: the method geer-capped needs its cap, "
+                          "a positive count (e.g. the fewest Gaussians of splatfacto's runs)")
     gpu = torch.cuda.is_available()
     raster = "gsplat's CUDA kernels" if gpu else "gsplat's EWA rasterization on the CPU (geer_ns.compare.ewa_cpu)"
     distorted = any(float(capture.meta.get(k, 0.0)) != 0.0 for k in ("k1", "k2", "k3", "k4", "p1", "p2"))
@@ -70,6 +91,11 @@ def plan(capture: Capture, names: Tuple[str, ...], work: Path, pinhole_fov_deg: 
                                   "(--pipeline.model.densify-units reference, geer's default before "
                                   "benchmarks/densify_default.md)", capture.transforms,
                                   geer_trainer_config(name, GeerModelConfig(densify_units="reference")), None))
+        elif name == "geer-capped":  # an equal-count row: geer's defaults, densification stopped at the cap
+            methods.append(Method(name, f"3DGEER with at most {max_gaussians:,} Gaussians (--pipeline.model."
+                                  f"max-gaussians {max_gaussians}: the strongest densification candidates first)",
+                                  capture.transforms,
+                                  geer_trainer_config(name, GeerModelConfig(max_gaussians=max_gaussians)), None))
         elif name == "geer-mcmc":
             methods.append(Method(name, "3DGEER with gsplat's MCMCStrategy", capture.transforms,
                                   geer_trainer_config("geer-mcmc", GeerModelConfig(strategy="mcmc")), None))

@@ -123,7 +123,7 @@ def as_json(results: List[Result], skipped: Dict[str, str], lines: List[str]) ->
                      **{k: [None if math.isnan(v) else v for v in pair] for k, pair in m.figures.items()}}
                     for m in summarize(results)],
         "results": [{"method": r.name, "seed": r.seed, "description": r.description, "rasterizer": r.rasterizer,
-                     "steps": r.steps,
+                     "steps": r.steps, "config_digest": r.config_digest,
                      "train_seconds": r.train_seconds, "gaussians": r.gaussians, "render_ms": r.render_ms,
                      **{k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in r.metrics.items()}}
                     for r in results],
@@ -149,11 +149,11 @@ def _error_map(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor) -> np.
 
 def picture(capture: Capture, results: List[Result], path: Path, views: int = 3) -> Path:
     """Per test view: ground truth then each method's render (top), each method's error map (below); a method's
-    first seed."""
+    first seed (a method loaded without its renders is left out)."""
     first: Dict[str, Result] = {}
     for r in results:
         first.setdefault(r.name, r)
-    results = list(first.values())
+    results = [r for r in first.values() if len(r.renders) >= min(views, len(capture.views))]  # loaded: may lack them
     blocks = []
     scale = max(1, 200 // capture.camera.height)
     for i, view in enumerate(capture.views[:views]):
@@ -169,10 +169,39 @@ def picture(capture: Capture, results: List[Result], path: Path, views: int = 3)
     return path
 
 
+PICTURED_VIEWS = 3
+
+
 def write(out_dir: Path, capture: Capture, results: List[Result], skipped: Dict[str, str], lines: List[str]) -> str:
-    """compare.md, compare.json and compare.png in out_dir; returns the markdown."""
+    """compare.md, compare.json, compare.png and renders.npz (each method's first seed, the pictured views, 8 bit:
+    for pictures of tables merged by `load`) in out_dir; returns the markdown."""
     text = markdown(results, skipped, lines)
     (out_dir / "compare.md").write_text(text)
     (out_dir / "compare.json").write_text(json.dumps(as_json(results, skipped, lines), indent=1) + "\n")
-    picture(capture, results, out_dir / "compare.png")
+    picture(capture, results, out_dir / "compare.png", PICTURED_VIEWS)
+    first = {r.name: r for r in reversed(results)}
+    np.savez_compressed(out_dir / "renders.npz", **{f"{name}__{i}": to_uint8(image) for name, r in first.items()
+                                                     for i, image in enumerate(r.renders[:PICTURED_VIEWS])})
     return text
+
+
+def load(out_dir: Path) -> Tuple[List[Result], Dict[str, str], List[str]]:
+    """The results, skipped methods and protocol lines of a table `write` made in out_dir; each method's first
+    seed gets its pictured renders back where renders.npz holds them (tables merged into one: `picture`)."""
+    table = json.loads((out_dir / "compare.json").read_text())
+    stored = np.load(out_dir / "renders.npz") if (out_dir / "renders.npz").is_file() else {}
+    attributes = {"method", "seed", "description", "rasterizer", "steps", "config_digest", "train_seconds", "gaussians",
+                  "render_ms"}
+    results, pictured = [], set()
+    for row in table["results"]:
+        name = row["method"]
+        renders = []
+        if name not in pictured:
+            pictured.add(name)
+            renders = [torch.from_numpy(stored[f"{name}__{i}"]).float() / 255.0 for i in range(PICTURED_VIEWS)
+                       if f"{name}__{i}" in stored]
+        metrics = {k: float("nan") if v is None else v for k, v in row.items() if k not in attributes}
+        results.append(Result(name, row["description"], row["rasterizer"], row["steps"], row["seed"],
+                              row["train_seconds"], row["gaussians"], metrics, row["render_ms"], renders,
+                              row.get("config_digest", "")))
+    return results, table["skipped"], table["protocol"]

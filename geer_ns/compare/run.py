@@ -16,7 +16,7 @@ from torch import Tensor
 from geer_ns.metrics.regions import masked_psnr as psnr_where
 from geer_ns.cameras import CameraModel, EquidistantCamera, PinholeCamera
 from geer_ns.compare.capture import Capture
-from geer_ns.compare.methods import Method
+from geer_ns.compare.methods import Method, config_digest
 from geer_ns.compare.resample import resample
 from geer_ns.training.horizon import stretch_schedules
 
@@ -33,6 +33,7 @@ class Result:
     metrics: Dict[str, float]  # averaged over the test views
     render_ms: float  # median per test view
     renders: List[Tensor] = field(default_factory=list)  # [H, W, 3] on the capture's pixels
+    config_digest: str = ""  # methods.config_digest: which options and defaults made the run
 
 
 def train(method: Method, steps: int, out_dir: Path, seed: int):
@@ -159,7 +160,7 @@ def run_method(method: Method, steps: int, capture: Capture, out_dir: Path, lpip
     found = evaluate(method, pipeline, capture, lpips)
     rasterizer = getattr(pipeline.model, "rasterizer_label", "geer_ns.render (3DGEER)")
     return Result(method.name, method.description, rasterizer, steps, seed, seconds, int(pipeline.model.num_points),
-                  found["metrics"], found["render_ms"], found["renders"])
+                  found["metrics"], found["render_ms"], found["renders"], config_digest(method))
 
 
 def lpips_metric(device: Optional[torch.device] = None):
