@@ -5,6 +5,7 @@ benchmarks/vs_splatfacto.py and benchmarks/densify_default.py."""
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -27,6 +28,8 @@ def scene_dir(work: Path, scene: str) -> Path:
 
 
 def cell_dir(work: Path, scene: str, views: str, method: str) -> Path:
+    """The folder of a method's table on a scene's views. Studies sharing WORK share their cells (one table per
+    method and views: another --steps or --seeds trains it anew, in place)."""
     return work / scene / f"{views}_{method}"
 
 
@@ -53,12 +56,25 @@ def made_at(table: Path) -> str:
 
 
 def runs_of(table: Path, method: str) -> List[dict]:
+    """The method's runs (one row per seed) in a compare.json."""
     return [r for r in json.loads(table.read_text())["results"] if r["method"] == method]
 
 
 def welch(a: List[float], b: List[float]) -> Tuple[float, float]:
-    """mean(a) - mean(b) and the half-width of Welch's 95 % interval."""
+    """mean(a) - mean(b) and the half-width of Welch's 95 % interval (NaN with fewer than two runs a side)."""
     from scipy.stats import ttest_ind
 
+    diff = sum(a) / len(a) - sum(b) / len(b)
+    if min(len(a), len(b)) < 2:
+        return diff, float("nan")
     low, high = ttest_ind(a, b, equal_var=False).confidence_interval(0.95)
-    return sum(a) / len(a) - sum(b) / len(b), (high - low) / 2
+    return diff, (high - low) / 2
+
+
+def difference(a: List[float], b: List[float], key: str) -> Tuple[float, float, str]:
+    """welch(a, b) and its cell, e.g. "+0.37 +- 0.25" (SSIM and LPIPS to three decimals; "+0.37 (no interval)"
+    with one run a side)."""
+    diff, half = welch(a, b)
+    fmt = "{:+.3f}" if key in ("ssim", "lpips") else "{:+.2f}"
+    interval = " (no interval)" if math.isnan(half) else " +- " + fmt.format(half).lstrip("+")
+    return diff, half, fmt.format(diff) + interval

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Dict, List, Tuple
 
 from benchmarks.common import BENCHMARKS, header
-from benchmarks.compare_cells import cell_dir, made_at, run_cell, runs_of, welch
+from benchmarks.compare_cells import cell_dir, difference, made_at, run_cell, runs_of
 from geer_ns.compare.report import interval
 
 VARIANTS = ("geer-reference-units", "geer", "geer-gsplat-units")
@@ -54,19 +54,18 @@ def report(tables: Dict[Tuple[str, str, str], Path], variants: List[str], defaul
         for method in variants[1:]:
             cells, diffs = [], []
             for scene, views in CELLS:
-                d, h = welch([x[key] for x in runs[(scene, views, method)]], [x[key] for x in runs[(scene, views, base)]])
+                d, _, cell = difference([x[key] for x in runs[(scene, views, method)]],
+                                        [x[key] for x in runs[(scene, views, base)]], key)
                 diffs.append(d)
-                cells.append(f"{d:+.3f} +- {h:.3f}" if key == "ssim" else f"{d:+.2f} +- {h:.2f}")
+                cells.append(cell)
             lines.append(f"| {method} ({key}) | " + " | ".join(cells) + f" | {sum(diffs) / len(diffs):+.3f} |")
     peers = [(scene, views, m) for (scene, views, m) in tables if m.startswith("splatfacto")]
     if peers and default in variants:
         lines += ["", f"## `{default}` against splatfacto's runs of the same cell (where DIR holds them)", "",
                   "| scene | views | peer | PSNR | SSIM |", "| --- | --- | --- | ---: | ---: |"]
         for scene, views, peer in peers:
-            cells = []
-            for key in ("psnr", "ssim"):
-                d, h = welch([x[key] for x in runs[(scene, views, default)]], [x[key] for x in runs[(scene, views, peer)]])
-                cells.append(f"{d:+.3f} +- {h:.3f}" if key == "ssim" else f"{d:+.2f} +- {h:.2f}")
+            cells = [difference([x[key] for x in runs[(scene, views, default)]],
+                                [x[key] for x in runs[(scene, views, peer)]], key)[2] for key in ("psnr", "ssim")]
             lines.append(f"| {scene} | {views} | {peer} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -84,7 +83,7 @@ def main() -> None:
         for scene, views in CELLS:
             print(f"[densify_default] {scene} {views} {method}", flush=True)
             tables[(scene, views, method)] = run_cell(args.work, scene, views, method, args.steps, args.seeds)
-    for scene, views in CELLS:  # splatfacto's runs of a cell, where vs_splatfacto.py left them in DIR (not trained here)
+    for scene, views in CELLS:  # splatfacto's runs of a cell where vs_splatfacto.py left them in DIR (shown, not trained)
         peer = "splatfacto-fisheye" if views == "fisheye" else "splatfacto"
         found = cell_dir(args.work, scene, views, peer) / "compare.json"
         if found.is_file() and {(r["steps"], r["seed"]) for r in runs_of(found, peer)} == {

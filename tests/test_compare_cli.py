@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -132,9 +135,6 @@ def test_native_and_beap_rows_over_two_seeds(small_room, tmp_path, single_thread
 
 
 def test_a_bad_option_or_capture_ends_in_one_line(small_room, tmp_path):
-    import subprocess
-    import sys
-
     meta = json.loads(small_room.read_text())
     del meta["fl_x"]
     broken = small_room.parent / "no_focal.json"
@@ -172,6 +172,14 @@ def test_config_digest_names_what_a_run_was_made_with(small_room, tmp_path):
     assert digests == [config_digest(m) for m in again] and len(set(digests)) == len(names)
     first[0].config.pipeline.model.densify_units = "reference"  # a changed default is another config
     assert config_digest(first[0]) != digests[0]
+    # each cell of a study is its own process: the digest must not depend on the process (hash seeds, ids)
+    code = ("import sys; from pathlib import Path; from geer_ns.compare.capture import load_capture; "
+            "from geer_ns.compare.methods import config_digest, plan; "
+            f"methods, _ = plan(load_capture(Path(sys.argv[1]), 45.0), {names!r}, Path(sys.argv[2]), 120.0); "
+            "print(' '.join(config_digest(m) for m in methods))")
+    done = subprocess.run([sys.executable, "-c", code, str(small_room), str(tmp_path / "c")], text=True,
+                          capture_output=True, timeout=300, env={**os.environ, "PYTHONHASHSEED": "12345"})
+    assert done.stdout.strip().splitlines()[-1].split() == digests, done.stdout + done.stderr[-2000:]
 
 
 def test_keep_finished_keeps_only_a_table_of_todays_runs(small_room, tmp_path, single_thread, monkeypatch):
@@ -191,7 +199,8 @@ def test_keep_finished_keeps_only_a_table_of_todays_runs(small_room, tmp_path, s
 
     monkeypatch.setattr(run, "run_method", no_training)
     assert Compare(**options, keep_finished=True).main() == text
-    for changed in (dict(options, steps=5), dict(options, seeds=(1, 2)), dict(options, methods=("geer-beap",))):
+    for changed in (dict(options, steps=5), dict(options, seeds=(1, 2)), dict(options, methods=("geer-beap",)),
+                    dict(options, central_half_angle_deg=30.0)):  # another protocol
         with pytest.raises(AssertionError, match="trained again"):
             Compare(**changed, keep_finished=True).main()
     stale = json.loads((tmp_path / "compare.json").read_text())

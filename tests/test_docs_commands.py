@@ -104,3 +104,15 @@ def test_every_shown_command_exists_and_answers_help():
         if code != 0:
             missing.append(f"{key}: exit {code}: {output}")
     assert not missing, "\n".join(missing)
+
+
+def test_every_benchmark_the_pages_name_exists():
+    """Benchmark commands are not run for --help (some have no options and would run): their scripts must exist."""
+    named = set()
+    for page in [*PAGES, *sorted((ROOT / "benchmarks").glob("*.py"))]:
+        text = page.read_text()
+        named |= {(page.name, f"benchmarks/{m}.py") for m in re.findall(r"python -m benchmarks\.(\w+)", text)}
+        named |= {(page.name, f"benchmarks/{s}") for s in re.findall(r"benchmarks/(\w+\.(?:sh|py))\b", text)}
+    missing = [f"{page}: {path}" for page, path in sorted(named) if "/NAME." not in path
+               and not (ROOT / path).is_file()]
+    assert len(named) >= 10 and not missing, missing

@@ -65,35 +65,37 @@ class Compare:
         self.output_dir.mkdir(parents=True, exist_ok=True)
         methods, skipped = plan(capture, tuple(self.methods), self.output_dir, self.pinhole_fov_deg,
                                 self.max_gaussians)
-        if self.keep_finished and self._finished(methods):
-            text = (self.output_dir / "compare.md").read_text()
-            print(f"[geer-compare] kept the table in {self.output_dir}: the same methods, steps, seeds and configs")
-            return text
-        self._build_geer_kernels(methods)
         lpips = lpips_metric()
         lpips_reason = ("torchmetrics' LPIPS (AlexNet), the same for every method" if lpips is not None else
                         f"not computed: AlexNet's weights are not cached at {alexnet_weights_path()} (no download)")
+        lines = report.protocol(capture, self.central_half_angle_deg, self.steps, lpips_reason, self.seeds)
+        if self.keep_finished and self._finished(methods, lines):
+            text = (self.output_dir / "compare.md").read_text()
+            print(f"[geer-compare] kept the table in {self.output_dir}: the same runs, configs and protocol")
+            return text
+        self._build_geer_kernels(methods)
         say = lambda text: CONSOLE.print(f"[bold yellow]{text}")  # noqa: E731
         results = [run_method(m, self.steps, capture, self.output_dir, lpips, seed, say)
                    for m in methods for seed in self.seeds]
-        lines = report.protocol(capture, self.central_half_angle_deg, self.steps, lpips_reason, self.seeds)
         text = report.write(self.output_dir, capture, results, skipped, lines)
         print(text)
         print(f"[geer-compare] wrote {self.output_dir / 'compare.md'}, compare.json and compare.png")
         return text
 
-    def _finished(self, methods) -> bool:
-        """Whether --output-dir holds a table of exactly these runs, each made with today's config."""
+    def _finished(self, methods, lines) -> bool:
+        """Whether --output-dir holds a table of exactly these runs, each made with today's config, under this
+        protocol (`lines`: the capture, steps, seeds, central region and LPIPS)."""
         import json
 
         from geer_ns.compare.methods import config_digest
 
-        table = self.output_dir / "compare.json"
-        if not table.is_file() or not (self.output_dir / "compare.md").is_file():
+        path = self.output_dir / "compare.json"
+        if not path.is_file() or not (self.output_dir / "compare.md").is_file():
             return False
-        made = sorted((r["method"], r["seed"], r["steps"], r.get("config_digest")) for r in
-                      json.loads(table.read_text())["results"])
-        return made == sorted((m.name, seed, self.steps, config_digest(m)) for m in methods for seed in self.seeds)
+        table = json.loads(path.read_text())
+        made = sorted((r["method"], r["seed"], r["steps"], r.get("config_digest")) for r in table["results"])
+        planned = sorted((m.name, seed, self.steps, config_digest(m)) for m in methods for seed in self.seeds)
+        return made == planned and table["protocol"] == lines
 
     @staticmethod
     def _build_geer_kernels(methods) -> None:

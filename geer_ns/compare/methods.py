@@ -37,16 +37,18 @@ def gsplat_units(model):
 
 
 def config_digest(method: Method) -> str:
-    """A fingerprint of what the method trains: its nerfstudio config as planned (every default included, no
-    paths), the name of the transforms file it trains on and the camera it renders in. A table whose runs carry
-    today's digest was made with today's options and defaults (geer-compare --keep-finished)."""
+    """A fingerprint of what the method trains: its nerfstudio config as planned (every option and default, no
+    paths), the bytes of the transforms file it trains on (intrinsics, poses, splits: a resampled capture's too)
+    and the camera it renders in. A table whose runs carry today's digest was made with today's options and
+    defaults (geer-compare --keep-finished)."""
     import yaml
 
     config = copy.deepcopy(method.config)
     config.data = None
     config.pipeline.datamanager.data = None
     config.pipeline.datamanager.dataparser.data = Path(".")
-    text = yaml.dump(config) + f"\n{method.data.name}\n{method.render_camera}"
+    data = hashlib.sha256(method.data.read_bytes()).hexdigest()
+    text = yaml.dump(config) + f"\n{data}\n{method.render_camera}"
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 

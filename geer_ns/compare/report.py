@@ -189,7 +189,10 @@ def load(out_dir: Path) -> Tuple[List[Result], Dict[str, str], List[str]]:
     """The results, skipped methods and protocol lines of a table `write` made in out_dir; each method's first
     seed gets its pictured renders back where renders.npz holds them (tables merged into one: `picture`)."""
     table = json.loads((out_dir / "compare.json").read_text())
-    stored = np.load(out_dir / "renders.npz") if (out_dir / "renders.npz").is_file() else {}
+    stored = {}
+    if (out_dir / "renders.npz").is_file():
+        with np.load(out_dir / "renders.npz") as npz:
+            stored = {key: npz[key] for key in npz.files}
     attributes = {"method", "seed", "description", "rasterizer", "steps", "config_digest", "train_seconds", "gaussians",
                   "render_ms"}
     results, pictured = [], set()
