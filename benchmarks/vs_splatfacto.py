@@ -12,6 +12,7 @@ the fewest Gaussians of the views' splatfacto runs: splatfacto-fisheye on fishey
 views) is trained too: a row at equal counts.
 
     python -m benchmarks.vs_splatfacto --work DIR [--scene dev_room] [--steps 1000] [--seeds 1 2 3] [--extra]
+                                       [--note TEXT ...]
 
 --extra: also splatfacto on a 120-degree pinhole undistortion of the fisheye (and, on the dev room, splatfacto as
 shipped: 10-16 dB behind). Each method trains into a table of its own, DIR/SCENE/VIEWS_METHOD
@@ -159,6 +160,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     ap.add_argument("--extra", action="store_true", help="also splatfacto on pinhole undistortions of the fisheye")
+    ap.add_argument("--note", nargs="*", default=[], help="lines for the report's header")
     args = ap.parse_args()
     room = scene_dir(args.work, args.scene)
     name, title = REPORTS[args.scene]
@@ -174,11 +176,12 @@ def main() -> None:
         text, results = merged_table(tables)
         sections.append(f"## {views} views\n\n{text}")
         if views == "fisheye":
-            picture(room / "transforms_fisheye.json", results, BENCHMARKS / f"{name}.png")
+            pictured = results
     text = header(f"geer against splatfacto (geer-compare), {title}",
                   f"every method: {args.steps} steps of nerfstudio's trainer, the same schedule options "
                   f"(docs/compare.md), seeds {' '.join(map(str, args.seeds))}; `geer`: geer at its defaults",
-                  *verdict(readings))
+                  *verdict(readings), *args.note)
+    picture(room / "transforms_fisheye.json", pictured, BENCHMARKS / f"{name}.png")  # after the header's commit
     text += "\n## geer against the best splatfacto variant (difference of the means, 95 % Welch interval)\n\n"
     text += "\n".join(summary) + "\n"
     if args.scene == "dev_room":

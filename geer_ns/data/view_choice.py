@@ -10,7 +10,7 @@ renderer traces any ray exactly, with the PBF mirror transform keeping the assoc
 degrees.
 
 ``auto`` (the default) is native rays for every camera, chosen by measurement: on the dev room at 128^2,
-1000 steps, three seeds, native supervision scored 1.8 dB (pinhole) and 1.1 dB (180-degree fisheye; 1.3 dB in
+1000 steps, three seeds, native supervision scored 2.1 dB (pinhole) and 1.4 dB (180-degree fisheye; 1.6 dB in
 its centre) above BEAP on the same test pixels (benchmarks/vs_splatfacto.md). ``beap`` (the paper's setting)
 and ``native`` force one view; a BEAP camera may lose a rim (rays beyond BEAP's +-89.5 degree limit), and the
 start-up report says how many pixels.
@@ -33,7 +33,7 @@ View = Literal["beap", "native"]
 
 
 AUTO_REASON = ("supervision auto: native rays, every valid pixel as captured (BEAP training images, resampled, "
-               "scored 1.1-1.8 dB lower on the dev room: benchmarks/vs_splatfacto.md; "
+               "scored 1.4-2.1 dB lower on the dev room: benchmarks/vs_splatfacto.md; "
                "--pipeline.datamanager.supervision beap for the paper's setting)")
 
 
