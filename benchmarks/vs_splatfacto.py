@@ -143,14 +143,12 @@ def beap_loss(room: Path) -> str:
 
 
 def picture(transforms: Path, results: List, path: Path) -> None:
-    """The capture's first test view: ground truth, each method's render and its error (128 colours)."""
-    from PIL import Image
-
+    """The capture's first test view: ground truth, each method's render and its error (full colour: a shared
+    palette shifted the renders' hues away from the ground truth's)."""
     from geer_ns.compare import report
     from geer_ns.compare.capture import load_capture
 
     report.picture(load_capture(transforms, 45.0), results, path, views=1)
-    Image.open(path).quantize(128).save(path, optimize=True)
 
 
 def main() -> None:

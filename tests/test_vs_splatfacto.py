@@ -95,4 +95,4 @@ def test_tables_of_single_methods_merge_into_one_table_and_picture(tmp_path):
     from PIL import Image
 
     with Image.open(tmp_path / "picture.png") as image:  # ground truth and geer (splatfacto: no renders), two rows
-        assert image.mode == "P" and image.width == 2 * max(1, 200 // h) * w
+        assert image.mode == "RGB" and image.width == 2 * max(1, 200 // h) * w
