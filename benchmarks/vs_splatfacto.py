@@ -70,7 +70,8 @@ def against_splatfacto(views: str, tables: Dict[str, Path]) -> Tuple[List[str], 
     splat = [m for m in tables if m.startswith("splatfacto")]
     for geer in [m for m in GEER_ROWS if m in tables]:
         mine = runs_of(tables[geer], geer)
-        for key in FIGURES:
+        periphery = any(r.get("peripheral_psnr") is not None for r in mine)
+        for key in [k for k in FIGURES if periphery or k != "central_psnr"]:  # no periphery: the centre is psnr
             sign = -1 if key == "lpips" else 1  # lower LPIPS is better
             theirs = {m: [r[key] for r in runs_of(tables[m], m) if r.get(key) is not None] for m in splat}
             theirs = {m: v for m, v in theirs.items() if v}

@@ -40,6 +40,9 @@ def test_geer_is_set_against_the_best_variant_and_read_by_its_interval(tmp_path)
     _, readings = vs_splatfacto.against_splatfacto("fisheye", tables)
     assert [r for _, r, _ in readings] == ["geer ahead", "geer behind", "geer ahead"]
     assert "geer ahead in 2 (fisheye psnr +5.00 +- " in vs_splatfacto.verdict(readings)[0]
+    pinhole = {m: _table(tmp_path / f"pin_{m}", m, [1, 1, 1], psnr=[30.0, 30.1, 29.9], central_psnr=[30.0, 30.1, 29.9],
+                         peripheral_psnr=[None] * 3) for m in ("geer", "splatfacto")}
+    assert [c.split()[1] for _, _, c in vs_splatfacto.against_splatfacto("pinhole", pinhole)[1]] == ["psnr"]
     one = {m: _table(tmp_path / f"one_{m}", m, [1], psnr=[30.0]) for m in ("geer", "splatfacto")}
     assert [r for _, r, _ in vs_splatfacto.against_splatfacto("pinhole", one)[1]] == ["one seed"]
 
