@@ -15,13 +15,12 @@ a cell are shown beside geer's (not trained here). Writes benchmarks/densify_def
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 from typing import Dict, List, Tuple
 
 from benchmarks.common import BENCHMARKS, header
 from benchmarks.compare_cells import cell_dir, difference, made_at, run_cell, runs_of
-from geer_ns.compare.report import interval
+from geer_ns.compare.report import cell, interval
 
 VARIANTS = ("geer-reference-units", "geer", "geer-gsplat-units")
 CELLS = [(scene, views) for scene in ("dev_room", "donut_room") for views in ("fisheye", "pinhole")]
@@ -41,11 +40,8 @@ def report(tables: Dict[Tuple[str, str, str], Path], variants: List[str], defaul
         for (s, v, method), path in tables.items():
             if (s, v) != (scene, views):
                 continue
-            cell = []
-            for key, fmt in formats:
-                m, h = interval([x.get(key) for x in runs[(s, v, method)]])
-                cell.append("n/a" if math.isnan(m) else fmt.format(m) + ("" if math.isnan(h) else " +- " + fmt.format(h)))
-            lines.append(f"| {scene} | {views} | {method} | " + " | ".join(cell) + f" | {made_at(path)} |")
+            cells = [cell(interval([x.get(key) for x in runs[(s, v, method)]]), fmt) for key, fmt in formats]
+            lines.append(f"| {scene} | {views} | {method} | " + " | ".join(cells) + f" | {made_at(path)} |")
     base = variants[0]
     lines += ["", f"## Each variant against `{base}` (difference of the means, 95 % Welch interval)", "",
               "| method | " + " | ".join(f"{s} {v}" for s, v in CELLS) + " | mean over the cells |",
@@ -54,10 +50,10 @@ def report(tables: Dict[Tuple[str, str, str], Path], variants: List[str], defaul
         for method in variants[1:]:
             cells, diffs = [], []
             for scene, views in CELLS:
-                d, _, cell = difference([x[key] for x in runs[(scene, views, method)]],
+                d, _, text = difference([x[key] for x in runs[(scene, views, method)]],
                                         [x[key] for x in runs[(scene, views, base)]], key)
                 diffs.append(d)
-                cells.append(cell)
+                cells.append(text)
             lines.append(f"| {method} ({key}) | " + " | ".join(cells) + f" | {sum(diffs) / len(diffs):+.3f} |")
     peers = [(scene, views, m) for (scene, views, m) in tables if m.startswith("splatfacto")]
     if peers and default in variants:

@@ -99,3 +99,18 @@ def test_tables_of_single_methods_merge_into_one_table_and_picture(tmp_path):
 
     with Image.open(tmp_path / "picture.png") as image:  # ground truth and geer (splatfacto: no renders), two rows
         assert image.mode == "RGB" and image.width == 2 * max(1, 200 // h) * w
+
+
+def test_densify_default_reads_the_same_one_method_tables(tmp_path):
+    from benchmarks import densify_default
+
+    tables = {}
+    for scene, views in densify_default.CELLS:
+        for method, offset in (("geer-reference-units", 0.0), ("geer", 1.0)):
+            tables[(scene, views, method)] = _table(tmp_path / f"{scene}_{views}_{method}", method, [100, 100, 100],
+                                                    psnr=[30.1 + offset, 30.2 + offset, 30.3 + offset],
+                                                    ssim=[0.9, 0.9, 0.9], peripheral_psnr=[None] * 3)
+    text = densify_default.report(tables, ["geer-reference-units", "geer"])
+    # mean 30.20, t(0.975, 2) 4.302653 x sd 0.1 / sqrt(3) = 0.248; no periphery: n/a
+    assert "| dev_room | fisheye | geer-reference-units | 30.20 +- 0.25 | 0.900 +- 0.000 | n/a | n/a | 100 +- 0 |" in text
+    assert "| geer (psnr) | +1.00 +- 0.23 | +1.00 +- 0.23 | +1.00 +- 0.23 | +1.00 +- 0.23 | +1.000 |" in text

@@ -92,7 +92,8 @@ def summarize(results: List[Result]) -> List[Summary]:
     return out
 
 
-def _cell(figure: Tuple[float, float] | None, fmt: str) -> str:
+def cell(figure: Tuple[float, float] | None, fmt: str) -> str:
+    """A table cell of (mean, half-width): "mean +- half", the mean alone without an interval, n/a without a mean."""
     if figure is None or math.isnan(figure[0]):
         return "n/a"
     mean, half = figure
@@ -104,9 +105,9 @@ def markdown(results: List[Result], skipped: Dict[str, str], lines: List[str]) -
     rows = ["| " + " | ".join(header) + " |", "| --- |" + " ---: |" * (len(header) - 2) + " --- |"]
     summaries = summarize(results)
     for m in summaries:
-        cells = [_cell(m.figures.get(key), fmt) for _, key, fmt in COLUMNS]
-        cells += [_cell(m.figures["train_seconds"], "{:.1f}"), _cell(m.figures["gaussians"], "{:,.0f}"),
-                  _cell(m.figures["render_ms"], "{:.1f}")]
+        cells = [cell(m.figures.get(key), fmt) for _, key, fmt in COLUMNS]
+        cells += [cell(m.figures["train_seconds"], "{:.1f}"), cell(m.figures["gaussians"], "{:,.0f}"),
+                  cell(m.figures["render_ms"], "{:.1f}")]
         rows.append(f"| {m.name} | {len(m.seeds)} | " + " | ".join(cells) + f" | {m.rasterizer} |")
     out = ["## geer-compare", "", *rows, "", "Methods:", ""]
     out += [f"- **{m.name}**: {m.description}" for m in summaries]
@@ -147,13 +148,18 @@ def _error_map(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor) -> np.
     return np.where(valid.numpy()[..., None], colored, 0).astype(np.uint8)
 
 
-def picture(capture: Capture, results: List[Result], path: Path, views: int = 3) -> Path:
-    """Per test view: ground truth then each method's render (top), each method's error map (below); a method's
-    first seed (a method loaded without its renders is left out)."""
+def first_seeds(results: List[Result]) -> List[Result]:
+    """Each method's first result (its first seed), in the methods' order: the pictured runs."""
     first: Dict[str, Result] = {}
     for r in results:
         first.setdefault(r.name, r)
-    results = [r for r in first.values() if len(r.renders) >= min(views, len(capture.views))]  # loaded: may lack them
+    return list(first.values())
+
+
+def picture(capture: Capture, results: List[Result], path: Path, views: int = 3) -> Path:
+    """Per test view: ground truth then each method's render (top), each method's error map (below); a method's
+    first seed (a method loaded without its renders is left out)."""
+    results = [r for r in first_seeds(results) if len(r.renders) >= min(views, len(capture.views))]  # loaded: may lack them
     blocks = []
     scale = max(1, 200 // capture.camera.height)
     for i, view in enumerate(capture.views[:views]):
@@ -179,8 +185,7 @@ def write(out_dir: Path, capture: Capture, results: List[Result], skipped: Dict[
     (out_dir / "compare.md").write_text(text)
     (out_dir / "compare.json").write_text(json.dumps(as_json(results, skipped, lines), indent=1) + "\n")
     picture(capture, results, out_dir / "compare.png", PICTURED_VIEWS)
-    first = {r.name: r for r in reversed(results)}
-    np.savez_compressed(out_dir / "renders.npz", **{f"{name}__{i}": to_uint8(image) for name, r in first.items()
+    np.savez_compressed(out_dir / "renders.npz", **{f"{r.name}__{i}": to_uint8(image) for r in first_seeds(results)
                                                      for i, image in enumerate(r.renders[:PICTURED_VIEWS])})
     return text
 
